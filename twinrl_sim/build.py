@@ -1,0 +1,321 @@
+"""Compile a :class:`~twinrl_sim.spec.SceneSpec` into a MuJoCo model through ``MjSpec``.
+
+The result carries a :class:`CellLayout` naming the parts that controllers, tasks and
+effects address (arm joints and actuators, flange, TCP site, gripper, table, objects,
+cameras), so nothing downstream hard-codes the built-in robot's names.
+
+Movable objects get a free joint; targets and fixtures are mocap bodies, so a task can
+place them per episode without recompiling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from twinrl_sim.effects import apply_effects
+from twinrl_sim.robots import gripper as gripper_lib
+from twinrl_sim.robots import ur5e
+from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, SpecError
+
+FLOOR_DEPTH = 0.75  # floor below the table top (m)
+ENV_CONTYPE, ENV_CONAFFINITY = 1, 1
+VISUAL_GROUP = 1
+
+
+@dataclass(frozen=True)
+class CellLayout:
+    """Names of the parts of a compiled cell."""
+
+    arm_joints: tuple[str, ...]
+    arm_actuators: tuple[str, ...]
+    flange_body: str
+    tcp_site: str
+    gripper_actuator: str | None
+    gripper_joint: str | None
+    table_body: str
+    table_geom: str
+    manipulated: tuple[str, ...]
+    placed: tuple[str, ...]
+    cameras: tuple[str, ...]
+    home_qpos: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class CompiledScene:
+    """A compiled model with the spec it came from and its layout."""
+
+    spec: SceneSpec
+    model: mujoco.MjModel
+    layout: CellLayout
+
+
+def build_mjspec(scene: SceneSpec, *, apply_spec_effects: bool = True) -> tuple[mujoco.MjSpec, CellLayout]:
+    """Assemble the ``MjSpec`` for ``scene`` (effects included unless told otherwise)."""
+    spec = mujoco.MjSpec()
+    spec.modelname = scene.name
+    spec.compiler.degree = False  # every angle in a spec is in radians
+    spec.option.timestep = scene.physics.timestep
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = 10.0
+    width = max([c.width for c in scene.cameras] + [640])
+    height = max([c.height for c in scene.cameras] + [480])
+    spec.visual.global_.offwidth = width
+    spec.visual.global_.offheight = height
+    spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
+    spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
+
+    _add_room(spec, scene)
+    arm_joints, arm_actuators, flange, tcp, home = _add_robot(spec, scene)
+    has_gripper = scene.robot.gripper == "parallel_jaw"
+    if has_gripper:
+        gripper_lib.add_parallel_gripper(spec.body(flange), spec)
+        tcp = gripper_lib.TCP_SITE
+    manipulated, placed = [], []
+    for obj in scene.objects:
+        _add_object(spec, scene, obj)
+        (manipulated if obj.role == "manipulated" else placed).append(obj.name)
+    for cam in scene.cameras:
+        _add_camera(spec, scene, cam, flange)
+    for i, light in enumerate(scene.lights):
+        spec.worldbody.add_light(
+            name=f"light{i}", pos=light.pos, dir=light.dir, diffuse=light.diffuse, castshadow=False
+        )
+    layout = CellLayout(
+        arm_joints=tuple(arm_joints),
+        arm_actuators=tuple(arm_actuators),
+        flange_body=flange,
+        tcp_site=tcp,
+        gripper_actuator=gripper_lib.ACTUATOR if has_gripper else None,
+        gripper_joint=gripper_lib.JOINT if has_gripper else None,
+        table_body="table",
+        table_geom="table_top",
+        manipulated=tuple(manipulated),
+        placed=tuple(placed),
+        cameras=tuple(c.name for c in scene.cameras),
+        home_qpos=tuple(home),
+    )
+    if apply_spec_effects and scene.effects:
+        try:
+            apply_effects(spec, layout, scene.effects)
+        except ValueError as err:
+            raise SpecError(f"scene '{scene.name}' effects: {err}") from None
+    return spec, layout
+
+
+def compile_scene(scene: SceneSpec, *, extra_effects: dict | None = None) -> CompiledScene:
+    """Compile ``scene`` (with ``extra_effects`` on top of its own) to a MuJoCo model."""
+    if extra_effects:
+        scene = scene.with_effects(extra_effects)
+    spec, layout = build_mjspec(scene)
+    try:
+        model = spec.compile()
+    except ValueError as err:
+        raise SpecError(f"scene '{scene.name}' does not compile in MuJoCo: {err}") from None
+    return CompiledScene(spec=scene, model=model, layout=layout)
+
+
+def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
+    table = scene.table
+    spec.add_texture(
+        name="skybox",
+        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        rgb1=[0.55, 0.65, 0.75],
+        rgb2=[0.1, 0.1, 0.12],
+        width=64,
+        height=64,
+    )
+    spec.worldbody.add_geom(
+        name="floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[3, 3, 0.1],
+        pos=[0, 0, table.top_height - FLOOR_DEPTH],
+        rgba=[0.3, 0.3, 0.32, 1],
+        contype=ENV_CONTYPE,
+        conaffinity=ENV_CONAFFINITY,
+    )
+    body = spec.worldbody.add_body(name="table", pos=[table.center[0], table.center[1], table.top_height])
+    body.add_geom(
+        name="table_top",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[table.size[0] / 2, table.size[1] / 2, table.thickness / 2],
+        pos=[0, 0, -table.thickness / 2],
+        rgba=table.rgba,
+        friction=[table.friction, 0.005, 0.0001],
+        contype=ENV_CONTYPE,
+        conaffinity=ENV_CONAFFINITY,
+    )
+
+
+def _add_robot(spec: mujoco.MjSpec, scene: SceneSpec) -> tuple[list[str], list[str], str, str, list[float]]:
+    robot = scene.robot
+    mount = spec.worldbody.add_body(name="robot_mount", pos=list(robot.base_pos))
+    if robot.is_builtin:
+        flange = ur5e.add_ur5e(mount)
+        joints = list(ur5e.JOINT_NAMES)
+        for i, name in enumerate(joints):
+            act = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            act.set_to_position(kp=ur5e.SERVO_KP[i])
+            act.ctrlrange = list(ur5e.JOINT_LIMITS[i])
+            act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+            limit = ur5e.JOINT_TORQUE_LIMITS[i]
+            act.forcerange = [-limit, limit]
+            act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        home = list(robot.home_qpos or ur5e.HOME_QPOS)
+        return joints, joints, flange.name, "", home
+    return _attach_custom_robot(spec, scene, mount)
+
+
+def _attach_custom_robot(
+    spec: mujoco.MjSpec, scene: SceneSpec, mount: mujoco.MjsBody
+) -> tuple[list[str], list[str], str, str, list[float]]:
+    robot = scene.robot
+    assert robot.mjcf is not None and robot.joints and robot.actuators and robot.flange_body
+    try:
+        child = mujoco.MjSpec.from_file(str(robot.mjcf))
+    except ValueError as err:
+        raise SpecError(f"robot.mjcf {robot.mjcf} could not be loaded: {err}") from None
+    root = child.worldbody.first_body()
+    if root is None:
+        raise SpecError(f"robot.mjcf {robot.mjcf} has no body under <worldbody>")
+    frame = mount.add_frame()
+    frame.attach_body(root, "", "")
+    names = {
+        "joint": (robot.joints, {j.name for j in spec.joints}),
+        "actuator": (robot.actuators, {a.name for a in spec.actuators}),
+        "body": ([robot.flange_body], {b.name for b in spec.bodies}),
+    }
+    if robot.tcp_site is not None:
+        names["site"] = ([robot.tcp_site], {s.name for s in spec.sites})
+    missing = [f"{kind} '{n}'" for kind, (want, have) in names.items() for n in want if n not in have]
+    if missing:
+        raise SpecError(f"robot.mjcf {robot.mjcf} lacks {', '.join(missing)}; fix the names in the spec")
+    home = list(robot.home_qpos) if robot.home_qpos else [0.0] * len(robot.joints)
+    if len(home) != len(robot.joints):
+        raise SpecError(f"robot.home_qpos has {len(home)} values for {len(robot.joints)} joints")
+    return list(robot.joints), list(robot.actuators), robot.flange_body, robot.tcp_site or "", home
+
+
+def _euler_quat(euler: tuple[float, float, float] | list[float]) -> list[float]:
+    quat = np.zeros(4)
+    mujoco.mju_euler2Quat(quat, np.asarray(euler, float), "xyz")
+    return quat.tolist()
+
+
+def yaw_quat(yaw: float) -> np.ndarray:
+    """Quaternion (w, x, y, z) of a rotation by ``yaw`` about the vertical axis."""
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def geom_volume(geom: GeomSpec) -> float:
+    """Volume (m^3) of a primitive, used to turn an object's mass into a density."""
+    s = geom.size
+    match geom.type:
+        case "box":
+            return 8 * s[0] * s[1] * s[2]
+        case "cylinder":
+            return np.pi * s[0] ** 2 * 2 * s[1]
+        case "capsule":
+            return np.pi * s[0] ** 2 * 2 * s[1] + 4 / 3 * np.pi * s[0] ** 3
+        case "sphere":
+            return 4 / 3 * np.pi * s[0] ** 3
+        case "prism":
+            area = 0.5 * geom.sides * s[0] ** 2 * np.sin(2 * np.pi / geom.sides)
+            return area * 2 * s[1]
+    raise AssertionError(geom.type)
+
+
+def prism_vertices(sides: int, radius: float, half_height: float) -> np.ndarray:
+    """Vertices of a regular prism with a flat face normal to +x (shape (2*sides, 3))."""
+    angles = np.pi / sides + 2 * np.pi * np.arange(sides) / sides
+    ring = np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+    top = np.hstack([ring, np.full((sides, 1), half_height)])
+    bottom = np.hstack([ring, np.full((sides, 1), -half_height)])
+    return np.vstack([top, bottom])
+
+
+_GEOM_TYPES = {
+    "box": mujoco.mjtGeom.mjGEOM_BOX,
+    "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER,
+    "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
+    "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
+    "prism": mujoco.mjtGeom.mjGEOM_MESH,
+}
+
+
+def _add_object(spec: mujoco.MjSpec, scene: SceneSpec, obj: ObjectSpec) -> None:
+    x, y, z = obj.pos
+    body = spec.worldbody.add_body(
+        name=obj.name,
+        pos=[x, y, scene.table.top_height + z],
+        quat=yaw_quat(obj.yaw).tolist(),
+    )
+    if obj.role == "manipulated":
+        body.add_freejoint(name=f"{obj.name}_free")
+        volume = sum(geom_volume(g) for g in obj.geoms if g.contact)
+        density = obj.mass / volume if obj.mass else 1000.0
+    else:
+        body.mocap = True
+        density = 1000.0
+    for i, geom in enumerate(obj.geoms):
+        kwargs = {}
+        size = list(geom.size) + [0.0] * (3 - len(geom.size))
+        if geom.type == "prism":
+            mesh_name = f"{obj.name}_mesh{i}"
+            spec.add_mesh(
+                name=mesh_name,
+                uservert=prism_vertices(geom.sides, geom.size[0], geom.size[1]).ravel().tolist(),
+            )
+            kwargs["meshname"] = mesh_name
+            size = [0.0, 0.0, 0.0]
+        contact = geom.contact
+        body.add_geom(
+            name=f"{obj.name}_geom{i}",
+            type=_GEOM_TYPES[geom.type],
+            size=size,
+            pos=list(geom.pos),
+            quat=_euler_quat(geom.euler),
+            rgba=list(geom.rgba or obj.rgba),
+            friction=[obj.friction, 0.01, 0.0001],
+            condim=4 if contact else 3,
+            density=density if contact else 0.0,
+            contype=ENV_CONTYPE if contact else 0,
+            conaffinity=ENV_CONAFFINITY if contact else 0,
+            group=0 if contact else VISUAL_GROUP,
+            **kwargs,
+        )
+
+
+def look_at_quat(pos: np.ndarray, target: np.ndarray, up: np.ndarray) -> list[float]:
+    """Camera quaternion looking from ``pos`` at ``target`` (MuJoCo cameras look along -z)."""
+    forward = np.asarray(target, float) - np.asarray(pos, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-6:
+        right = np.cross(forward, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    rot = np.stack([right, cam_up, -forward], axis=1)
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, rot.ravel())
+    return quat.tolist()
+
+
+def _add_camera(spec: mujoco.MjSpec, scene: SceneSpec, cam: CameraSpec, flange: str) -> None:
+    if cam.mount == "world":
+        parent = spec.worldbody
+        quat = look_at_quat(np.array(cam.pos), np.array(cam.lookat), np.array([0.0, 0.0, 1.0]))
+    else:
+        parent = spec.body(flange)
+        quat = look_at_quat(np.array(cam.pos), np.array(cam.lookat), np.array([1.0, 0.0, 0.0]))
+    parent.add_camera(
+        name=cam.name,
+        pos=list(cam.pos),
+        quat=quat,
+        fovy=cam.fovy,
+        resolution=[cam.width, cam.height],
+    )

@@ -1,0 +1,355 @@
+"""The scene spec: a versioned, hashable YAML description of a robot cell.
+
+A spec names the robot, the table, the objects (primitive geometry, mass, friction), the
+cameras and lights, the physics rates and any identified physical effects. It is plain
+data: :func:`twinrl_sim.build.compile_scene` turns it into a MuJoCo model through
+``mujoco.MjSpec``. Its :attr:`SceneSpec.digest` is what episodes record as ``twin``.
+
+Example (abridged)::
+
+    version: 1
+    name: pick_place
+    robot: {builtin: ur5e}
+    table: {size: [0.9, 1.2], top_height: 0.0}
+    objects:
+      - name: banana
+        role: manipulated
+        mass: 0.12
+        geoms: [{type: capsule, size: [0.018, 0.07], euler: [0, 1.5708, 0]}]
+    cameras:
+      - {name: front, pos: [1.2, 0.0, 0.6], lookat: [0.45, 0.0, 0.0]}
+    effects:
+      joint_friction: {coulomb: [0.5, 0.5, 0.4, 0.1, 0.1, 0.1]}
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from twinrl_sim.effects import validate_effects
+
+SCHEMA_VERSION = 1
+
+Vec3 = tuple[float, float, float]
+Rgba = tuple[
+    Annotated[float, Field(ge=0, le=1)],
+    Annotated[float, Field(ge=0, le=1)],
+    Annotated[float, Field(ge=0, le=1)],
+    Annotated[float, Field(ge=0, le=1)],
+]
+Positive = Annotated[float, Field(gt=0)]
+
+
+class SpecError(ValueError):
+    """A scene spec (or an effects file) is invalid; the message says where and why."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class GeomSpec(_Strict):
+    """One primitive of an object. Sizes follow MuJoCo: half extents, radius, half length.
+
+    ``prism`` is a regular prism: ``size = [circumradius, half_height]`` with ``sides``
+    faces (a hexagonal block is ``sides: 6``).
+    """
+
+    type: Literal["box", "cylinder", "capsule", "sphere", "prism"]
+    size: list[Positive] = Field(min_length=1, max_length=3)
+    pos: Vec3 = (0.0, 0.0, 0.0)
+    euler: Vec3 = (0.0, 0.0, 0.0)
+    rgba: Rgba | None = None
+    sides: int = Field(default=6, ge=3, le=64)
+    contact: bool = True
+
+    @model_validator(mode="after")
+    def _check_size(self) -> GeomSpec:
+        expected = {"box": 3, "cylinder": 2, "capsule": 2, "sphere": 1, "prism": 2}[self.type]
+        if len(self.size) != expected:
+            raise ValueError(
+                f"a {self.type} needs {expected} size value(s), got {len(self.size)}"
+            )
+        return self
+
+
+class ObjectSpec(_Strict):
+    """A body on the table. ``manipulated`` objects are free; the others are fixed.
+
+    ``pos`` is the body origin: x, y in the base frame and z above the table top.
+    """
+
+    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    role: Literal["manipulated", "target", "fixture"]
+    pos: Vec3 = (0.5, 0.0, 0.0)
+    yaw: float = 0.0
+    mass: Positive | None = None
+    friction: Annotated[float, Field(gt=0, le=5)] = 1.0
+    rgba: Rgba = (0.8, 0.8, 0.8, 1.0)
+    geoms: list[GeomSpec] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _mass_for_free_bodies(self) -> ObjectSpec:
+        if self.role == "manipulated" and self.mass is None:
+            raise ValueError(f"manipulated object '{self.name}' needs a mass (kg)")
+        return self
+
+
+class RobotSpec(_Strict):
+    """The arm: the built-in UR5e, or any MJCF with its joint, actuator and site names.
+
+    A custom MJCF must have one position actuator per arm joint (named in ``actuators``,
+    in joint order) and a site at the tool centre point (``tcp_site``); the built-in
+    parallel-jaw gripper is attached to ``flange_body`` unless ``gripper: none``.
+    """
+
+    builtin: Literal["ur5e"] | None = "ur5e"
+    mjcf: Path | None = None
+    joints: list[str] | None = None
+    actuators: list[str] | None = None
+    flange_body: str | None = None
+    tcp_site: str | None = None
+    gripper: Literal["parallel_jaw", "none"] = "parallel_jaw"
+    base_pos: Vec3 = (0.0, 0.0, 0.0)
+    home_qpos: list[float] | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> RobotSpec:
+        if self.mjcf is not None:
+            missing = [k for k in ("joints", "actuators", "flange_body") if getattr(self, k) is None]
+            if missing:
+                raise ValueError(
+                    f"a custom robot mjcf needs {', '.join(missing)} (names in that file)"
+                )
+            if self.actuators is not None and len(self.actuators) != len(self.joints or []):
+                raise ValueError("robot.actuators must name one actuator per joint, in order")
+            if self.gripper == "none" and self.tcp_site is None:
+                raise ValueError("a custom robot without the built-in gripper needs tcp_site")
+        elif self.builtin is None:
+            raise ValueError("robot needs either 'builtin: ur5e' or 'mjcf: PATH'")
+        return self
+
+    @property
+    def is_builtin(self) -> bool:
+        return self.mjcf is None
+
+
+class TableSpec(_Strict):
+    size: tuple[Positive, Positive] = (0.9, 1.3)
+    center: tuple[float, float] = (0.45, 0.0)
+    thickness: Positive = 0.04
+    top_height: Annotated[float, Field(ge=-1.0, le=1.5)] = 0.0
+    friction: Annotated[float, Field(gt=0, le=5)] = 0.8
+    rgba: Rgba = (0.55, 0.45, 0.35, 1.0)
+
+
+class CameraSpec(_Strict):
+    """A camera. ``mount: world`` cameras look from ``pos`` at ``lookat``; ``wrist``
+    cameras are fixed to the flange, ``pos`` in the flange frame, looking along the tool."""
+
+    name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    mount: Literal["world", "wrist"] = "world"
+    pos: Vec3
+    lookat: Vec3 = (0.45, 0.0, 0.0)
+    fovy: Annotated[float, Field(gt=1, lt=179)] = 60.0
+    width: int = Field(default=128, ge=16, le=4096)
+    height: int = Field(default=128, ge=16, le=4096)
+
+
+DEFAULT_CAMERAS = (
+    CameraSpec(name="front", pos=(1.35, 0.0, 0.95), lookat=(0.3, 0.0, 0.05), fovy=55.0),
+    CameraSpec(name="wrist", mount="wrist", pos=(-0.075, 0.0, 0.03), lookat=(0.0, 0.0, 0.2), fovy=75.0),
+)
+
+
+class LightSpec(_Strict):
+    pos: Vec3 = (0.4, 0.0, 1.5)
+    dir: Vec3 = (0.0, 0.0, -1.0)
+    diffuse: tuple[float, float, float] = (0.7, 0.7, 0.7)
+
+
+class WorkspaceSpec(_Strict):
+    """Box (base frame, metres) that the tool centre point is clamped to."""
+
+    low: Vec3 = (0.15, -0.55, 0.005)
+    high: Vec3 = (0.85, 0.55, 0.6)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> WorkspaceSpec:
+        if any(lo >= hi for lo, hi in zip(self.low, self.high, strict=True)):
+            raise ValueError(f"workspace.low {self.low} must be below workspace.high {self.high}")
+        return self
+
+
+class PhysicsSpec(_Strict):
+    timestep: Annotated[float, Field(gt=0, le=0.01)] = 0.002
+    control_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
+
+    @model_validator(mode="after")
+    def _whole_substeps(self) -> PhysicsSpec:
+        ratio = 1.0 / (self.control_hz * self.timestep)
+        if abs(ratio - round(ratio)) > 1e-6:
+            raise ValueError(
+                f"control period 1/{self.control_hz} s is not a whole number of "
+                f"{self.timestep} s physics steps"
+            )
+        return self
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control step."""
+        return round(1.0 / (self.control_hz * self.timestep))
+
+
+class SceneSpec(_Strict):
+    """A whole cell. Load with :func:`load_spec`, compile with ``compile_scene``."""
+
+    version: Literal[1] = SCHEMA_VERSION
+    name: str
+    robot: RobotSpec = RobotSpec()
+    table: TableSpec = TableSpec()
+    objects: list[ObjectSpec] = []
+    cameras: list[CameraSpec] = Field(default_factory=lambda: list(DEFAULT_CAMERAS))
+    lights: list[LightSpec] = [LightSpec()]
+    workspace: WorkspaceSpec = WorkspaceSpec()
+    physics: PhysicsSpec = PhysicsSpec()
+    effects: dict[str, dict[str, Any]] = {}
+    provenance: dict[str, Any] = {}
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, value: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        validate_effects(value)
+        return value
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> SceneSpec:
+        for kind, names in (
+            ("object", [o.name for o in self.objects]),
+            ("camera", [c.name for c in self.cameras]),
+        ):
+            dupes = sorted({n for n in names if names.count(n) > 1})
+            if dupes:
+                raise ValueError(f"duplicate {kind} name(s): {', '.join(dupes)}")
+        return self
+
+    def object(self, name: str) -> ObjectSpec:
+        """The object called ``name``; a ``KeyError`` names the ones that exist."""
+        for obj in self.objects:
+            if obj.name == name:
+                return obj
+        raise KeyError(f"no object '{name}' in scene '{self.name}' (has: {self.object_names})")
+
+    @property
+    def object_names(self) -> list[str]:
+        return [o.name for o in self.objects]
+
+    @property
+    def digest(self) -> str:
+        """Short content hash: same spec (and same robot file) gives the same digest.
+
+        ``provenance`` is excluded: it documents where a spec came from, not what it is.
+        """
+        payload = self.model_dump(mode="json", exclude={"provenance"})
+        if self.robot.mjcf is not None:
+            payload["robot"]["mjcf_sha256"] = hashlib.sha256(
+                Path(self.robot.mjcf).read_bytes()
+            ).hexdigest()
+        text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def with_effects(self, effects: dict[str, dict[str, Any]]) -> SceneSpec:
+        """A copy with ``effects`` merged over this spec's own (validated)."""
+        return parse_spec({**self.model_dump(mode="python"), "effects": {**self.effects, **effects}})
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.model_dump(mode="json", exclude_defaults=False), sort_keys=False)
+
+
+def parse_spec(data: dict[str, Any], source: str = "scene spec") -> SceneSpec:
+    """Validate a mapping as a :class:`SceneSpec`; raise :class:`SpecError` on any problem.
+
+    All problems are reported in one message, each with its location and, for unknown
+    keys, the nearest valid key.
+    """
+    if not isinstance(data, dict):
+        raise SpecError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return SceneSpec.model_validate(data)
+    except ValidationError as err:
+        raise SpecError(f"{source}: {format_validation_error(err)}") from None
+
+
+def load_spec(path: str | Path) -> SceneSpec:
+    """Read and validate a scene spec YAML file."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"scene spec {path} does not exist; give a YAML file or a task name")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise SpecError(f"{path}: not valid YAML ({err.__class__.__name__}: {err})") from None
+    spec = parse_spec(data or {}, source=str(path))
+    if spec.robot.mjcf is not None and not spec.robot.mjcf.is_absolute():
+        robot = spec.robot.model_copy(update={"mjcf": (path.parent / spec.robot.mjcf).resolve()})
+        spec = spec.model_copy(update={"robot": robot})
+    return spec
+
+
+def save_spec(spec: SceneSpec, path: str | Path) -> Path:
+    """Write ``spec`` as YAML; refuses to overwrite an existing file."""
+    path = Path(path)
+    if path.exists():
+        raise SpecError(f"{path} already exists; choose another path or delete it first")
+    path.write_text(spec.to_yaml())
+    return path
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """One line listing every problem pydantic found, with nearest-key suggestions."""
+    problems = []
+    for item in err.errors():
+        loc = ".".join(str(p) for p in item["loc"]) or "(top level)"
+        if item["type"] == "extra_forbidden":
+            key = str(item["loc"][-1])
+            parent_model = _model_at(SceneSpec, item["loc"][:-1])
+            hint = ""
+            if parent_model is not None:
+                close = difflib.get_close_matches(key, list(parent_model.model_fields), n=1)
+                if close:
+                    hint = f" (did you mean '{close[0]}'?)"
+            problems.append(f"unknown key '{loc}'{hint}")
+        else:
+            msg = item["msg"].removeprefix("Value error, ")
+            problems.append(f"{loc}: {msg} (got {item.get('input')!r})")
+    return "; ".join(problems)
+
+
+def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    """The pydantic model class found by walking ``loc`` from ``model``."""
+    import typing
+
+    current: Any = model
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        if not (isinstance(current, type) and issubclass(current, BaseModel)):
+            return None
+        field = current.model_fields.get(str(part))
+        if field is None:
+            return None
+        current = field.annotation
+        while typing.get_origin(current) is not None:
+            args = [a for a in typing.get_args(current) if isinstance(a, type)]
+            models = [a for a in args if issubclass(a, BaseModel)]
+            current = models[0] if models else (args[0] if args else None)
+            if current is None:
+                return None
+    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
