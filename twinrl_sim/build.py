@@ -61,6 +61,8 @@ def build_mjspec(scene: SceneSpec, *, apply_spec_effects: bool = True) -> tuple[
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     spec.option.impratio = 10.0
+    # Grasped objects must not creep out of the fingers under soft contacts.
+    spec.option.noslip_iterations = 3
     width = max([c.width for c in scene.cameras] + [640])
     height = max([c.height for c in scene.cameras] + [480])
     spec.visual.global_.offwidth = width

@@ -1,0 +1,66 @@
+"""Replay: regenerate a logged initial state and re-send a logged command sequence.
+
+This is how the twin answers "what would the simulation have done with exactly these
+joint targets?": the starting point of the gap workflow and of log-driven debugging.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinrl_sim.cell import Cell
+from twinrl_sim.tasks.base import Task, TaskConfig
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """Signals at each control step, the initial state included (T + 1 rows).
+
+    Attributes:
+        state: ``observation.state`` rows, shape (T + 1, 20).
+        environment_state: object poses, shape (T + 1, 7 * objects).
+        success: task success after each step, shape (T + 1,).
+    """
+
+    state: np.ndarray
+    environment_state: np.ndarray
+    success: np.ndarray
+
+    def __post_init__(self) -> None:
+        rows = {len(self.state), len(self.environment_state), len(self.success)}
+        if len(rows) != 1:
+            raise ValueError(f"replay signals disagree in length: {sorted(rows)}")
+
+
+def replay(
+    task: Task,
+    cell: Cell,
+    config: TaskConfig,
+    joint_targets: np.ndarray,
+    gripper: np.ndarray | None = None,
+) -> ReplayResult:
+    """Reset ``cell`` to ``config`` and hold each joint-target row for one control period.
+
+    Args:
+        joint_targets: shape (T, n_arm_joints), radians, as logged in ``command.joint_target``.
+        gripper: shape (T,), gripper commands in [0, 1]; default: keep the gripper open.
+    """
+    targets = np.asarray(joint_targets, float)
+    n_arm = len(cell.layout.arm_joints)
+    if targets.ndim != 2 or targets.shape[1] != n_arm:
+        raise ValueError(f"joint_targets must have shape (T, {n_arm}), got {targets.shape}")
+    grip = np.zeros(len(targets)) if gripper is None else np.asarray(gripper, float)
+    if grip.shape != (len(targets),):
+        raise ValueError(f"gripper must have shape ({len(targets)},), got {grip.shape}")
+    tracker = task.start(cell, config)
+    states = [cell.state_vector()]
+    env_states = [cell.environment_vector()]
+    success = [tracker.update().success]
+    for target, command in zip(targets, grip, strict=True):
+        cell.send(target, float(command))
+        states.append(cell.state_vector())
+        env_states.append(cell.environment_vector())
+        success.append(tracker.update().success)
+    return ReplayResult(np.array(states), np.array(env_states), np.array(success))

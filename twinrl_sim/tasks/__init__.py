@@ -1,0 +1,34 @@
+"""The task registry: ``make_task(name)`` and the list of built-in tasks."""
+
+from __future__ import annotations
+
+import difflib
+
+from twinrl_sim.spec import SceneSpec
+from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
+from twinrl_sim.tasks.base import Progress as Progress
+from twinrl_sim.tasks.base import Region as Region
+from twinrl_sim.tasks.base import Task as Task
+from twinrl_sim.tasks.base import TaskConfig as TaskConfig
+from twinrl_sim.tasks.base import Tracker as Tracker
+from twinrl_sim.tasks.erase_whiteboard import EraseWhiteboard
+from twinrl_sim.tasks.insertion import InsertHexagon, InsertTripleColumn
+from twinrl_sim.tasks.pick_place import PickPlace
+
+TASKS: dict[str, type[Task]] = {
+    cls.name: cls for cls in (PickPlace, InsertHexagon, InsertTripleColumn, EraseWhiteboard)
+}
+
+
+def task_class(name: str) -> type[Task]:
+    """The task class called ``name``; the error suggests the nearest task name."""
+    if name not in TASKS:
+        close = difflib.get_close_matches(name, list(TASKS), n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise ValueError(f"unknown task '{name}'{hint}; tasks: {', '.join(TASKS)}")
+    return TASKS[name]
+
+
+def make_task(name: str, scene: SceneSpec | None = None) -> Task:
+    """Instantiate task ``name`` on its built-in scene or on ``scene``."""
+    return task_class(name)(scene)
