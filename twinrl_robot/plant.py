@@ -46,11 +46,15 @@ class PlantSettings:
 
 def _visually_different(scene: SceneSpec, settings: PlantSettings) -> SceneSpec:
     lights = [
-        light.model_copy(update={"diffuse": tuple(min(1.0, c * settings.light_scale) for c in light.diffuse)})
+        light.model_copy(
+            update={"diffuse": tuple(min(1.0, c * settings.light_scale) for c in light.diffuse)}
+        )
         for light in scene.lights
     ]
     rgba = scene.table.rgba
-    tinted = tuple(float(np.clip(c + t, 0, 1)) for c, t in zip(rgba[:3], settings.table_tint, strict=True))
+    tinted = tuple(
+        float(np.clip(c + t, 0, 1)) for c, t in zip(rgba[:3], settings.table_tint, strict=True)
+    )
     table = scene.table.model_copy(update={"rgba": (*tinted, rgba[3])})
     return scene.model_copy(update={"lights": lights, "table": table})
 

@@ -55,7 +55,9 @@ class ExpertReport:
         }
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps({**self.to_json(), "runs": [asdict(e) for e in self.episodes]}, indent=1))
+        Path(path).write_text(
+            json.dumps({**self.to_json(), "runs": [asdict(e) for e in self.episodes]}, indent=1)
+        )
 
 
 class _TwinWorld:

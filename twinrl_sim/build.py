@@ -10,6 +10,7 @@ place them per episode without recompiling.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import mujoco
@@ -52,7 +53,9 @@ class CompiledScene:
     layout: CellLayout
 
 
-def build_mjspec(scene: SceneSpec, *, apply_spec_effects: bool = True) -> tuple[mujoco.MjSpec, CellLayout]:
+def build_mjspec(
+    scene: SceneSpec, *, apply_spec_effects: bool = True
+) -> tuple[mujoco.MjSpec, CellLayout]:
     """Assemble the ``MjSpec`` for ``scene`` (effects included unless told otherwise)."""
     spec = mujoco.MjSpec()
     spec.modelname = scene.name
@@ -114,7 +117,11 @@ def compile_scene(scene: SceneSpec, *, extra_effects: dict | None = None) -> Com
         scene = scene.with_effects(extra_effects)
     spec, layout = build_mjspec(scene)
     try:
-        model = spec.compile()
+        with warnings.catch_warnings():
+            # A custom robot is attached without a name prefix on purpose (the spec names
+            # its joints as they are in its file); the compiled model is never re-saved.
+            warnings.filterwarnings("ignore", message="Attaching a spec with an empty prefix")
+            model = spec.compile()
     except ValueError as err:
         raise SpecError(f"scene '{scene.name}' does not compile in MuJoCo: {err}") from None
     return CompiledScene(spec=scene, model=model, layout=layout)
@@ -140,7 +147,9 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         contype=ENV_CONTYPE,
         conaffinity=ENV_CONAFFINITY,
     )
-    body = spec.worldbody.add_body(name="table", pos=[table.center[0], table.center[1], table.top_height])
+    body = spec.worldbody.add_body(
+        name="table", pos=[table.center[0], table.center[1], table.top_height]
+    )
     body.add_geom(
         name="table_top",
         type=mujoco.mjtGeom.mjGEOM_BOX,
@@ -153,7 +162,9 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
     )
 
 
-def _add_robot(spec: mujoco.MjSpec, scene: SceneSpec) -> tuple[list[str], list[str], str, str, list[float]]:
+def _add_robot(
+    spec: mujoco.MjSpec, scene: SceneSpec
+) -> tuple[list[str], list[str], str, str, list[float]]:
     robot = scene.robot
     mount = spec.worldbody.add_body(name="robot_mount", pos=list(robot.base_pos))
     if robot.is_builtin:
@@ -193,9 +204,13 @@ def _attach_custom_robot(
     }
     if robot.tcp_site is not None:
         names["site"] = ([robot.tcp_site], {s.name for s in spec.sites})
-    missing = [f"{kind} '{n}'" for kind, (want, have) in names.items() for n in want if n not in have]
+    missing = [
+        f"{kind} '{n}'" for kind, (want, have) in names.items() for n in want if n not in have
+    ]
     if missing:
-        raise SpecError(f"robot.mjcf {robot.mjcf} lacks {', '.join(missing)}; fix the names in the spec")
+        raise SpecError(
+            f"robot.mjcf {robot.mjcf} lacks {', '.join(missing)}; fix the names in the spec"
+        )
     home = list(robot.home_qpos) if robot.home_qpos else [0.0] * len(robot.joints)
     if len(home) != len(robot.joints):
         raise SpecError(f"robot.home_qpos has {len(home)} values for {len(robot.joints)} joints")

@@ -62,13 +62,15 @@ class Cell:
         self.arm_qpos = np.array([model.joint(j).qposadr[0] for j in layout.arm_joints])
         self.arm_dof = np.array([model.joint(j).dofadr[0] for j in layout.arm_joints])
         self.arm_act = np.array([model.actuator(a).id for a in layout.arm_actuators])
-        self.gripper_act = model.actuator(layout.gripper_actuator).id if layout.gripper_actuator else None
-        self.gripper_qpos = model.joint(layout.gripper_joint).qposadr[0] if layout.gripper_joint else None
+        self.gripper_act = (
+            model.actuator(layout.gripper_actuator).id if layout.gripper_actuator else None
+        )
+        self.gripper_qpos = (
+            model.joint(layout.gripper_joint).qposadr[0] if layout.gripper_joint else None
+        )
         self.objects = tuple(o.name for o in scene.spec.objects)
         self._object_body = {o: model.body(o).id for o in self.objects}
-        self._free_qpos = {
-            o: model.joint(f"{o}_free").qposadr[0] for o in layout.manipulated
-        }
+        self._free_qpos = {o: model.joint(f"{o}_free").qposadr[0] for o in layout.manipulated}
         self._mocap = {o: model.body(o).mocapid[0] for o in layout.placed}
         self.tcp_site = model.site(layout.tcp_site).id
         ws = scene.spec.workspace
@@ -148,6 +150,8 @@ class Cell:
         if self.gripper_act is not None:
             self.data.ctrl[self.gripper_act] = gripper
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        # mj_step leaves derived quantities one substep stale; observations read them.
+        mujoco.mj_forward(self.model, self.data)
 
     # ----------------------------------------------------------- observation
     @property
@@ -189,7 +193,9 @@ class Cell:
             parts.extend([pos, quat])
         return np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)
 
-    def render(self, camera: str, *, width: int | None = None, height: int | None = None) -> np.ndarray:
+    def render(
+        self, camera: str, *, width: int | None = None, height: int | None = None
+    ) -> np.ndarray:
         """RGB image (uint8, H x W x 3) from ``camera`` at its spec resolution by default."""
         cam = self.model.camera(camera)
         w = width or int(self.model.cam_resolution[cam.id][0])

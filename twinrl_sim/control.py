@@ -157,7 +157,9 @@ class EndEffectorController:
         lam2 = settings.damping**2
         for _ in range(settings.iterations):
             cur_pos, cur_quat = self.forward(q)
-            err = np.concatenate([pos - cur_pos, quat_to_rotvec(quat_mul(quat, quat_conj(cur_quat)))])
+            err = np.concatenate(
+                [pos - cur_pos, quat_to_rotvec(quat_mul(quat, quat_conj(cur_quat)))]
+            )
             if np.linalg.norm(err) < settings.tolerance:
                 break
             mujoco.mj_comPos(self.model, data)
@@ -168,7 +170,9 @@ class EndEffectorController:
         step = np.clip(q - q_start, -self.max_joint_step, self.max_joint_step)
         return np.clip(q_start + step, self.q_low, self.q_high)
 
-    def solve_pose(self, pos: np.ndarray, quat: np.ndarray, q_start: np.ndarray, iterations: int = 200) -> np.ndarray:
+    def solve_pose(
+        self, pos: np.ndarray, quat: np.ndarray, q_start: np.ndarray, iterations: int = 200
+    ) -> np.ndarray:
         """Full IK (no speed limit) for setting up poses, e.g. a home configuration."""
         q = np.array(q_start, float)
         for _ in range(iterations):

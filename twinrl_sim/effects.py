@@ -67,7 +67,7 @@ def apply_actuator_delay(spec: mujoco.MjSpec, layout: CellLayout, seconds: float
     """Command-to-motion latency: each arm servo acts on the target sent ``seconds`` ago."""
     if seconds <= 0:
         return
-    nsample = int(math.ceil(seconds / spec.option.timestep)) + 1
+    nsample = math.ceil(seconds / spec.option.timestep) + 1
     for name in layout.arm_actuators:
         act = spec.actuator(name)
         act.delay = seconds
@@ -77,13 +77,17 @@ def apply_actuator_delay(spec: mujoco.MjSpec, layout: CellLayout, seconds: float
 
 def apply_joint_friction(spec: mujoco.MjSpec, layout: CellLayout, coulomb: list[float]) -> None:
     """Dry (Coulomb) friction torque in each arm joint's gearbox, added to the nominal."""
-    for joint, value in zip(_arm_joints(spec, layout, coulomb, "joint_friction.coulomb"), coulomb, strict=True):
+    for joint, value in zip(
+        _arm_joints(spec, layout, coulomb, "joint_friction.coulomb"), coulomb, strict=True
+    ):
         joint.frictionloss = joint.frictionloss + value
 
 
 def apply_joint_damping(spec: mujoco.MjSpec, layout: CellLayout, viscous: list[float]) -> None:
     """Viscous friction torque proportional to joint speed, added to the nominal."""
-    for joint, value in zip(_arm_joints(spec, layout, viscous, "joint_damping.viscous"), viscous, strict=True):
+    for joint, value in zip(
+        _arm_joints(spec, layout, viscous, "joint_damping.viscous"), viscous, strict=True
+    ):
         joint.damping = joint.damping + value
 
 
@@ -135,7 +139,9 @@ def apply_joint_offset(spec: mujoco.MjSpec, layout: CellLayout, radians: list[fl
     so that the joint coordinate (what the encoder and the servo see) reads
     ``true + offset``.
     """
-    for joint, offset in zip(_arm_joints(spec, layout, radians, "joint_offset.radians"), radians, strict=True):
+    for joint, offset in zip(
+        _arm_joints(spec, layout, radians, "joint_offset.radians"), radians, strict=True
+    ):
         if offset == 0:
             continue
         body = joint.parent
@@ -283,7 +289,9 @@ def validate_effects(effects: Any) -> dict[str, dict[str, Any]]:
     Returns the effects with every value converted to plain floats/lists.
     """
     if not isinstance(effects, dict):
-        raise ValueError(f"effects must be a mapping name: {{param: value}}, got {type(effects).__name__}")
+        raise ValueError(
+            f"effects must be a mapping name: {{param: value}}, got {type(effects).__name__}"
+        )
     problems: list[str] = []
     clean: dict[str, dict[str, Any]] = {}
     for name, params in effects.items():
@@ -337,7 +345,9 @@ def _check_value(pdef: ParamDef, value: Any) -> tuple[Any, str | None]:
     return (numbers[0] if pdef.kind == "float" else numbers), None
 
 
-def apply_effects(spec: mujoco.MjSpec, layout: CellLayout, effects: dict[str, dict[str, Any]]) -> None:
+def apply_effects(
+    spec: mujoco.MjSpec, layout: CellLayout, effects: dict[str, dict[str, Any]]
+) -> None:
     """Apply validated effects to ``spec`` in a fixed order (the order of :data:`EFFECTS`)."""
     clean = validate_effects(effects)
     for name, definition in EFFECTS.items():

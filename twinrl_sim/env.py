@@ -19,7 +19,7 @@ and truncate after the task's ``max_steps`` control steps.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -49,7 +49,7 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         max_steps: episode length limit (default: the task's).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(
         self,
@@ -83,7 +83,9 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
         spaces: dict[str, gym.Space] = {
             OBS_STATE: gym.spaces.Box(-np.inf, np.inf, (len(self.cell.state_names),), np.float32),
-            OBS_ENV: gym.spaces.Box(-np.inf, np.inf, (len(self.cell.environment_names),), np.float32),
+            OBS_ENV: gym.spaces.Box(
+                -np.inf, np.inf, (len(self.cell.environment_names),), np.float32
+            ),
         }
         for cam in self.cameras:
             w, h = self.cell.model.cam_resolution[self.cell.model.camera(cam).id]
@@ -121,17 +123,27 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         progress = self._tracker.update()
         return self._obs(), self._info(progress, None)
 
-    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+    def step(
+        self, action: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         if self._tracker is None:
             raise RuntimeError("call reset() before step()")
-        action = np.clip(np.asarray(action, np.float32), self.action_space.low, self.action_space.high)
+        action = np.clip(
+            np.asarray(action, np.float32), self.action_space.low, self.action_space.high
+        )
         signals = self.cell.step(action)
         self._steps += 1
         progress = self._tracker.update()
         reward = self.task.reward(progress, self.reward_mode)
         terminated = progress.success
         truncated = self._steps >= self.max_steps and not terminated
-        return self._obs(), reward, terminated, truncated, self._info(progress, signals.joint_target)
+        return (
+            self._obs(),
+            reward,
+            terminated,
+            truncated,
+            self._info(progress, signals.joint_target),
+        )
 
     def _info(self, progress, joint_target: np.ndarray | None) -> dict[str, Any]:
         assert self.config is not None
@@ -151,7 +163,10 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return self.cell.render(self.cell.layout.cameras[0])
 
     def replay(
-        self, config: TaskConfig | dict, joint_targets: np.ndarray, gripper: np.ndarray | None = None
+        self,
+        config: TaskConfig | dict,
+        joint_targets: np.ndarray,
+        gripper: np.ndarray | None = None,
     ) -> ReplayResult:
         """Regenerate ``config`` and re-send logged joint targets; see :func:`replay`."""
         return replay(self.task, self.cell, TaskConfig.from_dict(config), joint_targets, gripper)
@@ -163,3 +178,18 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 def make(task: str, **kwargs: Any) -> TwinEnv:
     """Create the twin env of ``task``; keyword arguments go to :class:`TwinEnv`."""
     return TwinEnv(task, **kwargs)
+
+
+GYM_IDS = {
+    "pick_place": "twinrl/PickPlace-v0",
+    "insert_hexagon": "twinrl/InsertHexagon-v0",
+    "insert_triple_column": "twinrl/InsertTripleColumn-v0",
+    "erase_whiteboard": "twinrl/EraseWhiteboard-v0",
+}
+
+
+def register_envs() -> None:
+    """Register every task with Gymnasium (``gymnasium.make("twinrl/PickPlace-v0")``)."""
+    for task, env_id in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point="twinrl_sim.env:TwinEnv", kwargs={"task": task})

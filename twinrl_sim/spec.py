@@ -74,9 +74,7 @@ class GeomSpec(_Strict):
     def _check_size(self) -> GeomSpec:
         expected = {"box": 3, "cylinder": 2, "capsule": 2, "sphere": 1, "prism": 2}[self.type]
         if len(self.size) != expected:
-            raise ValueError(
-                f"a {self.type} needs {expected} size value(s), got {len(self.size)}"
-            )
+            raise ValueError(f"a {self.type} needs {expected} size value(s), got {len(self.size)}")
         return self
 
 
@@ -123,7 +121,9 @@ class RobotSpec(_Strict):
     @model_validator(mode="after")
     def _one_source(self) -> RobotSpec:
         if self.mjcf is not None:
-            missing = [k for k in ("joints", "actuators", "flange_body") if getattr(self, k) is None]
+            missing = [
+                k for k in ("joints", "actuators", "flange_body") if getattr(self, k) is None
+            ]
             if missing:
                 raise ValueError(
                     f"a custom robot mjcf needs {', '.join(missing)} (names in that file)"
@@ -165,7 +165,9 @@ class CameraSpec(_Strict):
 
 DEFAULT_CAMERAS = (
     CameraSpec(name="front", pos=(1.35, 0.0, 0.95), lookat=(0.3, 0.0, 0.05), fovy=55.0),
-    CameraSpec(name="wrist", mount="wrist", pos=(-0.075, 0.0, 0.03), lookat=(0.0, 0.0, 0.2), fovy=75.0),
+    CameraSpec(
+        name="wrist", mount="wrist", pos=(-0.075, 0.0, 0.03), lookat=(0.0, 0.0, 0.2), fovy=75.0
+    ),
 )
 
 
@@ -267,7 +269,9 @@ class SceneSpec(_Strict):
 
     def with_effects(self, effects: dict[str, dict[str, Any]]) -> SceneSpec:
         """A copy with ``effects`` merged over this spec's own (validated)."""
-        return parse_spec({**self.model_dump(mode="python"), "effects": {**self.effects, **effects}})
+        return parse_spec(
+            {**self.model_dump(mode="python"), "effects": {**self.effects, **effects}}
+        )
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.model_dump(mode="json", exclude_defaults=False), sort_keys=False)

@@ -49,7 +49,9 @@ def add_parallel_gripper(flange: mujoco.MjsBody, spec: mujoco.MjSpec) -> None:
         contype=1,
         conaffinity=0,
     )
-    body.add_site(name=TCP_SITE, pos=[0, 0, TCP_OFFSET], size=[0.005, 0, 0], rgba=[1, 0, 0, 0], group=3)
+    body.add_site(
+        name=TCP_SITE, pos=[0, 0, TCP_OFFSET], size=[0.005, 0, 0], rgba=[1, 0, 0, 0], group=3
+    )
     base_z = 0.064
     for side, joint_name in ((1, JOINT), (-1, MIRROR_JOINT)):
         finger = body.add_body(name=f"gripper_finger_{'left' if side > 0 else 'right'}")
@@ -61,7 +63,8 @@ def add_parallel_gripper(flange: mujoco.MjsBody, spec: mujoco.MjSpec) -> None:
             axis=[0, -side, 0],
             range=[0, STROKE],
             limited=mujoco.mjtLimited.mjLIMITED_TRUE,
-            damping=SERVO_KV,  # as joint damping: integrated implicitly, stable when the force saturates
+            # Servo damping as joint damping: integrated implicitly, stable when saturated.
+            damping=SERVO_KV,
             armature=0.01,
         )
         finger.add_geom(

@@ -62,7 +62,9 @@ class TaskConfig:
         for key in ("object", "target"):
             value = getattr(self, key)
             if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
-                raise ValueError(f"config.{key} must be three finite numbers (x m, y m, yaw rad), got {value!r}")
+                raise ValueError(
+                    f"config.{key} must be three finite numbers (x m, y m, yaw rad), got {value!r}"
+                )
             object.__setattr__(self, key, tuple(float(v) for v in value))
 
     def to_dict(self) -> dict[str, list[float]]:
@@ -74,7 +76,9 @@ class TaskConfig:
         if isinstance(data, TaskConfig):
             return data
         if not isinstance(data, dict):
-            raise ValueError(f"a config is a mapping {{object: [x, y, yaw], target: [x, y, yaw]}}, got {data!r}")
+            raise ValueError(
+                f"a config is a mapping {{object: [x, y, yaw], target: [x, y, yaw]}}, got {data!r}"
+            )
         keys = set(data)
         if keys != {"object", "target"}:
             raise ValueError(
@@ -168,7 +172,10 @@ class Task(ABC):
     def place(self, cell: Cell, config: TaskConfig) -> None:
         """Put the object and the target at their configured table poses."""
         top = cell.table_top
-        for name, (x, y, yaw) in ((self.object_name, config.object), (self.target_name, config.target)):
+        for name, (x, y, yaw) in (
+            (self.object_name, config.object),
+            (self.target_name, config.target),
+        ):
             height = self.scene.object(name).pos[2]
             cell.place_object(name, np.array([x, y, top + height]), yaw_quat(yaw))
 
@@ -183,7 +190,9 @@ class Task(ABC):
     def evaluate(self, cell: Cell, tracker: Tracker) -> Progress:
         """Success and dense shaping terms (each in [0, 1]) of the current state."""
 
-    def reward(self, progress: Progress, mode: str, settings: dict[str, Any] | None = None) -> float:
+    def reward(
+        self, progress: Progress, mode: str, settings: dict[str, Any] | None = None
+    ) -> float:
         """Sparse: ``success_reward`` on success minus ``step_penalty`` per step (the
         paper's +10 / -0.05). Dense: the sparse reward plus weighted shaping terms."""
         settings = settings or self.default_config()

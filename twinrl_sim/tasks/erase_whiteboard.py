@@ -160,12 +160,19 @@ class EraseWhiteboard(Task):
 
         (row_a, row_b) = WIPE_ROWS
         phases = pick_phases(self.object_name, grasp) + [
-            Phase("transport", waypoint(-WIPE_RUN, row_a, 0.05), gripper=1.0, tolerance=0.01,
-                  on_exit=remember_grasp(self.object_name)),
+            Phase(
+                "transport",
+                waypoint(-WIPE_RUN, row_a, 0.05),
+                gripper=1.0,
+                tolerance=0.01,
+                on_exit=remember_grasp(self.object_name),
+            ),
             Phase("touch", waypoint(-WIPE_RUN, row_a), gripper=1.0, speed=0.015),
             Phase("wipe_out", waypoint(WIPE_RUN, row_a), gripper=1.0, speed=0.02, tolerance=0.006),
             Phase("shift", waypoint(WIPE_RUN, row_b), gripper=1.0, speed=0.02, tolerance=0.006),
-            Phase("wipe_back", waypoint(-WIPE_RUN, row_b), gripper=1.0, speed=0.02, tolerance=0.006),
+            Phase(
+                "wipe_back", waypoint(-WIPE_RUN, row_b), gripper=1.0, speed=0.02, tolerance=0.006
+            ),
             Phase("lift_off", waypoint(-WIPE_RUN, row_b, 0.08), gripper=1.0, tolerance=0.01),
         ]
         return ScriptedExpert(self.scene, phases)

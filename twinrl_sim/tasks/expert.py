@@ -236,8 +236,15 @@ def pick_phases(
     return [
         Phase("approach", approach, gripper=0.0, tolerance=0.005),
         Phase("descend", at_grasp, gripper=0.0, speed=0.015),
-        Phase("close", at_grasp, gripper=1.0, settle=close_steps, tolerance=0.01,
-              wait_gripper=True, on_exit=remember_grasp(object_name)),
+        Phase(
+            "close",
+            at_grasp,
+            gripper=1.0,
+            settle=close_steps,
+            tolerance=0.01,
+            wait_gripper=True,
+            on_exit=remember_grasp(object_name),
+        ),
         Phase("lift", lift, gripper=1.0, tolerance=0.01),
     ]
 
@@ -276,6 +283,8 @@ def place_phases(
         Phase("transport", hover, gripper=1.0, tolerance=0.01, on_exit=regrasp),
         Phase("align", hover, gripper=1.0, tolerance=hover_tolerance, settle=1, on_exit=regrasp),
         Phase("lower", placed, gripper=1.0, speed=final_speed, tolerance=0.003, timeout=40),
-        Phase("release", placed, gripper=0.0, settle=release_steps, tolerance=0.02, wait_gripper=True),
+        Phase(
+            "release", placed, gripper=0.0, settle=release_steps, tolerance=0.02, wait_gripper=True
+        ),
         Phase("retreat", retreat, gripper=0.0, tolerance=0.01),
     ]

@@ -68,8 +68,13 @@ class Insertion(Task):
 
         def placement(view: ObsView, memory: dict) -> tuple[np.ndarray, float]:
             hole, hole_quat = view.pose(self.target_name)
-            block_yaw = nearest_equivalent(yaw_of(hole_quat), self.symmetry, view.yaw(self.object_name))
-            rest = self.scene.object(self.object_name).pos[2] - self.scene.object(self.target_name).pos[2]
+            block_yaw = nearest_equivalent(
+                yaw_of(hole_quat), self.symmetry, view.yaw(self.object_name)
+            )
+            rest = (
+                self.scene.object(self.object_name).pos[2]
+                - self.scene.object(self.target_name).pos[2]
+            )
             return hole + [0.0, 0.0, rest + 0.002], block_yaw
 
         phases = pick_phases(self.object_name, grasp) + place_phases(

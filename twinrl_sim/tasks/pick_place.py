@@ -8,7 +8,13 @@ import numpy as np
 
 from twinrl_sim.cell import Cell
 from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker, planar_distance
-from twinrl_sim.tasks.expert import ObsView, ScriptedExpert, pick_phases, place_phases, sample_grasps
+from twinrl_sim.tasks.expert import (
+    ObsView,
+    ScriptedExpert,
+    pick_phases,
+    place_phases,
+    sample_grasps,
+)
 
 PLATE_RADIUS_OK = 0.05  # banana centre within this distance of the plate centre (m)
 
@@ -28,7 +34,9 @@ class PickPlace(Task):
         rest = cell.table_top + self.scene.object(self.object_name).pos[2]
         plate_top = 2 * self.scene.object(self.target_name).pos[2]
         tcp, _ = cell.tcp_pose()
-        on_plate = planar_distance(banana, plate) < PLATE_RADIUS_OK and banana[2] < rest + plate_top + 0.01
+        on_plate = (
+            planar_distance(banana, plate) < PLATE_RADIUS_OK and banana[2] < rest + plate_top + 0.01
+        )
         released = cell.gripper_opening > 0.045
         lifted = banana[2] > rest + 0.02
         return Progress(
@@ -36,7 +44,8 @@ class PickPlace(Task):
             terms={
                 "reach": 1.0 - math.tanh(5.0 * float(np.linalg.norm(tcp - banana))),
                 "grasp": float(lifted),
-                "place": (1.0 - math.tanh(5.0 * planar_distance(banana, plate))) * float(lifted or on_plate),
+                "place": (1.0 - math.tanh(5.0 * planar_distance(banana, plate)))
+                * float(lifted or on_plate),
             },
         )
 
@@ -56,4 +65,6 @@ class PickPlace(Task):
             drop = 0.004
             return plate + [0.0, 0.0, plate_half + banana_half + drop], view.yaw(self.object_name)
 
-        return ScriptedExpert(self.scene, pick_phases(self.object_name, grasp) + place_phases(placement))
+        return ScriptedExpert(
+            self.scene, pick_phases(self.object_name, grasp) + place_phases(placement)
+        )

@@ -1,0 +1,61 @@
+# twinrl: `make demo` and `make test` do the whole set-up on a fresh machine.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+SYSTEM_PACKAGES := libusb-1.0-0 libegl1 libgl1 libosmesa6
+TASKS := pick_place insert_hexagon insert_triple_column erase_whiteboard
+# Python 3.12: on PATH, or through pyenv (.python-version pins it).
+PYTHON ?= $(shell command -v python3.12 >/dev/null 2>&1 && python3.12 -c 'import sys' 2>/dev/null && echo python3.12 || echo "env PYENV_VERSION=3.12.1 python3.12")
+export MUJOCO_GL ?= egl
+
+.PHONY: help setup system-libs test demo bench lint clean
+
+help:
+	@echo "make demo   set up, then run every task's scripted expert in the twin and the plant"
+	@echo "make test   set up, then lint and run the test suite"
+	@echo "make bench  set up, then run the benchmarks"
+
+setup: system-libs $(STAMP)
+
+# Installs missing system libraries when run as root; otherwise prints the command.
+system-libs:
+	@command -v dpkg >/dev/null 2>&1 || { echo "note: not a Debian system; make sure these are installed: $(SYSTEM_PACKAGES)"; exit 0; }; \
+	missing=""; for pkg in $(SYSTEM_PACKAGES); do dpkg -s $$pkg >/dev/null 2>&1 || missing="$$missing $$pkg"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ]; then \
+		echo "installing system libraries:$$missing"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing >/dev/null; \
+	else \
+		echo "missing system libraries:$$missing"; \
+		echo "install them with: sudo apt-get install -y$$missing"; exit 1; \
+	fi
+
+$(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] >= (3, 12)' 2>/dev/null || \
+		{ echo "Python 3.12 is required: install it (e.g. pyenv install 3.12) or set PYTHON=/path/to/python3.12"; exit 1; }
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+test: setup
+	$(BIN)/ruff check .
+	$(BIN)/pytest -q
+
+demo: setup
+	@for task in $(TASKS); do for world in twin plant; do \
+		$(BIN)/twinrl sim expert $$task --world $$world --episodes 10 || exit 1; \
+	done; done
+
+bench: setup
+	$(BIN)/python bench/bench_batch.py --episodes 32 --steps 60
+
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache *.egg-info

@@ -1,0 +1,30 @@
+"""Shared fixtures. Rendering is headless (EGL) in tests."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import numpy as np
+import pytest
+
+from twinrl_sim.tasks import TASKS
+
+TASK_NAMES = list(TASKS)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+def expert_commands(env, config, seed: int = 0, steps: int = 40):
+    """Run the scripted expert from ``config``; return (joint targets, gripper commands)."""
+    expert = env.task.expert(config, np.random.default_rng(seed))
+    obs, _ = env.reset(options={"config": config})
+    targets, gripper = [], []
+    for _ in range(steps):
+        action = expert.act(obs)
+        obs, *_, info = env.step(action)
+        targets.append(info["command.joint_target"])
+        gripper.append(action[6])
+    return np.array(targets, float), np.array(gripper, float)

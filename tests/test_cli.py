@@ -1,0 +1,82 @@
+"""The ``twinrl`` command line: help, the first commands, and one-line errors."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from twinrl_learn.cli import app
+
+runner = CliRunner()
+
+
+def twinrl(*args: str) -> subprocess.CompletedProcess:
+    """Run the real entry point (so exit codes and stderr are what a user sees)."""
+    return subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", *args], capture_output=True, text=True, timeout=300
+    )
+
+
+def test_help_lists_every_command():
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0 and "sim" in result.output
+    result = runner.invoke(app, ["sim", "--help"])
+    for command in ("show", "expert", "effects"):
+        assert command in result.output
+
+
+def test_expert_json_has_the_documented_shape():
+    result = twinrl("sim", "expert", "pick_place", "--episodes", "2", "--region", "OOD", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["task"] == "pick_place" and report["world"] == "twin"
+    assert report["episodes"] == 2 and set(report["success_rate"]) == {"OOD"}
+
+
+def test_expert_table_in_the_plant():
+    result = twinrl("sim", "expert", "insert_hexagon", "--episodes", "2", "--world", "plant")
+    assert result.returncode == 0, result.stderr
+    assert "plant" in result.stdout and "ID" in result.stdout and "OOD" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["sim", "expert", "pick_plce"], "did you mean 'pick_place'"),
+        (["sim", "expert", "pick_place", "--region", "MID"], "--region must be one of"),
+        (["sim", "expert", "pick_place", "--world", "mars"], "--world must be one of"),
+        (
+            ["sim", "expert", "pick_place", "--effects", "nope.yaml", "--world", "plant"],
+            "does not exist",
+        ),
+        (["sim", "show", "pick_place", "--config", "{bad json"], "--config must be JSON"),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_2(args, message):
+    result = twinrl(*args)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.strip().splitlines() if line.strip()]
+    assert message in result.stderr and len(lines) <= 3  # one message, maybe soft-wrapped
+    assert "Traceback" not in result.stderr
+
+
+def test_show_writes_a_png_and_never_overwrites(tmp_path):
+    out = tmp_path / "cell.png"
+    config = json.dumps({"object": [0.4, 0.2, 0.5], "target": [0.5, 0.1, 0.0]})
+    result = twinrl(
+        "sim", "show", "pick_place", "--config", config, "--size", "96", "--out", str(out)
+    )
+    assert result.returncode == 0, result.stderr
+    assert out.stat().st_size > 1000
+    before = out.read_bytes()
+    again = twinrl("sim", "show", "pick_place", "--out", str(out))
+    assert again.returncode == 2 and "already exists" in again.stderr
+    assert out.read_bytes() == before
+
+
+def test_effects_lists_the_library():
+    result = runner.invoke(app, ["sim", "effects"])
+    assert result.exit_code == 0
+    assert "actuator_delay" in result.output and "gripper_force" in result.output

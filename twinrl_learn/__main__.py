@@ -1,0 +1,3 @@
+from twinrl_learn.cli import main
+
+main()

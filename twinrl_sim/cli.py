@@ -1,0 +1,86 @@
+"""``twinrl sim``: look at the simulated cell."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from twinrl_sim.effects import describe_effects
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.tasks import TASKS, TaskConfig
+
+app = typer.Typer(
+    help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
+)
+console = Console()
+
+
+def parse_config(text: str) -> TaskConfig:
+    """A configuration from inline JSON or from a JSON file path."""
+    path = Path(text)
+    source = path.read_text() if path.suffix == ".json" and path.is_file() else text
+    try:
+        data = json.loads(source)
+    except json.JSONDecodeError as err:
+        raise ValueError(
+            "--config must be JSON like "
+            '\'{"object": [0.45, -0.2, 0.3], "target": [0.5, -0.1, 0]}\' '
+            f"or a .json file ({err.msg})"
+        ) from None
+    return TaskConfig.from_dict(data)
+
+
+def refuse_overwrite(path: Path, force: bool) -> None:
+    if path.exists() and not force:
+        raise ValueError(
+            f"{path} already exists; pass --force to overwrite it or choose another --out"
+        )
+
+
+@app.command()
+def show(
+    task: Annotated[str, typer.Argument(help=f"Task: {', '.join(TASKS)}.")],
+    config: Annotated[
+        str | None, typer.Option(help="Configuration as JSON or a .json file.")
+    ] = None,
+    region: Annotated[str | None, typer.Option(help="Sample a configuration in ID or OOD.")] = None,
+    seed: Annotated[int, typer.Option(help="Seed for the sampled configuration.")] = 0,
+    size: Annotated[int, typer.Option(help="Image width and height (pixels).")] = 480,
+    out: Annotated[Path | None, typer.Option(help="PNG to write (default: TASK.png).")] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite --out if it exists.")] = False,
+) -> None:
+    """Render the cell of TASK from every camera, side by side, to a PNG."""
+    import PIL.Image
+
+    out = out or Path(f"{task}.png")
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"--out must end in .png, got {out}")
+    refuse_overwrite(out, force)
+    env = TwinEnv(task, region=region)
+    try:
+        options = {"config": parse_config(config)} if config else None
+        env.reset(seed=seed, options=options)
+        frames = [env.cell.render(cam, width=size, height=size) for cam in env.cell.layout.cameras]
+    finally:
+        env.close()
+    PIL.Image.fromarray(np.hstack(frames)).save(out)
+    assert env.config is not None
+    console.print(
+        f"{out}: {task} ({env.task.region_of(env.config) or 'no region'}) "
+        f"config {json.dumps(env.config.to_dict())}, cameras {', '.join(env.cell.layout.cameras)}"
+    )
+
+
+@app.command()
+def effects() -> None:
+    """List the physical effects the twin and the plant understand."""
+    table = Table("effect", "parameters", "models")
+    for name, params, doc in describe_effects():
+        table.add_row(name, params, doc)
+    console.print(table)
