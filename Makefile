@@ -6,7 +6,6 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SYSTEM_PACKAGES := libusb-1.0-0 libegl1 libgl1 libosmesa6
-TASKS := pick_place insert_hexagon insert_triple_column erase_whiteboard
 # Python 3.12: on PATH, or through pyenv (.python-version pins it).
 PYTHON ?= $(shell command -v python3.12 >/dev/null 2>&1 && python3.12 -c 'import sys' 2>/dev/null && echo python3.12 || echo "env PYENV_VERSION=3.12.1 python3.12")
 export MUJOCO_GL ?= egl
@@ -46,9 +45,7 @@ test: setup
 	$(BIN)/pytest -q
 
 demo: setup
-	@for task in $(TASKS); do for world in twin plant; do \
-		$(BIN)/twinrl sim expert $$task --world $$world --episodes 10 || exit 1; \
-	done; done
+	$(BIN)/twinrl sim expert all --world twin --world plant --episodes 10
 
 bench: setup
 	$(BIN)/python bench/bench_batch.py --episodes 32 --steps 60

@@ -35,10 +35,13 @@ def test_expert_json_has_the_documented_shape():
     assert report["episodes"] == 2 and set(report["success_rate"]) == {"OOD"}
 
 
-def test_expert_table_in_the_plant():
-    result = twinrl("sim", "expert", "insert_hexagon", "--episodes", "2", "--world", "plant")
+def test_expert_table_in_both_worlds():
+    result = twinrl(
+        "sim", "expert", "insert_hexagon", "--episodes", "2", "--world", "twin", "--world", "plant"
+    )
     assert result.returncode == 0, result.stderr
-    assert "plant" in result.stdout and "ID" in result.stdout and "OOD" in result.stdout
+    for word in ("twin", "plant", "ID success", "OOD success"):
+        assert word in result.stdout
 
 
 @pytest.mark.parametrize(

@@ -12,17 +12,19 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
-from twinrl_robot.scripted import WORLDS, run_scripted_expert
-from twinrl_sim.tasks import REGION_NAMES, TASKS
+from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
+from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class
 
 console = Console()
 
 
 def expert(
-    task: Annotated[str, typer.Argument(help=f"Task: {', '.join(TASKS)}.")],
+    task: Annotated[str, typer.Argument(help=f"Task ({', '.join(TASKS)}) or 'all'.")],
     episodes: Annotated[int, typer.Option(help="Episodes per region.", min=1)] = 20,
     region: Annotated[str | None, typer.Option(help="Run only ID or OOD (default: both).")] = None,
-    world: Annotated[str, typer.Option(help=f"World: {' or '.join(WORLDS)}.")] = "twin",
+    world: Annotated[
+        list[str] | None, typer.Option(help=f"World: {' or '.join(WORLDS)}; repeat for both.")
+    ] = None,
     effects: Annotated[
         Path | None,
         typer.Option(
@@ -31,21 +33,25 @@ def expert(
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed for configurations and grasps.")] = 0,
     as_json: Annotated[
-        bool, typer.Option("--json", help="Print one JSON object instead of a table.")
+        bool, typer.Option("--json", help="Print one JSON object per task and world.")
     ] = False,
 ) -> None:
-    """Run TASK's scripted expert and report its success rate per region."""
+    """Run a task's scripted expert and report its success rate per region."""
+    worlds = world or ["twin"]
+    tasks = list(TASKS) if task == "all" else [task_class(task).name]
     if region is not None and region not in REGION_NAMES:
         raise ValueError(f"--region must be one of {', '.join(REGION_NAMES)}, got '{region}'")
-    if world not in WORLDS:
-        raise ValueError(f"--world must be one of {', '.join(WORLDS)}, got '{world}'")
-    if effects is not None and world != "plant":
+    unknown = [w for w in worlds if w not in WORLDS]
+    if unknown:
+        raise ValueError(f"--world must be one of {', '.join(WORLDS)}, got '{unknown[0]}'")
+    if effects is not None and "plant" not in worlds:
         raise ValueError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     regions = (region,) if region else REGION_NAMES
+    reports: list[ExpertReport] = []
     with Progress(
-        TextColumn(f"{task} in the {world}"),
+        TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
@@ -53,21 +59,33 @@ def expert(
         disable=as_json,
         transient=True,
     ) as bar:
-        job = bar.add_task("episodes", total=episodes * len(regions))
-        report = run_scripted_expert(
-            task,
-            world=world,  # type: ignore[arg-type]
-            episodes=episodes,
-            regions=regions,
-            effects=effects,
-            seed=seed,
-            on_episode=lambda _: bar.advance(job),
-        )
-    if as_json:
-        print(json.dumps(report.to_json()))
-        return
-    table = Table("task", "world", "region", "episodes", "success", title="scripted expert")
-    counts = report.counts()
-    for name, rate in report.success_rate().items():
-        table.add_row(task, world, name, str(counts[name]), f"{100 * rate:.0f} %")
-    console.print(table)
+        for name in tasks:
+            for place in worlds:
+                job = bar.add_task(f"{name} in the {place}", total=episodes * len(regions))
+                report = run_scripted_expert(
+                    name,
+                    world=place,  # type: ignore[arg-type]
+                    episodes=episodes,
+                    regions=regions,
+                    effects=effects if place == "plant" else None,
+                    seed=seed,
+                    on_episode=lambda _, job=job: bar.advance(job),
+                )
+                reports.append(report)
+                if as_json:
+                    print(json.dumps(report.to_json()), flush=True)
+    if not as_json:
+        console.print(success_table(reports))
+
+
+def success_table(reports: list[ExpertReport]) -> Table:
+    """One row per task and world, one column per region."""
+    regions = [r for r in REGION_NAMES if any(r in rep.success_rate() for rep in reports)]
+    table = Table(
+        "task", "world", *[f"{r} success" for r in regions], "episodes", title="scripted expert"
+    )
+    for report in reports:
+        rates = report.success_rate()
+        cells = [f"{100 * rates[r]:.0f} %" if r in rates else "-" for r in regions]
+        table.add_row(report.task, report.world, *cells, str(len(report.episodes)))
+    return table

@@ -27,6 +27,7 @@ from __future__ import annotations
 import difflib
 import hashlib
 import json
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -338,8 +339,6 @@ def format_validation_error(err: ValidationError) -> str:
 
 def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
     """The pydantic model class found by walking ``loc`` from ``model``."""
-    import typing
-
     current: Any = model
     for part in loc:
         if isinstance(part, int):

@@ -10,12 +10,13 @@ them.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import mujoco
 import numpy as np
 
 from twinrl_sim.cell import Cell
-from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker, yaw_of
+from twinrl_sim.tasks.base import Progress, Region, Task, TaskConfig, Tracker, yaw_of
 from twinrl_sim.tasks.expert import (
     ObsView,
     Phase,
@@ -34,7 +35,7 @@ MARK_AREA = (0.12, 0.07)  # m, centred on the board
 MARK_RADIUS = 0.007
 WIPE_ROWS = (-0.012, 0.012)  # eraser centre offsets across the marks (board y, m)
 GRASP_BELOW_CENTRE = 0.008  # m: TCP below the eraser's centre when grasping
-WIPE_RUN = 0.09  # eraser centre travels from -WIPE_RUN to +WIPE_RUN along board x (m)
+WIPE_RUN = 0.075  # eraser centre travels from -WIPE_RUN to +WIPE_RUN along board x (m)
 
 
 def mark_positions() -> np.ndarray:
@@ -112,6 +113,12 @@ class EraseWhiteboard(Task):
     min_separation = 0.2
     target_yaw = (-0.3, 0.3)
     tracker_class = WipeTracker
+    # The board is large: keep it where the eraser can sweep all of it (the robot's
+    # wrist cannot press flat on the table closer than about 0.25 m from the base).
+    regions: ClassVar[dict[str, Region]] = {
+        "ID": Region("ID", x=(0.36, 0.60), y=(-0.40, -0.04)),
+        "OOD": Region("OOD", x=(0.36, 0.60), y=(0.04, 0.40)),
+    }
 
     @classmethod
     def default_config(cls) -> dict:
