@@ -79,6 +79,9 @@ def build_mjspec(
     if has_gripper:
         gripper_lib.add_parallel_gripper(spec.body(flange), spec)
         tcp = gripper_lib.TCP_SITE
+    elif not tcp:  # the bare built-in arm: the tool centre point is the flange itself
+        spec.body(flange).add_site(name=gripper_lib.TCP_SITE, group=3)
+        tcp = gripper_lib.TCP_SITE
     manipulated, placed = [], []
     for obj in scene.objects:
         _add_object(spec, scene, obj)

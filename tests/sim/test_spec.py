@@ -128,6 +128,12 @@ def test_any_robot_mjcf_can_replace_the_builtin_arm(tmp_path):
     assert np.isfinite(scene.model.body("arm_tool").mass[0])
 
 
+def test_builtin_arm_without_gripper_uses_the_flange_as_tool_point():
+    scene = compile_scene(parse_spec({"name": "bare", "robot": {"gripper": "none"}}))
+    assert scene.layout.gripper_actuator is None
+    assert scene.model.site(scene.layout.tcp_site).bodyid[0] == scene.model.body("flange").id
+
+
 def test_custom_robot_with_wrong_names_says_which(tmp_path):
     (tmp_path / "arm.xml").write_text(ARM_MJCF)
     data = {
