@@ -13,9 +13,9 @@ Both carry the whole integration state (warm start included) between calls: clos
 results are bit-identical to stepping each env alone, open-loop ones agree with
 :func:`~twinrl_sim.replay.replay` to rounding (about 1e-7 rad).
 
-For a whole-episode-per-process alternative, the Gymnasium vector API works on the
-registered ids (``gymnasium.make_vec("twinrl/PickPlace-v0", num_envs=4,
-vectorization_mode="async")``).
+For envs in worker processes, the Gymnasium vector API works on the registered ids
+(``gymnasium.make_vec("twinrl_sim:twinrl/PickPlace-v0", num_envs=4,
+vectorization_mode="async", vector_kwargs={"context": "spawn"})``).
 """
 
 from __future__ import annotations

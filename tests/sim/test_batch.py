@@ -45,7 +45,13 @@ def test_batch_rollout_matches_replay(rng):
 
 
 def test_async_vector_env_runs_in_worker_processes():
-    vec = gym.make_vec(GYM_IDS["pick_place"], num_envs=2, vectorization_mode="async")
+    """Spawned workers (fork is unsafe once simulation threads exist) import twinrl_sim."""
+    vec = gym.make_vec(
+        f"twinrl_sim:{GYM_IDS['pick_place']}",
+        num_envs=2,
+        vectorization_mode="async",
+        vector_kwargs={"context": "spawn"},
+    )
     try:
         obs, _ = vec.reset(seed=3)
         obs, rewards, *_ = vec.step(np.zeros((2, 7), np.float32))
