@@ -1,0 +1,275 @@
+"""Episodes to and from LeRobotDataset v3, through lerobot's own API.
+
+Export writes with ``LeRobotDataset.create`` / ``add_frame`` / ``save_episode`` /
+``finalize`` (cameras as videos). What a LeRobotDataset has no place for, the episode
+metadata (source, world, region, config, twin digest, policy, success, interventions,
+...), goes to a sidecar beside lerobot's own metadata, one JSON line per episode::
+
+    DATASET/
+      meta/info.json, meta/episodes/..., meta/tasks.parquet, meta/stats.json   (lerobot)
+      meta/twinrl/episodes.jsonl          {"episode_index": 0, "task": ..., "source": ...}
+      data/chunk-000/file-000.parquet                                          (lerobot)
+      videos/observation.images.front/chunk-000/file-000.mp4                   (lerobot)
+
+Import reads any LeRobotDataset (twinrl's or one recorded with lerobot's tools) back
+into episodes; contract fields the dataset lacks are reported, not invented.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data import schema as contract
+from twinrl_data.errors import DataError
+
+SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
+ACTION_NAMES = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
+VIDEO_BACKEND = "pyav"  # decodes everywhere, also without a system FFmpeg
+
+
+def _lerobot():
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset
+
+
+def features_for(episode: contract.Episode) -> dict[str, dict[str, Any]]:
+    """LeRobot feature spec of an episode's fields (vectors, flags, camera videos)."""
+    features: dict[str, dict[str, Any]] = {}
+    for key in contract.VECTOR_FIELDS:
+        if key in episode.data:
+            width = episode.data[key].shape[1]
+            names = episode.meta.names.get(key) or (ACTION_NAMES if key.startswith("action") else None)
+            if names is None or len(names) != width:
+                names = [f"{key}.{i}" for i in range(width)]
+            features[key] = {"dtype": "float32", "shape": (width,), "names": list(names)}
+    for key, dtype in (
+        (contract.INTERVENTION, "bool"),
+        (contract.REWARD, "float32"),
+        (contract.DONE, "bool"),
+        (contract.SUCCESS, "bool"),
+    ):
+        if key in episode.data:
+            features[key] = {"dtype": dtype, "shape": (1,), "names": None}
+    for camera, frames in episode.images.items():
+        height, width = frames.shape[1:3]
+        features[contract.image_field(camera)] = {
+            "dtype": "video",
+            "shape": (height, width, 3),
+            "names": ["height", "width", "channels"],
+        }
+    return features
+
+
+def _same_features(a: dict[str, dict[str, Any]], b: dict[str, dict[str, Any]]) -> str | None:
+    if set(a) != set(b):
+        return f"fields differ: {sorted(set(a) ^ set(b))}"
+    for key in a:
+        if tuple(a[key]["shape"]) != tuple(b[key]["shape"]) or a[key]["dtype"] != b[key]["dtype"]:
+            return f"{key}: {a[key]['dtype']}{tuple(a[key]['shape'])} vs {b[key]['dtype']}{tuple(b[key]['shape'])}"
+    return None
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    root: Path
+    repo_id: str
+    episodes: int
+    frames: int
+
+
+def export_dataset(
+    episodes: Iterable[contract.Episode],
+    to: str | Path,
+    *,
+    repo_id: str | None = None,
+    force: bool = False,
+    on_episode: Callable[[contract.Episode], None] | None = None,
+) -> ExportResult:
+    """Write ``episodes`` (all with the same fields and shapes) as one LeRobotDataset.
+
+    ``to`` must not exist unless ``force`` (then it is replaced). Raises
+    :class:`~twinrl_data.errors.DataError` when episodes disagree on their fields.
+    """
+    root = Path(to)
+    if root.exists():
+        if not force:
+            raise DataError(f"{root} already exists; pass --force to replace it or choose another --to")
+        shutil.rmtree(root)
+    iterator = iter(episodes)
+    first = next(iterator, None)
+    if first is None:
+        raise DataError("nothing to export: the selection has no episodes")
+    repo_id = repo_id or f"twinrl/{root.name}"
+    features = features_for(first)
+    dataset = _lerobot().create(
+        repo_id=repo_id,
+        fps=round(first.meta.fps),
+        features=features,
+        root=root,
+        robot_type=first.meta.robot,
+        use_videos=True,
+        video_backend=VIDEO_BACKEND,
+    )
+    sidecar = root / SIDECAR
+    sidecar.parent.mkdir(parents=True, exist_ok=True)
+    count = frames = 0
+    try:
+        with open(sidecar, "w") as lines:
+            for episode in _chain(first, iterator):
+                mismatch = _same_features(features, features_for(episode))
+                if mismatch:
+                    raise DataError(
+                        f"episode {episode.meta.episode_id} does not match the first one ({mismatch}); "
+                        "export episodes of one task and recorder together"
+                    )
+                _add_episode(dataset, episode)
+                lines.write(json.dumps({"episode_index": count, **episode.meta.to_dict()}) + "\n")
+                count += 1
+                frames += len(episode)
+                if on_episode is not None:
+                    on_episode(episode)
+    finally:
+        dataset.finalize()
+    return ExportResult(root=root, repo_id=repo_id, episodes=count, frames=frames)
+
+
+def _chain(first: contract.Episode, rest: Iterable[contract.Episode]) -> Iterable[contract.Episode]:
+    yield first
+    yield from rest
+
+
+def _add_episode(dataset: Any, episode: contract.Episode) -> None:
+    task = episode.meta.instruction or episode.meta.task
+    vector_keys = [k for k in contract.VECTOR_FIELDS if k in episode.data]
+    flag_keys = [k for k in contract.SCALAR_FIELDS if k in episode.data]
+    for t in range(len(episode)):
+        frame: dict[str, Any] = {"task": task}
+        for key in vector_keys:
+            frame[key] = episode.data[key][t].astype(np.float32)
+        for key in flag_keys:
+            value = episode.data[key][t]
+            dtype = np.float32 if key == contract.REWARD else bool
+            frame[key] = np.array([value], dtype=dtype)
+        for camera, frames in episode.images.items():
+            frame[contract.image_field(camera)] = frames[t]
+        dataset.add_frame(frame)
+    dataset.save_episode()
+
+
+def read_sidecar(root: str | Path) -> dict[int, dict[str, Any]]:
+    """Episode metadata written by :func:`export_dataset`, by episode index (may be empty)."""
+    path = Path(root) / SIDECAR
+    if not path.is_file():
+        return {}
+    rows = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            row = json.loads(line)
+            rows[int(row.pop("episode_index"))] = row
+    return rows
+
+
+def open_dataset(root: str | Path, **kwargs: Any) -> Any:
+    """A plain ``lerobot`` LeRobotDataset read from ``root`` (offline, PyAV decoding)."""
+    root = Path(root)
+    if not (root / "meta" / "info.json").is_file():
+        raise DataError(f"{root} is not a LeRobotDataset (no meta/info.json)")
+    try:
+        return _lerobot()(repo_id=f"local/{root.name}", root=root, video_backend=VIDEO_BACKEND, **kwargs)
+    except Exception as err:  # noqa: BLE001 - lerobot raises many types for a bad dataset
+        raise DataError(f"{root} could not be opened as a LeRobotDataset ({type(err).__name__}: {err})") from None
+
+
+@dataclass(frozen=True)
+class ImportReport:
+    """What an import found: the contract fields the dataset did not have."""
+
+    episodes: int
+    missing_fields: tuple[str, ...]
+    cameras: tuple[str, ...]
+
+
+def missing_contract_fields(features: dict[str, Any]) -> list[str]:
+    wanted = [*contract.VECTOR_FIELDS, *contract.SCALAR_FIELDS]
+    return [key for key in wanted if key not in features]
+
+
+def iter_dataset_episodes(
+    root: str | Path,
+    *,
+    source: str = "teleop",
+    world: str = "real",
+    episodes: list[int] | None = None,
+) -> Iterable[contract.Episode]:
+    """Episodes of a LeRobotDataset, in index order; fields it lacks stay absent.
+
+    twinrl's sidecar metadata is used when present; otherwise ``source`` and ``world``
+    describe where the data came from and the task is the dataset's task text.
+    """
+    from lerobot.datasets.video_utils import decode_video_frames
+
+    dataset = open_dataset(root)
+    meta = dataset.meta
+    sidecar = read_sidecar(root)
+    missing = missing_contract_fields(meta.features)
+    if contract.STATE not in meta.features or contract.ACTION not in meta.features:
+        raise DataError(
+            f"{root} does not follow the episode contract: it lacks "
+            f"{[k for k in (contract.STATE, contract.ACTION) if k not in meta.features]} "
+            f"(it has {sorted(meta.features)})"
+        )
+    del missing
+    table = dataset.hf_dataset.with_format("numpy")
+    episode_column = np.asarray(table["episode_index"])
+    indices = episodes if episodes is not None else list(range(meta.total_episodes))
+    cameras = [k for k, ft in meta.features.items() if ft["dtype"] in ("video", "image")]
+    for index in indices:
+        rows = np.flatnonzero(episode_column == index)
+        if len(rows) == 0:
+            raise DataError(f"{root} has no episode {index} (it has {meta.total_episodes})")
+        part = table.select(rows)
+        data: dict[str, np.ndarray] = {}
+        for key in (*contract.VECTOR_FIELDS, *contract.SCALAR_FIELDS):
+            if key in meta.features:
+                values = np.asarray(part[key])
+                if key in contract.SCALAR_FIELDS:
+                    values = values.reshape(len(rows)).astype(np.float32 if key == contract.REWARD else bool)
+                else:
+                    values = values.astype(np.float32)
+                data[key] = values
+        timestamps = [float(t) for t in np.asarray(part["timestamp"])]
+        images = {}
+        for key in cameras:
+            if meta.features[key]["dtype"] != "video":
+                continue
+            record = meta.episodes[index]
+            offset = float(record[f"videos/{key}/from_timestamp"])
+            path = Path(root) / meta.get_video_file_path(index, key)
+            frames = decode_video_frames(
+                path, [offset + t for t in timestamps], dataset.tolerance_s, VIDEO_BACKEND, return_uint8=True
+            )
+            images[key.removeprefix(contract.IMAGES_PREFIX)] = frames.permute(0, 2, 3, 1).numpy()
+        if index in sidecar:
+            episode_meta = contract.EpisodeMeta.from_dict(sidecar[index])
+        else:
+            task_index = int(np.asarray(part["task_index"])[0])
+            task_text = str(meta.tasks.index[task_index]) if meta.tasks is not None else "unknown"
+            names = {k: list(meta.features[k].get("names") or []) for k in contract.VECTOR_FIELDS if k in meta.features}
+            episode_meta = contract.EpisodeMeta(
+                task=task_text,
+                instruction=task_text,
+                source=source,
+                world=world,
+                fps=float(meta.fps),
+                robot=meta.robot_type or "unknown",
+                names=names,
+            )
+        yield contract.Episode(meta=episode_meta, data=data, images=images)

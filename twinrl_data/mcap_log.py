@@ -1,0 +1,436 @@
+"""Episodes as MCAP files: the raw log written while recording.
+
+One file per episode. Channels (all protobuf):
+
+==================================  ===========================  ==========================
+topic                               schema                       content
+==================================  ===========================  ==========================
+/observation/state                  twinrl.FloatVector           ``observation.state``
+/observation/environment_state      twinrl.FloatVector           object poses (if logged)
+/action, /action/policy             twinrl.FloatVector           executed / proposed action
+/command/joint_target               twinrl.FloatVector           servo targets
+/transition                         twinrl.Transition            reward, done, success, ...
+/camera/<name>                      foxglove.CompressedImage     JPEG (default) or PNG
+/tf                                 foxglove.FrameTransforms     TCP and object poses
+==================================  ===========================  ==========================
+
+Episode metadata is an MCAP metadata record ``twinrl.episode`` written when recording
+starts (values JSON-encoded), and ``twinrl.episode_end`` when it ends. The writer closes
+a chunk every ``flush_seconds`` of log time, so a recorder killed mid-episode loses at
+most that much; :func:`recover` rewrites a truncated file into a valid one.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import math
+from collections import defaultdict
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import PIL.Image
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.well_known import MessageEncoding
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import register_schema
+
+from twinrl_data import schema as contract
+from twinrl_data.errors import McapError
+from twinrl_data.messages import FloatVector, Transition
+
+TOPICS = {
+    contract.STATE: "/observation/state",
+    contract.ENVIRONMENT_STATE: "/observation/environment_state",
+    contract.ACTION: "/action",
+    contract.ACTION_POLICY: "/action/policy",
+    contract.JOINT_TARGET: "/command/joint_target",
+}
+FIELD_OF_TOPIC = {topic: name for name, topic in TOPICS.items()}
+TRANSITION_TOPIC = "/transition"
+TF_TOPIC = "/tf"
+CAMERA_PREFIX = "/camera/"
+BASE_FRAME = "base"
+META_START = "twinrl.episode"
+META_FIELDS = "twinrl.fields"
+META_END = "twinrl.episode_end"
+POSE_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
+IMAGE_FORMATS = ("jpeg", "png")
+
+
+def pose_groups(names: list[str]) -> dict[str, list[int]]:
+    """Frames whose full pose (x, y, z, qw, qx, qy, qz) appears in ``names``: indices."""
+    index = {name: i for i, name in enumerate(names)}
+    groups = {}
+    for name in names:
+        if name.endswith(".x"):
+            frame = name[:-2]
+            keys = [f"{frame}.{s}" for s in POSE_SUFFIXES]
+            if all(k in index for k in keys):
+                groups[frame] = [index[k] for k in keys]
+    return groups
+
+
+class EpisodeWriter:
+    """Streams one episode into an MCAP file, one :meth:`append` per control step.
+
+    Use as a context manager::
+
+        with EpisodeWriter(path, meta) as log:
+            for ...:
+                log.append({"observation.state": s, "action": a, ...})
+
+    Steps are dicts keyed by contract field (see :mod:`twinrl_data.schema`); every
+    problem of a malformed step is reported in one :class:`~twinrl_data.errors.DataError`.
+    ``on_close`` is called with the final metadata (used by sessions' manifests).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        meta: contract.EpisodeMeta,
+        *,
+        image_format: str = "jpeg",
+        jpeg_quality: int = 90,
+        flush_seconds: float = 1.0,
+        start_ns: int | None = None,
+        overwrite: bool = False,
+        on_close: Callable[[contract.EpisodeMeta, int], None] | None = None,
+    ) -> None:
+        if image_format not in IMAGE_FORMATS:
+            raise McapError(f"image_format must be one of {IMAGE_FORMATS}, got '{image_format}'")
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise McapError(f"{self.path} already exists; refusing to overwrite it")
+        self.meta = meta
+        self.image_format = image_format
+        self.jpeg_quality = jpeg_quality
+        self._flush_every = max(1, math.ceil(flush_seconds * meta.fps))
+        self._period_ns = round(1e9 / meta.fps)
+        self._start_ns = start_ns if start_ns is not None else _iso_to_ns(meta.created_at)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile="twinrl", library="twinrl")
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._shapes: dict[str, tuple[int, ...]] = {}
+        self._fields: set[str] = set()
+        self._poses: dict[str, dict[str, list[int]]] = {
+            key: pose_groups(meta.names.get(key, [])) for key in (contract.STATE, contract.ENVIRONMENT_STATE)
+        }
+        self._on_close = on_close
+        self.steps = 0
+        self.interventions = 0
+        self.last_success = False
+        self._closed = False
+        self._writer.add_metadata(META_START, _encode(meta.to_dict()))
+        self._writer.flush()
+
+    def __enter__(self) -> EpisodeWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _channel(self, topic: str, message_class: Any) -> int:
+        if topic not in self._channels:
+            name = message_class.DESCRIPTOR.full_name
+            if name not in self._schemas:
+                self._schemas[name] = register_schema(self._writer, message_class)
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=self._schemas[name]
+            )
+        return self._channels[topic]
+
+    def _write(self, topic: str, message: Any, time_ns: int) -> None:
+        channel = self._channel(topic, type(message))
+        self._writer.add_message(
+            channel_id=channel,
+            log_time=time_ns,
+            publish_time=time_ns,
+            data=message.SerializeToString(),
+            sequence=self.steps,
+        )
+
+    def append(self, step: Mapping[str, Any]) -> None:
+        """Log one control step (observation, action and what it led to)."""
+        if self._closed:
+            raise McapError(f"{self.path}: episode already closed; start a new EpisodeWriter")
+        contract.validate_step(step, self._shapes)
+        if self.steps == 0:
+            self._shapes = {k: np.shape(v) for k, v in step.items() if k in contract.VECTOR_FIELDS}
+            fields = sorted(k for k, v in step.items() if v is not None)
+            if contract.ACTION_POLICY not in fields:
+                fields.append(contract.ACTION_POLICY)  # defaults to the executed action
+            self._fields = set(fields)
+            self._writer.add_metadata(META_FIELDS, _encode({"fields": sorted(fields)}))
+        time_ns = self._start_ns + self.steps * self._period_ns
+        for key, topic in TOPICS.items():
+            value = step.get(key)
+            if key == contract.ACTION_POLICY and value is None:
+                value = step[contract.ACTION]
+            if value is None:
+                continue
+            vector = FloatVector(step=self.steps, values=np.asarray(value, np.float32).tolist())
+            vector.timestamp.FromNanoseconds(time_ns)
+            self._write(topic, vector, time_ns)
+        intervention = bool(step.get(contract.INTERVENTION, False))
+        if any(key in self._fields for key in contract.SCALAR_FIELDS):
+            transition = Transition(
+                step=self.steps,
+                reward=float(step.get(contract.REWARD, 0.0)),
+                done=bool(step.get(contract.DONE, False)),
+                success=bool(step.get(contract.SUCCESS, False)),
+                intervention=intervention,
+            )
+            transition.timestamp.FromNanoseconds(time_ns)
+            self._write(TRANSITION_TOPIC, transition, time_ns)
+        for key, value in step.items():
+            if key.startswith(contract.IMAGES_PREFIX):
+                camera = key[len(contract.IMAGES_PREFIX) :]
+                image = CompressedImage(frame_id=camera, format=self.image_format, data=self._encode(value))
+                image.timestamp.FromNanoseconds(time_ns)
+                self._write(CAMERA_PREFIX + camera, image, time_ns)
+        self._write_poses(step, time_ns)
+        self.interventions += intervention
+        self.last_success = bool(step.get(contract.SUCCESS, False))
+        self.steps += 1
+        if self.steps % self._flush_every == 0:
+            self._writer.flush()  # closes the chunk: a crash loses at most flush_seconds
+
+    def _write_poses(self, step: Mapping[str, Any], time_ns: int) -> None:
+        transforms = FrameTransforms()
+        for key, groups in self._poses.items():
+            values = step.get(key)
+            if values is None:
+                continue
+            for frame, idx in groups.items():
+                x, y, z, qw, qx, qy, qz = (float(values[i]) for i in idx)
+                tf = FrameTransform(parent_frame_id=BASE_FRAME, child_frame_id=frame)
+                tf.timestamp.FromNanoseconds(time_ns)
+                tf.translation.x, tf.translation.y, tf.translation.z = x, y, z
+                tf.rotation.w, tf.rotation.x, tf.rotation.y, tf.rotation.z = qw, qx, qy, qz
+                transforms.transforms.append(tf)
+        if transforms.transforms:
+            self._write(TF_TOPIC, transforms, time_ns)
+
+    def _encode(self, image: np.ndarray) -> bytes:
+        buffer = io.BytesIO()
+        pil = PIL.Image.fromarray(np.asarray(image, np.uint8))
+        if self.image_format == "jpeg":
+            pil.save(buffer, format="JPEG", quality=self.jpeg_quality)
+        else:
+            pil.save(buffer, format="PNG", compress_level=1)
+        return buffer.getvalue()
+
+    def close(self, success: bool | None = None) -> contract.EpisodeMeta:
+        """Finish the file; ``success`` defaults to the last step's ``next.success``."""
+        if self._closed:
+            return self.meta
+        self._closed = True
+        final_success = self.last_success if success is None else success
+        self.meta = self.meta.replace(success=final_success, num_interventions=self.interventions)
+        end = {"success": final_success, "num_interventions": self.interventions, "length": self.steps}
+        self._writer.add_metadata(META_END, _encode(end))
+        self._writer.finish()
+        self._file.close()
+        if self._on_close is not None:
+            self._on_close(self.meta, self.steps)
+        return self.meta
+
+
+def _encode(values: Mapping[str, Any]) -> dict[str, str]:
+    return {key: json.dumps(value) for key, value in values.items()}
+
+
+def _decode(values: Mapping[str, str]) -> dict[str, Any]:
+    return {key: json.loads(value) for key, value in values.items()}
+
+
+def _iso_to_ns(text: str) -> int:
+    return int(dt.datetime.fromisoformat(text).timestamp() * 1e9)
+
+
+def _open_checked(path: str | Path) -> Path:
+    path = Path(path)
+    if not path.is_file():
+        raise McapError(f"{path} does not exist (expected an episode .mcap file)")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if head != b"\x89MCAP0\r\n":
+        raise McapError(f"{path} is not an MCAP file (bad magic bytes)")
+    return path
+
+
+def _damaged(path: Path, err: Exception) -> McapError:
+    return McapError(
+        f"{path} is truncated or damaged ({type(err).__name__}: {err}); "
+        f"`twinrl data recover {path}` rewrites what can still be read"
+    )
+
+
+def read_meta(path: str | Path) -> contract.EpisodeMeta:
+    """The episode metadata of an MCAP file (the end record's results merged in)."""
+    path = _open_checked(path)
+    try:
+        with open(path, "rb") as f:
+            records = {m.name: _decode(m.metadata) for m in make_reader(f).iter_metadata()}
+    except Exception as err:  # noqa: BLE001 - any failure of the library means damage
+        raise _damaged(path, err) from None
+    return _meta_from(path, records)
+
+
+def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.EpisodeMeta:
+    if META_START not in records:
+        raise McapError(f"{path} has no '{META_START}' metadata: not a twinrl episode log")
+    meta = contract.EpisodeMeta.from_dict(records[META_START])
+    end = records.get(META_END)
+    if end is not None:
+        meta = meta.replace(success=end["success"], num_interventions=end["num_interventions"])
+    return meta
+
+
+def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
+    """Read a whole episode: metadata and every field in step order.
+
+    Raises :class:`~twinrl_data.errors.McapError` for a missing, non-MCAP, truncated or
+    foreign file (never another exception type).
+    """
+    path = _open_checked(path)
+    vectors: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
+    transitions: dict[int, Any] = {}
+    frames: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            records = {m.name: _decode(m.metadata) for m in reader.iter_metadata()}
+            for schema, channel, message in reader.iter_messages():
+                _collect(schema, channel, message, vectors, transitions, frames, images)
+    except McapError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any failure of the library means damage
+        raise _damaged(path, err) from None
+    meta = _meta_from(path, records)
+    if contract.STATE not in vectors:
+        raise McapError(f"{path} has no {TOPICS[contract.STATE]} messages: no complete step was logged")
+    streams = [*vectors.values(), *frames.values()] + ([transitions] if transitions else [])
+    steps = _complete_steps(vectors[contract.STATE], streams)
+    fields = set(records.get(META_FIELDS, {}).get("fields", contract.SCALAR_FIELDS))
+    data: dict[str, np.ndarray] = {}
+    for key, rows in vectors.items():
+        data[key] = np.stack([rows[s] for s in steps]) if steps else np.zeros((0, 0), np.float32)
+    if transitions:
+        for key, attribute, dtype in (
+            (contract.REWARD, "reward", np.float32),
+            (contract.DONE, "done", bool),
+            (contract.SUCCESS, "success", bool),
+            (contract.INTERVENTION, "intervention", bool),
+        ):
+            if key in fields:
+                data[key] = np.array([getattr(transitions[s], attribute) for s in steps], dtype)
+    camera_arrays = {cam: np.stack([rows[s] for s in steps]) for cam, rows in frames.items() if steps}
+    return contract.Episode(meta=meta, data=data, images=camera_arrays)
+
+
+def _complete_steps(states: Mapping[int, Any], streams: list[Mapping[int, Any]]) -> list[int]:
+    """Steps 0..k-1 for the largest k such that every stream has all of them.
+
+    A recorder killed mid-step leaves a partial last step; it is dropped.
+    """
+    count = 0
+    while count in states and all(count in stream for stream in streams):
+        count += 1
+    return list(range(count))
+
+
+def _collect(
+    schema: Schema | None,
+    channel: Channel,
+    message: Message,
+    vectors: dict[str, dict[int, np.ndarray]],
+    transitions: dict[int, Any],
+    frames: dict[str, dict[int, np.ndarray]],
+    images: bool,
+) -> None:
+    name = schema.name if schema is not None else ""
+    if channel.topic in FIELD_OF_TOPIC and name == "twinrl.FloatVector":
+        vector = FloatVector.FromString(message.data)
+        vectors[FIELD_OF_TOPIC[channel.topic]][vector.step] = np.asarray(vector.values, np.float32)
+    elif channel.topic == TRANSITION_TOPIC and name == "twinrl.Transition":
+        transition = Transition.FromString(message.data)
+        transitions[transition.step] = transition
+    elif images and channel.topic.startswith(CAMERA_PREFIX) and name == "foxglove.CompressedImage":
+        image = CompressedImage.FromString(message.data)
+        pixels = np.asarray(PIL.Image.open(io.BytesIO(image.data)).convert("RGB"))
+        frames[channel.topic[len(CAMERA_PREFIX) :]][message.sequence] = pixels
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """What :func:`recover` kept."""
+
+    source: Path
+    output: Path
+    messages: int
+    metadata: int
+    complete: bool  # the source was already a valid, finished file
+
+
+def recover(path: str | Path, output: str | Path | None = None, *, force: bool = False) -> Recovery:
+    """Rewrite a truncated episode log (e.g. from a killed recorder) into a valid file.
+
+    Every record before the damage is kept. ``output`` defaults to
+    ``<name>.recovered.mcap`` beside the source; it is not overwritten unless ``force``.
+    """
+    path = _open_checked(path)
+    output = Path(output) if output is not None else path.with_suffix(".recovered.mcap")
+    if output.resolve() == path.resolve():
+        raise McapError("recover writes a new file; give an --out different from the damaged file")
+    if output.exists() and not force:
+        raise McapError(f"{output} already exists; pass --force to overwrite it")
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    messages: list[Message] = []
+    metadata: list[Metadata] = []
+    complete = False
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, skip_magic=False).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    messages.append(record)
+                elif isinstance(record, Metadata):
+                    metadata.append(record)
+            complete = True
+        except Exception:  # noqa: BLE001, S110 - the damage ends the readable part
+            pass
+    kept = [m for m in messages if m.channel_id in channels and channels[m.channel_id].schema_id in schemas]
+    with open(output, "wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(profile="twinrl", library="twinrl recover")
+        schema_ids = {
+            old: writer.register_schema(s.name, s.encoding, s.data) for old, s in schemas.items()
+        }
+        channel_ids = {
+            old: writer.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata)
+            for old, c in channels.items()
+            if c.schema_id in schema_ids
+        }
+        for m in kept:
+            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+        for record in metadata:
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    return Recovery(source=path, output=output, messages=len(kept), metadata=len(metadata), complete=complete)

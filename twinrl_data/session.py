@@ -1,0 +1,107 @@
+"""A recording session: a folder of episode MCAP files and a small manifest.
+
+::
+
+    SESSION/
+      manifest.json                       # format, created_at, one entry per episode
+      episodes/000000_<episode_id>.mcap   # one MCAP file per episode
+      episodes/000001_<episode_id>.mcap
+
+The manifest is rewritten atomically when an episode starts (status ``recording``) and
+when it ends (``complete``, with length and success), so a crash leaves it consistent.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from twinrl_data.errors import DataError
+from twinrl_data.mcap_log import EpisodeWriter
+from twinrl_data.schema import EpisodeMeta, now_iso
+
+MANIFEST = "manifest.json"
+FORMAT = "twinrl-session"
+
+
+def is_session(path: str | Path) -> bool:
+    return (Path(path) / MANIFEST).is_file()
+
+
+class Session:
+    """Open an existing session (``Session(path)``) or make one (``Session.create``)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        manifest = self.path / MANIFEST
+        if not manifest.is_file():
+            raise DataError(
+                f"{self.path} is not a session (no {MANIFEST}); create one with Session.create "
+                "or record with `twinrl sim expert ... --out DIR`"
+            )
+        try:
+            self.manifest: dict[str, Any] = json.loads(manifest.read_text())
+        except json.JSONDecodeError as err:
+            raise DataError(f"{manifest} is not valid JSON ({err.msg}); the session is damaged") from None
+        if self.manifest.get("format") != FORMAT:
+            raise DataError(f"{manifest} is not a twinrl session manifest")
+
+    @classmethod
+    def create(cls, path: str | Path, *, exist_ok: bool = False) -> Session:
+        """Make a new session folder, or reopen it when ``exist_ok`` and it is a session."""
+        path = Path(path)
+        if is_session(path):
+            if exist_ok:
+                return cls(path)
+            raise DataError(f"session {path} already exists; pass --append to add episodes to it")
+        if path.exists() and any(path.iterdir()):
+            raise DataError(f"{path} exists and is not an empty folder; choose a new session folder")
+        (path / "episodes").mkdir(parents=True, exist_ok=True)
+        _write_json(path / MANIFEST, {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []})
+        return cls(path)
+
+    @property
+    def entries(self) -> list[dict[str, Any]]:
+        return list(self.manifest["episodes"])
+
+    def episode_paths(self) -> list[Path]:
+        """Episode files in recording order."""
+        return [self.path / e["file"] for e in self.manifest["episodes"]]
+
+    def record(self, meta: EpisodeMeta, **writer_options: Any) -> EpisodeWriter:
+        """Start recording an episode of this session; returns its :class:`EpisodeWriter`."""
+        index = len(self.manifest["episodes"])
+        relative = f"episodes/{index:06d}_{meta.episode_id}.mcap"
+        entry = {
+            "file": relative,
+            "episode_id": meta.episode_id,
+            "task": meta.task,
+            "source": meta.source,
+            "world": meta.world,
+            "created_at": meta.created_at,
+            "status": "recording",
+        }
+        writer = EpisodeWriter(self.path / relative, meta, on_close=self._closed, **writer_options)
+        self.manifest["episodes"].append(entry)
+        self._save()
+        return writer
+
+    def _closed(self, meta: EpisodeMeta, length: int) -> None:
+        for entry in self.manifest["episodes"]:
+            if entry["episode_id"] == meta.episode_id:
+                entry.update(status="complete", length=length, success=meta.success)
+        self._save()
+
+    def _save(self) -> None:
+        _write_json(self.path / MANIFEST, self.manifest)
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write atomically: a crash leaves the old or the new file, never half of one."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".manifest-")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)
