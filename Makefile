@@ -13,7 +13,8 @@ export MUJOCO_GL ?= egl
 .PHONY: help setup system-libs test demo bench lint clean
 
 help:
-	@echo "make demo   set up, then run every task's scripted expert in the twin and the plant"
+	@echo "make demo   set up, run every task's scripted expert in the twin and the plant, record,"
+	@echo "            index, query, curate a LeRobot dataset and save a Rerun recording under out/demo"
 	@echo "make test   set up, then lint and run the test suite"
 	@echo "make bench  set up, then run the benchmarks"
 
@@ -44,11 +45,20 @@ test: setup
 	$(BIN)/ruff check .
 	$(BIN)/pytest -q
 
+DEMO := out/demo
 demo: setup
 	$(BIN)/twinrl sim expert all --world twin --world plant --episodes 10
+	@rm -rf $(DEMO)   # the demo's own output from a previous run
+	$(BIN)/twinrl sim expert all --world twin --world plant --episodes 1 --out $(DEMO)/session
+	$(BIN)/twinrl data index $(DEMO)/session --catalog $(DEMO)/catalog.parquet
+	$(BIN)/twinrl data query --catalog $(DEMO)/catalog.parquet --task pick_place
+	$(BIN)/twinrl data curate --catalog $(DEMO)/catalog.parquet --task pick_place --to $(DEMO)/datasets/pick_place
+	$(BIN)/twinrl view $(DEMO)/session#0 $(DEMO)/session#2 --save $(DEMO)/pick_place_twin_vs_plant.rrd
+	@echo "open the recording with: $(BIN)/rerun $(DEMO)/pick_place_twin_vs_plant.rrd"
 
 bench: setup
 	$(BIN)/python bench/bench_batch.py --episodes 32 --steps 60
+	$(BIN)/python bench/bench_data.py --episodes 4 --steps 100
 
 lint: setup
 	$(BIN)/ruff check .

@@ -46,7 +46,9 @@ def features_for(episode: contract.Episode) -> dict[str, dict[str, Any]]:
     for key in contract.VECTOR_FIELDS:
         if key in episode.data:
             width = episode.data[key].shape[1]
-            names = episode.meta.names.get(key) or (ACTION_NAMES if key.startswith("action") else None)
+            names = episode.meta.names.get(key) or (
+                ACTION_NAMES if key.startswith("action") else None
+            )
             if names is None or len(names) != width:
                 names = [f"{key}.{i}" for i in range(width)]
             features[key] = {"dtype": "float32", "shape": (width,), "names": list(names)}
@@ -72,8 +74,10 @@ def _same_features(a: dict[str, dict[str, Any]], b: dict[str, dict[str, Any]]) -
     if set(a) != set(b):
         return f"fields differ: {sorted(set(a) ^ set(b))}"
     for key in a:
-        if tuple(a[key]["shape"]) != tuple(b[key]["shape"]) or a[key]["dtype"] != b[key]["dtype"]:
-            return f"{key}: {a[key]['dtype']}{tuple(a[key]['shape'])} vs {b[key]['dtype']}{tuple(b[key]['shape'])}"
+        first = f"{a[key]['dtype']}{tuple(a[key]['shape'])}"
+        other = f"{b[key]['dtype']}{tuple(b[key]['shape'])}"
+        if first != other:
+            return f"{key}: {first} vs {other}"
     return None
 
 
@@ -101,7 +105,9 @@ def export_dataset(
     root = Path(to)
     if root.exists():
         if not force:
-            raise DataError(f"{root} already exists; pass --force to replace it or choose another --to")
+            raise DataError(
+                f"{root} already exists; pass --force to replace it or choose another --to"
+            )
         shutil.rmtree(root)
     iterator = iter(episodes)
     first = next(iterator, None)
@@ -127,8 +133,8 @@ def export_dataset(
                 mismatch = _same_features(features, features_for(episode))
                 if mismatch:
                     raise DataError(
-                        f"episode {episode.meta.episode_id} does not match the first one ({mismatch}); "
-                        "export episodes of one task and recorder together"
+                        f"episode {episode.meta.episode_id} does not match the first one "
+                        f"({mismatch}); export episodes of one task and recorder together"
                     )
                 _add_episode(dataset, episode)
                 lines.write(json.dumps({"episode_index": count, **episode.meta.to_dict()}) + "\n")
@@ -183,9 +189,13 @@ def open_dataset(root: str | Path, **kwargs: Any) -> Any:
     if not (root / "meta" / "info.json").is_file():
         raise DataError(f"{root} is not a LeRobotDataset (no meta/info.json)")
     try:
-        return _lerobot()(repo_id=f"local/{root.name}", root=root, video_backend=VIDEO_BACKEND, **kwargs)
-    except Exception as err:  # noqa: BLE001 - lerobot raises many types for a bad dataset
-        raise DataError(f"{root} could not be opened as a LeRobotDataset ({type(err).__name__}: {err})") from None
+        return _lerobot()(
+            repo_id=f"local/{root.name}", root=root, video_backend=VIDEO_BACKEND, **kwargs
+        )
+    except Exception as err:
+        raise DataError(
+            f"{root} could not be opened as a LeRobotDataset ({type(err).__name__}: {err})"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -241,7 +251,9 @@ def iter_dataset_episodes(
             if key in meta.features:
                 values = np.asarray(part[key])
                 if key in contract.SCALAR_FIELDS:
-                    values = values.reshape(len(rows)).astype(np.float32 if key == contract.REWARD else bool)
+                    values = values.reshape(len(rows)).astype(
+                        np.float32 if key == contract.REWARD else bool
+                    )
                 else:
                     values = values.astype(np.float32)
                 data[key] = values
@@ -254,22 +266,44 @@ def iter_dataset_episodes(
             offset = float(record[f"videos/{key}/from_timestamp"])
             path = Path(root) / meta.get_video_file_path(index, key)
             frames = decode_video_frames(
-                path, [offset + t for t in timestamps], dataset.tolerance_s, VIDEO_BACKEND, return_uint8=True
+                path,
+                [offset + t for t in timestamps],
+                dataset.tolerance_s,
+                VIDEO_BACKEND,
+                return_uint8=True,
             )
             images[key.removeprefix(contract.IMAGES_PREFIX)] = frames.permute(0, 2, 3, 1).numpy()
-        if index in sidecar:
-            episode_meta = contract.EpisodeMeta.from_dict(sidecar[index])
-        else:
-            task_index = int(np.asarray(part["task_index"])[0])
-            task_text = str(meta.tasks.index[task_index]) if meta.tasks is not None else "unknown"
-            names = {k: list(meta.features[k].get("names") or []) for k in contract.VECTOR_FIELDS if k in meta.features}
-            episode_meta = contract.EpisodeMeta(
-                task=task_text,
-                instruction=task_text,
-                source=source,
-                world=world,
-                fps=float(meta.fps),
-                robot=meta.robot_type or "unknown",
-                names=names,
-            )
+        episode_meta = episode_metadata(
+            meta, sidecar, index, int(np.asarray(part["task_index"])[0]), source=source, world=world
+        )
         yield contract.Episode(meta=episode_meta, data=data, images=images)
+
+
+def episode_metadata(
+    meta: Any,
+    sidecar: dict[int, dict[str, Any]],
+    index: int,
+    task_index: int,
+    *,
+    source: str,
+    world: str,
+) -> contract.EpisodeMeta:
+    """twinrl's metadata of a dataset episode: from the sidecar, else from what lerobot
+    stores (task text, fps, robot type, feature names) plus the given source and world."""
+    if index in sidecar:
+        return contract.EpisodeMeta.from_dict(sidecar[index])
+    task_text = str(meta.tasks.index[task_index]) if meta.tasks is not None else "unknown"
+    names = {
+        k: list(meta.features[k].get("names") or [])
+        for k in contract.VECTOR_FIELDS
+        if k in meta.features
+    }
+    return contract.EpisodeMeta(
+        task=task_text,
+        instruction=task_text,
+        source=source,
+        world=world,
+        fps=float(meta.fps),
+        robot=meta.robot_type or "unknown",
+        names=names,
+    )

@@ -125,7 +125,8 @@ class EpisodeWriter:
         self._shapes: dict[str, tuple[int, ...]] = {}
         self._fields: set[str] = set()
         self._poses: dict[str, dict[str, list[int]]] = {
-            key: pose_groups(meta.names.get(key, [])) for key in (contract.STATE, contract.ENVIRONMENT_STATE)
+            key: pose_groups(meta.names.get(key, []))
+            for key in (contract.STATE, contract.ENVIRONMENT_STATE)
         }
         self._on_close = on_close
         self.steps = 0
@@ -147,7 +148,9 @@ class EpisodeWriter:
             if name not in self._schemas:
                 self._schemas[name] = register_schema(self._writer, message_class)
             self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MessageEncoding.Protobuf, schema_id=self._schemas[name]
+                topic=topic,
+                message_encoding=MessageEncoding.Protobuf,
+                schema_id=self._schemas[name],
             )
         return self._channels[topic]
 
@@ -197,7 +200,9 @@ class EpisodeWriter:
         for key, value in step.items():
             if key.startswith(contract.IMAGES_PREFIX):
                 camera = key[len(contract.IMAGES_PREFIX) :]
-                image = CompressedImage(frame_id=camera, format=self.image_format, data=self._encode(value))
+                image = CompressedImage(
+                    frame_id=camera, format=self.image_format, data=self._encode(value)
+                )
                 image.timestamp.FromNanoseconds(time_ns)
                 self._write(CAMERA_PREFIX + camera, image, time_ns)
         self._write_poses(step, time_ns)
@@ -239,7 +244,11 @@ class EpisodeWriter:
         self._closed = True
         final_success = self.last_success if success is None else success
         self.meta = self.meta.replace(success=final_success, num_interventions=self.interventions)
-        end = {"success": final_success, "num_interventions": self.interventions, "length": self.steps}
+        end = {
+            "success": final_success,
+            "num_interventions": self.interventions,
+            "length": self.steps,
+        }
         self._writer.add_metadata(META_END, _encode(end))
         self._writer.finish()
         self._file.close()
@@ -284,7 +293,7 @@ def read_meta(path: str | Path) -> contract.EpisodeMeta:
     try:
         with open(path, "rb") as f:
             records = {m.name: _decode(m.metadata) for m in make_reader(f).iter_metadata()}
-    except Exception as err:  # noqa: BLE001 - any failure of the library means damage
+    except Exception as err:
         raise _damaged(path, err) from None
     return _meta_from(path, records)
 
@@ -317,11 +326,13 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
                 _collect(schema, channel, message, vectors, transitions, frames, images)
     except McapError:
         raise
-    except Exception as err:  # noqa: BLE001 - any failure of the library means damage
+    except Exception as err:
         raise _damaged(path, err) from None
     meta = _meta_from(path, records)
     if contract.STATE not in vectors:
-        raise McapError(f"{path} has no {TOPICS[contract.STATE]} messages: no complete step was logged")
+        raise McapError(
+            f"{path} has no {TOPICS[contract.STATE]} messages: no complete step was logged"
+        )
     streams = [*vectors.values(), *frames.values()] + ([transitions] if transitions else [])
     steps = _complete_steps(vectors[contract.STATE], streams)
     fields = set(records.get(META_FIELDS, {}).get("fields", contract.SCALAR_FIELDS))
@@ -337,7 +348,9 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
         ):
             if key in fields:
                 data[key] = np.array([getattr(transitions[s], attribute) for s in steps], dtype)
-    camera_arrays = {cam: np.stack([rows[s] for s in steps]) for cam, rows in frames.items() if steps}
+    camera_arrays = {
+        cam: np.stack([rows[s] for s in steps]) for cam, rows in frames.items() if steps
+    }
     return contract.Episode(meta=meta, data=data, images=camera_arrays)
 
 
@@ -414,9 +427,13 @@ def recover(path: str | Path, output: str | Path | None = None, *, force: bool =
                 elif isinstance(record, Metadata):
                     metadata.append(record)
             complete = True
-        except Exception:  # noqa: BLE001, S110 - the damage ends the readable part
+        except Exception:
             pass
-    kept = [m for m in messages if m.channel_id in channels and channels[m.channel_id].schema_id in schemas]
+    kept = [
+        m
+        for m in messages
+        if m.channel_id in channels and channels[m.channel_id].schema_id in schemas
+    ]
     with open(output, "wb") as f:
         writer = Writer(f, compression=CompressionType.ZSTD)
         writer.start(profile="twinrl", library="twinrl recover")
@@ -424,13 +441,19 @@ def recover(path: str | Path, output: str | Path | None = None, *, force: bool =
             old: writer.register_schema(s.name, s.encoding, s.data) for old, s in schemas.items()
         }
         channel_ids = {
-            old: writer.register_channel(c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata)
+            old: writer.register_channel(
+                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
+            )
             for old, c in channels.items()
             if c.schema_id in schema_ids
         }
         for m in kept:
-            writer.add_message(channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence)
+            writer.add_message(
+                channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence
+            )
         for record in metadata:
             writer.add_metadata(record.name, record.metadata)
         writer.finish()
-    return Recovery(source=path, output=output, messages=len(kept), metadata=len(metadata), complete=complete)
+    return Recovery(
+        source=path, output=output, messages=len(kept), metadata=len(metadata), complete=complete
+    )

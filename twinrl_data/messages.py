@@ -33,7 +33,11 @@ def _build() -> descriptor_pool.DescriptorPool:
     timestamp = ("timestamp", _FIELD.TYPE_MESSAGE, optional, ".google.protobuf.Timestamp")
     message(
         "FloatVector",
-        [timestamp, ("step", _FIELD.TYPE_UINT32, optional, None), ("values", _FIELD.TYPE_FLOAT, repeated, None)],
+        [
+            timestamp,
+            ("step", _FIELD.TYPE_UINT32, optional, None),
+            ("values", _FIELD.TYPE_FLOAT, repeated, None),
+        ],
     )
     message(
         "Transition",

@@ -117,7 +117,9 @@ class EpisodeMeta:
         known = set(cls.__dataclass_fields__)
         unknown = sorted(set(data) - known)
         if unknown:
-            raise DataError(f"episode metadata has unknown key(s) {unknown}; known: {sorted(known)}")
+            raise DataError(
+                f"episode metadata has unknown key(s) {unknown}; known: {sorted(known)}"
+            )
         return cls(**dict(data))
 
 
@@ -158,7 +160,9 @@ class Episode:
         return list(self.images)
 
 
-def validate_step(step: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]] | None = None) -> None:
+def validate_step(
+    step: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]] | None = None
+) -> None:
     """Check a step dict against the contract; report every problem in one error.
 
     ``expected`` maps fields to shapes fixed by the first step of an episode.
@@ -170,7 +174,9 @@ def validate_step(step: Mapping[str, Any], expected: Mapping[str, tuple[int, ...
     known = set(VECTOR_FIELDS) | set(SCALAR_FIELDS)
     extra = [k for k in step if k not in known and not k.startswith(IMAGES_PREFIX)]
     if extra:
-        problems.append(f"unknown field(s) {extra} (known: {sorted(known)} and {IMAGES_PREFIX}<camera>)")
+        problems.append(
+            f"unknown field(s) {extra} (known: {sorted(known)} and {IMAGES_PREFIX}<camera>)"
+        )
     for key, value in step.items():
         if key in VECTOR_FIELDS and value is not None:
             shape = np.shape(value)

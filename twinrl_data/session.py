@@ -45,7 +45,9 @@ class Session:
         try:
             self.manifest: dict[str, Any] = json.loads(manifest.read_text())
         except json.JSONDecodeError as err:
-            raise DataError(f"{manifest} is not valid JSON ({err.msg}); the session is damaged") from None
+            raise DataError(
+                f"{manifest} is not valid JSON ({err.msg}); the session is damaged"
+            ) from None
         if self.manifest.get("format") != FORMAT:
             raise DataError(f"{manifest} is not a twinrl session manifest")
 
@@ -58,9 +60,14 @@ class Session:
                 return cls(path)
             raise DataError(f"session {path} already exists; pass --append to add episodes to it")
         if path.exists() and any(path.iterdir()):
-            raise DataError(f"{path} exists and is not an empty folder; choose a new session folder")
+            raise DataError(
+                f"{path} exists and is not an empty folder; choose a new session folder"
+            )
         (path / "episodes").mkdir(parents=True, exist_ok=True)
-        _write_json(path / MANIFEST, {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []})
+        _write_json(
+            path / MANIFEST,
+            {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []},
+        )
         return cls(path)
 
     @property

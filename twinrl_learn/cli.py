@@ -7,6 +7,7 @@ import sys
 import typer
 from rich.console import Console
 
+from twinrl_data import cli as data_cli
 from twinrl_robot import cli as robot_cli
 from twinrl_sim import cli as sim_cli
 from twinrl_sim.spec import SpecError
@@ -19,6 +20,8 @@ app = typer.Typer(
 )
 sim_cli.app.command("expert")(robot_cli.expert)
 app.add_typer(sim_cli.app, name="sim")
+app.add_typer(data_cli.app, name="data")
+app.command("view")(sim_cli.view)
 
 USER_ERRORS = (ValueError, SpecError, FileNotFoundError, KeyError)
 

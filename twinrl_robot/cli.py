@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from twinrl_data.session import Session
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
 from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class
@@ -32,11 +33,16 @@ def expert(
         ),
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed for configurations and grasps.")] = 0,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="Record every episode (MCAP, both cameras) into this session folder."),
+    ] = None,
+    append: Annotated[bool, typer.Option(help="Add to an existing --out session.")] = False,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print one JSON object per task and world.")
     ] = False,
 ) -> None:
-    """Run a task's scripted expert and report its success rate per region."""
+    """Run a task's scripted expert, report its success per region, optionally record it."""
     worlds = world or ["twin"]
     tasks = list(TASKS) if task == "all" else [task_class(task).name]
     if region is not None and region not in REGION_NAMES:
@@ -49,6 +55,7 @@ def expert(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     regions = (region,) if region else REGION_NAMES
+    session = Session.create(out, exist_ok=append) if out is not None else None
     reports: list[ExpertReport] = []
     with Progress(
         TextColumn("{task.description}"),
@@ -69,6 +76,7 @@ def expert(
                     regions=regions,
                     effects=effects if place == "plant" else None,
                     seed=seed,
+                    session=session,
                     on_episode=lambda _, job=job: bar.advance(job),
                 )
                 reports.append(report)
@@ -76,6 +84,8 @@ def expert(
                     print(json.dumps(report.to_json()), flush=True)
     if not as_json:
         console.print(success_table(reports))
+        if session is not None:
+            console.print(f"recorded {len(session.entries)} episodes in {session.path}")
 
 
 def success_table(reports: list[ExpertReport]) -> Table:

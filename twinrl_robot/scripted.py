@@ -10,9 +10,23 @@ from typing import Any, Literal
 
 import numpy as np
 
+from twinrl_data.lerobot_io import ACTION_NAMES
+from twinrl_data.schema import (
+    ACTION,
+    DONE,
+    ENVIRONMENT_STATE,
+    INTERVENTION,
+    JOINT_TARGET,
+    REWARD,
+    STATE,
+    SUCCESS,
+    EpisodeMeta,
+)
+from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
-from twinrl_sim.tasks import REGION_NAMES, TaskConfig, make_task
+from twinrl_sim.robots.ur5e import JOINT_NAMES
+from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
 
 World = Literal["twin", "plant"]
 WORLDS: tuple[str, ...] = ("twin", "plant")
@@ -61,9 +75,15 @@ class ExpertReport:
 
 
 class _TwinWorld:
-    def __init__(self, task: str) -> None:
-        self.env = TwinEnv(task)
+    source, world = "twin_demo", "twin"
+
+    def __init__(self, task: str, images: bool) -> None:
+        self.env = TwinEnv(task, images=images)
         self.task = self.env.task
+        self.names = {
+            STATE: self.env.cell.state_names,
+            ENVIRONMENT_STATE: self.env.cell.environment_names,
+        }
         self._success = False
 
     def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
@@ -71,10 +91,10 @@ class _TwinWorld:
         self._success = info["success"]
         return obs
 
-    def step(self, action: np.ndarray) -> dict[str, np.ndarray]:
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         obs, _, _, _, info = self.env.step(action)
         self._success = info["success"]
-        return obs
+        return obs, info["command.joint_target"]
 
     @property
     def success(self) -> bool:
@@ -85,16 +105,28 @@ class _TwinWorld:
 
 
 class _PlantWorld:
-    def __init__(self, task: str, effects: dict | str | Path | None, seed: int) -> None:
-        self.plant = Plant(task, effects=effects, seed=seed)
+    # The scripted expert stands in for a human teleoperating the (stand-in) real cell.
+    source, world = "teleop", "plant"
+
+    def __init__(
+        self, task: str, effects: dict | str | Path | None, seed: int, images: bool
+    ) -> None:
+        self.plant = Plant(
+            task, effects=effects, seed=seed, images=("front", "wrist") if images else ()
+        )
         self.task = self.plant.task
+        self.names = {
+            STATE: self.plant.state_names,
+            ENVIRONMENT_STATE: self.plant.environment_names,
+        }
 
     def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
         return self.plant.reset(config)
 
-    def step(self, action: np.ndarray) -> dict[str, np.ndarray]:
+    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         self.plant.act(action)
-        return self.plant.observe()
+        assert self.plant.last_joint_target is not None
+        return self.plant.observe(), self.plant.last_joint_target
 
     @property
     def success(self) -> bool:
@@ -112,11 +144,15 @@ def run_scripted_expert(
     regions: tuple[str, ...] = REGION_NAMES,
     effects: dict | str | Path | None = None,
     seed: int = 0,
+    session: Session | None = None,
     on_episode: Callable[[ExpertEpisode], None] | None = None,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
 
     ``effects`` only applies to the plant (``None``: the built-in plant's hidden effects).
+    With a ``session``, every episode is recorded (both cameras): in the twin as
+    ``twin_demo`` demonstrations, in the plant as ``teleop`` (the expert stands in for
+    the human operator).
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {', '.join(WORLDS)}, got '{world}'")
@@ -127,7 +163,8 @@ def run_scripted_expert(
     spec_task = make_task(task)
     for region in regions:
         spec_task.region(region)
-    sim = _TwinWorld(task) if world == "twin" else _PlantWorld(task, effects, seed)
+    images = session is not None
+    sim = _TwinWorld(task, images) if world == "twin" else _PlantWorld(task, effects, seed, images)
     rng = np.random.default_rng(seed)
     results = []
     try:
@@ -136,10 +173,31 @@ def run_scripted_expert(
                 config = sim.task.sample_config(rng, region)
                 expert = sim.task.expert(config, np.random.default_rng([seed, r, i]))
                 obs = sim.reset(config)
+                log = None
+                if session is not None:
+                    log = session.record(_episode_meta(sim, config, region))
                 steps = 0
                 while steps < sim.task.max_steps and not sim.success:
-                    obs = sim.step(expert.act(obs))
+                    action = expert.act(obs)
+                    next_obs, joint_target = sim.step(action)
                     steps += 1
+                    if log is not None:
+                        done = sim.success or steps >= sim.task.max_steps
+                        reward = sim.task.reward(Progress(success=sim.success), "sparse")
+                        log.append(
+                            {
+                                **obs,
+                                ACTION: action,
+                                JOINT_TARGET: joint_target,
+                                INTERVENTION: False,
+                                REWARD: reward,
+                                DONE: done,
+                                SUCCESS: sim.success,
+                            }
+                        )
+                    obs = next_obs
+                if log is not None:
+                    log.close()
                 episode = ExpertEpisode(region, config.to_dict(), sim.success, steps)
                 results.append(episode)
                 if on_episode is not None:
@@ -147,3 +205,24 @@ def run_scripted_expert(
     finally:
         sim.close()
     return ExpertReport(task=task, world=world, episodes=tuple(results))
+
+
+def _episode_meta(sim: _TwinWorld | _PlantWorld, config: TaskConfig, region: str) -> EpisodeMeta:
+    return EpisodeMeta(
+        task=sim.task.name,
+        instruction=sim.task.instruction,
+        source=sim.source,
+        world=sim.world,
+        region=region,
+        config=config.to_dict(),
+        twin=sim.task.scene.digest,
+        policy="scripted_expert",
+        fps=sim.task.scene.physics.control_hz,
+        robot=sim.task.scene.robot.builtin or "custom",
+        operator="scripted_expert" if sim.source == "teleop" else None,
+        names={
+            **sim.names,
+            ACTION: list(ACTION_NAMES),
+            JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
+        },
+    )

@@ -11,9 +11,16 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from twinrl_data.lerobot_io import iter_dataset_episodes
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.schema import STATE, Episode
+from twinrl_data.session import Session, is_session
+from twinrl_data.view import LinkFrames, save_rrd, spawn_viewer
+from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import describe_effects
 from twinrl_sim.env import TwinEnv
-from twinrl_sim.tasks import TASKS, TaskConfig
+from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
+from twinrl_sim.tasks import TASKS, TaskConfig, make_task
 
 app = typer.Typer(
     help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
@@ -84,3 +91,54 @@ def effects() -> None:
     for name, params, doc in describe_effects():
         table.add_row(name, params, doc)
     console.print(table)
+
+
+def load_target(target: str, default_episode: int) -> Episode:
+    """An episode from ``PATH`` or ``PATH#N``: an .mcap file, a session or a dataset."""
+    path_text, _, index_text = target.partition("#")
+    index = int(index_text) if index_text else default_episode
+    path = Path(path_text)
+    if path.suffix == ".mcap":
+        return read_episode(path)
+    if is_session(path):
+        paths = Session(path).episode_paths()
+        if not 0 <= index < len(paths):
+            raise ValueError(f"{path} has {len(paths)} episodes; --episode {index} is out of range")
+        return read_episode(paths[index])
+    if (path / "meta" / "info.json").is_file():
+        return next(iter_dataset_episodes(path, episodes=[index]))
+    raise ValueError(f"{path} is not an .mcap episode, a session or a LeRobotDataset")
+
+
+def twin_link_frames(episode: Episode) -> LinkFrames | None:
+    """FK of the built-in twin for episodes of a built-in task with joint names logged."""
+    if episode.meta.task not in TASKS or episode.meta.robot != "ur5e":
+        return None
+    names = episode.meta.names.get(STATE, [])
+    try:
+        return TwinLinkFrames(compile_scene(make_task(episode.meta.task).scene), names)
+    except ValueError:
+        return None
+
+
+def view(
+    targets: Annotated[
+        list[str],
+        typer.Argument(help="Episodes: .mcap, session or dataset folder, each optionally PATH#N."),
+    ],
+    episode: Annotated[int, typer.Option(help="Episode index in a session or dataset.")] = 0,
+    save: Annotated[
+        Path | None, typer.Option(help="Write an .rrd instead of opening the viewer.")
+    ] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite --save if it exists.")] = False,
+) -> None:
+    """Inspect episodes in Rerun; two or more are overlaid on one timeline."""
+    episodes = [load_target(t, episode) for t in targets]
+    link_frames = twin_link_frames(episodes[0])
+    if save is not None:
+        if save.suffix != ".rrd":
+            raise ValueError(f"--save must end in .rrd, got {save}")
+        save_rrd(episodes, save, link_frames=link_frames, force=force)
+        console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
+    else:
+        spawn_viewer(episodes, link_frames=link_frames)

@@ -1,0 +1,216 @@
+"""Episode-log throughput, measured side by side in one run.
+
+- Recording: a 2-camera (128x128) episode stream into MCAP; steps/s, how many times
+  real time that is at 10 Hz and 30 Hz, and the share of one core the writer needs.
+- Export to LeRobot: twinrl's export from MCAP episodes next to lerobot's own
+  ``create``/``add_frame``/``save_episode``/``finalize`` loop on the same frames held in
+  memory; seconds of work per second of episode, and the ratio.
+- Import: a LeRobotDataset back into episodes.
+- Catalog: a filtered query over 10 000 synthetic episode rows.
+
+Camera frames are real twin renders (cycled), so compression sees realistic images.
+Usage::
+
+    python bench/bench_data.py --episodes 4 --steps 100
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import typer
+
+from twinrl_data.catalog import query
+from twinrl_data.lerobot_io import export_dataset, features_for, iter_dataset_episodes
+from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.schema import EpisodeMeta
+from twinrl_sim.env import TwinEnv
+
+
+def rendered_steps(count: int) -> list[dict]:
+    """Contract steps with real front/wrist renders from an expert episode of the twin."""
+    env = TwinEnv("pick_place", images=True)
+    obs, _ = env.reset(seed=0, options={"region": "ID"})
+    expert = env.task.expert(env.config, np.random.default_rng(0))
+    steps = []
+    for t in range(count):
+        action = expert.act(obs)
+        next_obs, reward, terminated, _, info = env.step(action)
+        steps.append(
+            {
+                **obs,
+                "action": action,
+                "command.joint_target": info["command.joint_target"],
+                "intervention": False,
+                "next.reward": reward,
+                "next.done": terminated or t == count - 1,
+                "next.success": terminated,
+            }
+        )
+        obs = next_obs
+    names = {
+        "observation.state": env.cell.state_names,
+        "observation.environment_state": env.cell.environment_names,
+    }
+    env.close()
+    return steps, names
+
+
+def record(path: Path, steps: list[dict], meta: EpisodeMeta) -> tuple[float, float]:
+    """Wall and CPU seconds to write ``steps`` as one episode."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    with EpisodeWriter(path, meta) as log:
+        for step in steps:
+            log.append(step)
+    return time.perf_counter() - wall, time.process_time() - cpu
+
+
+def lerobot_loop(episodes, root: Path) -> float:
+    """lerobot's own recording path on in-memory frames (what our export must match)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    start = time.perf_counter()
+    dataset = LeRobotDataset.create(
+        "bench/own",
+        fps=10,
+        features=features_for(episodes[0]),
+        root=root,
+        robot_type="ur5e",
+        use_videos=True,
+        video_backend="pyav",
+    )
+    for episode in episodes:
+        for t in range(len(episode)):
+            frame = {"task": episode.meta.instruction}
+            for key, values in episode.data.items():
+                value = values[t]
+                frame[key] = (
+                    value.astype(np.float32) if value.ndim else np.array([value], value.dtype)
+                )
+            for camera, frames in episode.images.items():
+                frame[f"observation.images.{camera}"] = frames[t]
+            dataset.add_frame(frame)
+        dataset.save_episode()
+    dataset.finalize()
+    return time.perf_counter() - start
+
+
+def synthetic_catalog(path: Path, rows: int) -> None:
+    rng = np.random.default_rng(0)
+    table = pa.table(
+        {
+            "episode_key": [f"mcap:/x/{i}.mcap" for i in range(rows)],
+            "task": rng.choice(
+                ["pick_place", "insert_hexagon", "insert_triple_column", "erase_whiteboard"], rows
+            ),
+            "source": rng.choice(["teleop", "twin_demo", "twin_rl", "real_rl", "eval"], rows),
+            "world": rng.choice(["real", "twin", "plant"], rows),
+            "region": rng.choice(["ID", "OOD"], rows),
+            "success": rng.random(rows) < 0.6,
+            "length": rng.integers(20, 120, rows),
+            "return": rng.normal(3, 4, rows),
+            "num_interventions": rng.integers(0, 5, rows),
+            "created_at": [f"2026-11-{1 + i % 28:02d}T00:00:{i % 60:02d}" for i in range(rows)],
+            "config_target_1": rng.uniform(-0.4, 0.4, rows),
+        }
+    )
+    pq.write_table(table, path)
+
+
+def main(
+    episodes: Annotated[int, typer.Option(help="Episodes to record and export.")] = 4,
+    steps: Annotated[int, typer.Option(help="Steps per episode (10 Hz).")] = 100,
+    catalog_rows: Annotated[int, typer.Option(help="Rows of the synthetic catalog.")] = 10_000,
+) -> None:
+    os.environ.setdefault("SVT_LOG", "1")
+    import datasets
+
+    datasets.disable_progress_bars()
+    work = Path(tempfile.mkdtemp(prefix="twinrl-bench-"))
+    frames, names = rendered_steps(steps)
+    metas = [
+        EpisodeMeta(
+            task="pick_place",
+            instruction="put the banana on the plate",
+            source="twin_demo",
+            world="twin",
+            names=names,
+        )
+        for _ in range(episodes)
+    ]
+    wall = cpu = 0.0
+    paths = []
+    for i, meta in enumerate(metas):
+        path = work / f"ep{i}.mcap"
+        w, c = record(path, frames, meta)
+        wall, cpu = wall + w, cpu + c
+        paths.append(path)
+    step_rate = episodes * steps / wall
+    cpu_per_step = cpu / (episodes * steps)
+
+    loaded = [read_episode(p) for p in paths]
+    episode_seconds = episodes * steps / 10.0
+    own = lerobot_loop(loaded, work / "own")
+    start = time.perf_counter()
+    export_dataset((read_episode(p) for p in paths), work / "ours")
+    ours = time.perf_counter() - start
+    start = time.perf_counter()
+    imported = sum(len(e) for e in iter_dataset_episodes(work / "ours"))
+    import_time = time.perf_counter() - start
+    assert imported == episodes * steps
+
+    synthetic_catalog(work / "catalog.parquet", catalog_rows)
+    timings = []
+    for _ in range(7):
+        start = time.perf_counter()
+        query(
+            work / "catalog.parquet",
+            task="pick_place",
+            world="real",
+            success=False,
+            where="length > 50",
+        )
+        timings.append(time.perf_counter() - start)
+    shutil.rmtree(work)
+
+    share = 100 * cpu_per_step
+    rows = [
+        ("recording: steps/s (each step = 2 frames + vectors)", f"{step_rate:,.0f}"),
+        (
+            "recording: times real time at 10 Hz / 30 Hz",
+            f"{step_rate / 10:,.0f}x / {step_rate / 30:,.0f}x",
+        ),
+        (
+            "recording: share of one core at 10 Hz / 30 Hz",
+            f"{share * 10:.1f} % / {share * 30:.1f} %",
+        ),
+        ("export, lerobot's own loop: s per episode-second", f"{own / episode_seconds:.3f}"),
+        ("export, twinrl from MCAP: s per episode-second", f"{ours / episode_seconds:.3f}"),
+        ("export: twinrl / lerobot's own loop", f"{ours / own:.2f}"),
+        (
+            "import LeRobot -> episodes: s per episode-second",
+            f"{import_time / episode_seconds:.3f}",
+        ),
+        (
+            f"catalog query over {catalog_rows:,} rows (median of 7)",
+            f"{1000 * np.median(timings):.1f} ms",
+        ),
+    ]
+    print(
+        f"{episodes} episodes x {steps} steps, 2 cameras 128x128 (JPEG in MCAP, AV1 in LeRobot)\n"
+    )
+    print("| what | figure |\n|---|---|")
+    for name, figure in rows:
+        print(f"| {name} | {figure} |")
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -1,0 +1,280 @@
+"""``twinrl data``: recover, export, import, index, query and curate episode logs."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from twinrl_data import catalog as catalog_lib
+from twinrl_data import schema as contract
+from twinrl_data.errors import DataError
+from twinrl_data.lerobot_io import (
+    export_dataset,
+    iter_dataset_episodes,
+    missing_contract_fields,
+    open_dataset,
+)
+from twinrl_data.mcap_log import read_episode, recover
+from twinrl_data.session import Session, is_session
+
+app = typer.Typer(
+    help="Episode logs: recover MCAP, export/import LeRobot datasets, catalog.",
+    no_args_is_help=True,
+)
+console = Console()
+CatalogOption = Annotated[Path, typer.Option("--catalog", help="Catalog Parquet file.")]
+DEFAULT_COLUMNS = (
+    "episode_id",
+    "task",
+    "source",
+    "world",
+    "region",
+    "success",
+    "length",
+    "return",
+    "kind",
+)
+
+
+def quiet_encoders() -> None:
+    """Keep video encoders and dataset progress bars off the terminal."""
+    os.environ.setdefault("SVT_LOG", "1")
+    import av.logging
+    import datasets
+
+    av.logging.set_level(av.logging.ERROR)
+    datasets.disable_progress_bars()
+
+
+def progress(disable: bool = False) -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+        disable=disable,
+    )
+
+
+@app.command("recover")
+def recover_command(
+    file: Annotated[Path, typer.Argument(help="Truncated or damaged episode .mcap file.")],
+    out: Annotated[
+        Path | None, typer.Option(help="Where to write (default: FILE.recovered.mcap).")
+    ] = None,
+    force: Annotated[bool, typer.Option(help="Overwrite --out if it exists.")] = False,
+) -> None:
+    """Rewrite a truncated episode log (e.g. from a killed recorder) into a valid file."""
+    result = recover(file, out, force=force)
+    state = "the file was complete" if result.complete else "the file was truncated"
+    console.print(
+        f"{result.output}: kept {result.messages} messages and "
+        f"{result.metadata} metadata records ({state})"
+    )
+
+
+def episodes_of(source: Path, where: str | None) -> tuple[Iterator[contract.Episode], int]:
+    """Episodes of a session folder, an .mcap file or a catalog (filtered by ``where``)."""
+    if source.suffix == ".parquet":
+        table = catalog_lib.query(source, where=where)
+        return catalog_lib.load_selected(table), table.num_rows
+    if where is not None:
+        raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
+    if source.suffix == ".mcap":
+        return iter([read_episode(source)]), 1
+    if is_session(source):
+        paths = Session(source).episode_paths()
+        return (read_episode(p) for p in paths), len(paths)
+    raise DataError(f"{source} is not a session folder, an .mcap episode or a catalog .parquet")
+
+
+@app.command("export")
+def export_command(
+    source: Annotated[
+        Path, typer.Argument(help="Session folder, episode .mcap, or catalog .parquet.")
+    ],
+    to: Annotated[Path, typer.Option(help="LeRobotDataset folder to create.")],
+    repo_id: Annotated[
+        str | None, typer.Option(help="Dataset repo id (default: twinrl/<folder>).")
+    ] = None,
+    where: Annotated[
+        str | None, typer.Option(help="SQL filter over the catalog's columns.")
+    ] = None,
+    force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
+) -> None:
+    """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved)."""
+    quiet_encoders()
+    episodes, count = episodes_of(source, where)
+    with progress() as bar:
+        job = bar.add_task(f"export to {to}", total=count)
+        result = export_dataset(
+            episodes, to, repo_id=repo_id, force=force, on_episode=lambda _: bar.advance(job)
+        )
+    console.print(
+        f"{result.root}: {result.episodes} episodes, {result.frames} frames "
+        f"(repo id {result.repo_id})"
+    )
+
+
+@app.command("import")
+def import_command(
+    dataset: Annotated[
+        Path, typer.Argument(help="LeRobotDataset folder (twinrl's or lerobot's own).")
+    ],
+    to: Annotated[Path, typer.Option(help="Session folder to create with the episodes.")],
+    source: Annotated[
+        str,
+        typer.Option(
+            help=f"Source of episodes without twinrl metadata: {', '.join(contract.SOURCES)}."
+        ),
+    ] = "teleop",
+    world: Annotated[
+        str,
+        typer.Option(
+            help=f"World of episodes without twinrl metadata: {', '.join(contract.WORLDS)}."
+        ),
+    ] = "real",
+) -> None:
+    """Turn a LeRobotDataset into episode logs; report the contract fields it lacks."""
+    opened = open_dataset(dataset)
+    missing = missing_contract_fields(opened.meta.features)
+    session = Session.create(to)
+    total = opened.meta.total_episodes
+    with progress() as bar:
+        job = bar.add_task(f"import {dataset.name}", total=total)
+        for episode in iter_dataset_episodes(dataset, source=source, world=world):
+            with session.record(episode.meta) as log:
+                for t in range(len(episode)):
+                    step = {key: values[t] for key, values in episode.data.items()}
+                    step.update({contract.image_field(c): f[t] for c, f in episode.images.items()})
+                    log.append(step)
+            bar.advance(job)
+    console.print(f"{to}: {total} episodes imported")
+    if missing:
+        console.print(
+            f"[yellow]the dataset lacks {', '.join(missing)}; "
+            "those fields are absent in the episodes[/yellow]"
+        )
+
+
+@app.command("index")
+def index_command(
+    paths: Annotated[
+        list[Path],
+        typer.Argument(help="Sessions, .mcap files, LeRobot datasets, or folders of them."),
+    ],
+    catalog: CatalogOption = catalog_lib.DEFAULT_CATALOG,
+) -> None:
+    """Build or refresh the catalog of every episode found under PATHS."""
+    report = catalog_lib.build_index(paths, catalog)
+    console.print(
+        f"{report.catalog}: indexed {report.indexed} episodes, {report.total} in the catalog"
+    )
+
+
+def _print_table(table, as_json: bool) -> None:
+    rows = table.to_pylist()
+    if as_json:
+        print(json.dumps(rows, default=str))
+        return
+    view = Table(title=f"{len(rows)} rows")
+    for name in table.column_names:
+        view.add_column(name, overflow="fold")
+    for row in rows:
+        view.add_row(*[_cell(v) for v in row.values()])
+    console.print(view)
+
+
+def _cell(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    return "" if value is None else str(value)
+
+
+@app.command("query")
+def query_command(
+    catalog: CatalogOption = catalog_lib.DEFAULT_CATALOG,
+    task: Annotated[str | None, typer.Option(help="Only this task.")] = None,
+    source: Annotated[
+        str | None, typer.Option(help="Only this source (teleop, twin_demo, ...).")
+    ] = None,
+    world: Annotated[str | None, typer.Option(help="Only this world (real, twin, plant).")] = None,
+    region: Annotated[str | None, typer.Option(help="Only this region (ID, OOD).")] = None,
+    success: Annotated[
+        bool | None, typer.Option("--success/--failure", help="Only successes or failures.")
+    ] = None,
+    where: Annotated[
+        str | None, typer.Option(help='Extra SQL condition, e.g. "length > 50".')
+    ] = None,
+    sql: Annotated[
+        str | None, typer.Option(help="A whole SQL query over the view `episodes`.")
+    ] = None,
+    columns: Annotated[str | None, typer.Option(help="Comma-separated columns to show.")] = None,
+    limit: Annotated[int | None, typer.Option(help="At most this many rows.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the rows as JSON.")] = False,
+) -> None:
+    """Select episodes from the catalog (filters are combined with AND)."""
+    chosen = (
+        [c.strip() for c in columns.split(",")]
+        if columns
+        else (None if as_json or sql else DEFAULT_COLUMNS)
+    )
+    table = catalog_lib.query(
+        catalog,
+        task=task,
+        source=source,
+        world=world,
+        region=region,
+        success=success,
+        where=where,
+        sql=sql,
+        columns=chosen,
+        limit=limit,
+    )
+    _print_table(table, as_json)
+
+
+@app.command("curate")
+def curate_command(
+    to: Annotated[Path, typer.Option(help="LeRobotDataset folder to create.")],
+    catalog: CatalogOption = catalog_lib.DEFAULT_CATALOG,
+    task: Annotated[str | None, typer.Option(help="Only this task.")] = None,
+    source: Annotated[str | None, typer.Option(help="Only this source.")] = None,
+    world: Annotated[str | None, typer.Option(help="Only this world.")] = None,
+    region: Annotated[str | None, typer.Option(help="Only this region.")] = None,
+    success: Annotated[
+        bool | None, typer.Option("--success/--failure", help="Only successes or failures.")
+    ] = None,
+    where: Annotated[str | None, typer.Option(help="Extra SQL condition.")] = None,
+    repo_id: Annotated[str | None, typer.Option(help="Dataset repo id.")] = None,
+    force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
+) -> None:
+    """Export exactly the selected catalog episodes as a new LeRobotDataset."""
+    quiet_encoders()
+    table = catalog_lib.query(
+        catalog, task=task, source=source, world=world, region=region, success=success, where=where
+    )
+    if table.num_rows == 0:
+        raise DataError(
+            "the selection is empty; loosen the filters (try `twinrl data query` first)"
+        )
+    with progress() as bar:
+        job = bar.add_task(f"curate into {to}", total=table.num_rows)
+        result = export_dataset(
+            catalog_lib.load_selected(table),
+            to,
+            repo_id=repo_id,
+            force=force,
+            on_episode=lambda _: bar.advance(job),
+        )
+    console.print(f"{result.root}: {result.episodes} selected episodes, {result.frames} frames")

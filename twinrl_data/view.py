@@ -1,0 +1,203 @@
+"""Rerun inspection of episodes: cameras, signals, intervention spans and 3D poses.
+
+:func:`log_episodes` writes one or more episodes into a Rerun recording on the timeline
+``step`` (and ``time`` in seconds), under a blueprint:
+
+- left: each camera (``cameras/<label>/<camera>``);
+- middle: the 3D scene (``world``): TCP path and pose, object poses, robot link frames;
+- right: time series of joint positions against joint targets, executed against
+  policy-proposed actions, reward and success, with intervention spans in red.
+
+With two or more episodes (e.g. measured vs twin replay of one configuration) every
+series is logged once per episode label under the same plot, so they overlay.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from twinrl_data import schema as contract
+from twinrl_data.errors import DataError
+from twinrl_data.mcap_log import pose_groups
+
+LinkFrames = Callable[[np.ndarray], dict[str, tuple[np.ndarray, np.ndarray]]]
+"""``link_frames(state_row) -> {link: (position xyz, quaternion wxyz)}`` in the base
+frame; supplied by the twin (this layer knows no robot model)."""
+
+COLORS = ([230, 120, 40], [40, 140, 230], [90, 190, 90], [200, 80, 200])
+INTERVENTION_COLOR = [220, 30, 30]
+
+
+def _names(episode: contract.Episode, key: str) -> list[str]:
+    width = episode.data[key].shape[1]
+    names = episode.meta.names.get(key) or []
+    return names if len(names) == width else [f"{i}" for i in range(width)]
+
+
+def _xyzw(wxyz: np.ndarray) -> list[float]:
+    return [float(wxyz[1]), float(wxyz[2]), float(wxyz[3]), float(wxyz[0])]
+
+
+def labels_for(episodes: Sequence[contract.Episode]) -> list[str]:
+    """Short unique labels: ``world_source`` (plus an index when they repeat)."""
+    base = [f"{e.meta.world}_{e.meta.source}" for e in episodes]
+    return [b if base.count(b) == 1 else f"{b}_{i}" for i, b in enumerate(base)]
+
+
+def log_episodes(
+    episodes: Sequence[contract.Episode],
+    recording: rr.RecordingStream,
+    *,
+    link_frames: LinkFrames | None = None,
+) -> None:
+    """Log ``episodes`` (overlaid on one timeline) and send the blueprint."""
+    labels = labels_for(episodes)
+    rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, recording=recording)
+    for color, label, episode in zip(COLORS * 4, labels, episodes, strict=False):
+        _log_one(episode, label, color, recording, link_frames)
+    recording.send_blueprint(_blueprint(episodes, labels))
+
+
+def _log_one(
+    episode: contract.Episode,
+    label: str,
+    color: list[int],
+    recording: rr.RecordingStream,
+    link_frames: LinkFrames | None,
+) -> None:
+    data = episode.data
+
+    def log(path: str, value: object, static: bool = False) -> None:
+        rr.log(path, value, static=static, recording=recording)
+
+    state_names = _names(episode, contract.STATE)
+    joints = [i for i, n in enumerate(state_names) if n.startswith("q.")]
+    poses = pose_groups(state_names)
+    env_poses = (
+        pose_groups(_names(episode, contract.ENVIRONMENT_STATE))
+        if contract.ENVIRONMENT_STATE in data
+        else {}
+    )
+    intervention = data.get(contract.INTERVENTION, np.zeros(len(episode), bool))
+    for name in (n for i, n in enumerate(state_names) if i in joints):
+        log(
+            f"signals/joints/{name}/{label}",
+            rr.SeriesLines(colors=[color], names=f"{name} {label}"),
+            static=True,
+        )
+    log(
+        f"signals/intervention/{label}",
+        rr.SeriesLines(colors=[INTERVENTION_COLOR], names="intervention"),
+        static=True,
+    )
+    tcp_path = []
+    for t in range(len(episode)):
+        recording.set_time("step", sequence=t)
+        recording.set_time("time", duration=t / episode.meta.fps)
+        for camera, frames in episode.images.items():
+            log(f"cameras/{label}/{camera}", rr.Image(frames[t]))
+        state = data[contract.STATE][t]
+        for i in joints:
+            log(f"signals/joints/{state_names[i]}/{label}", rr.Scalars(float(state[i])))
+        if contract.JOINT_TARGET in data:
+            for j, value in enumerate(data[contract.JOINT_TARGET][t]):
+                name = state_names[joints[j]] if j < len(joints) else str(j)
+                log(f"signals/joints/{name}/{label}_target", rr.Scalars(float(value)))
+        for j, value in enumerate(data[contract.ACTION][t]):
+            log(f"signals/actions/{j}/{label}_executed", rr.Scalars(float(value)))
+        if contract.ACTION_POLICY in data:
+            for j, value in enumerate(data[contract.ACTION_POLICY][t]):
+                log(f"signals/actions/{j}/{label}_policy", rr.Scalars(float(value)))
+        for key, name in ((contract.REWARD, "reward"), (contract.SUCCESS, "success")):
+            if key in data:
+                log(f"signals/outcome/{name}/{label}", rr.Scalars(float(data[key][t])))
+        log(f"signals/intervention/{label}", rr.Scalars(float(intervention[t])))
+        if t == 0 or intervention[t] != intervention[t - 1]:
+            text = "human takes over" if intervention[t] else "policy in control"
+            if t > 0 or intervention[t]:
+                log(
+                    f"events/{label}", rr.TextLog(text, level="WARN" if intervention[t] else "INFO")
+                )
+        for frame, idx in poses.items():
+            pos, quat = state[idx[:3]], state[idx[3:]]
+            log(
+                f"world/{label}/{frame}",
+                rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
+            )
+            log(f"world/{label}/{frame}/axes", rr.TransformAxes3D(0.05))
+            if frame == "tcp":
+                tcp_path.append(pos.tolist())
+                log(f"world/{label}/tcp_path", rr.LineStrips3D([tcp_path], colors=[color]))
+        if env_poses:
+            env = data[contract.ENVIRONMENT_STATE][t]
+            for frame, idx in env_poses.items():
+                pos, quat = env[idx[:3]], env[idx[3:]]
+                path = f"world/{label}/objects/{frame}"
+                log(
+                    path,
+                    rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
+                )
+                log(
+                    f"{path}/marker",
+                    rr.Points3D([[0, 0, 0]], radii=0.01, colors=[color], labels=[frame]),
+                )
+        if link_frames is not None:
+            for link, (pos, quat) in link_frames(state).items():
+                path = f"world/{label}/links/{link}"
+                log(
+                    path,
+                    rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
+                )
+                log(f"{path}/axes", rr.TransformAxes3D(0.04))
+
+
+def _blueprint(episodes: Sequence[contract.Episode], labels: list[str]) -> rrb.Blueprint:
+    cameras = [
+        rrb.Spatial2DView(origin=f"cameras/{label}/{camera}", name=f"{camera} ({label})")
+        for label, episode in zip(labels, episodes, strict=True)
+        for camera in episode.images
+    ]
+    plots = rrb.Vertical(
+        rrb.TimeSeriesView(origin="signals/joints", name="joint positions and targets (rad)"),
+        rrb.TimeSeriesView(origin="signals/actions", name="actions: executed vs policy"),
+        rrb.TimeSeriesView(origin="signals/outcome", name="reward and success"),
+        rrb.TimeSeriesView(origin="signals/intervention", name="interventions"),
+    )
+    columns = [rrb.Spatial3DView(origin="world", name="scene"), plots]
+    if cameras:
+        columns.insert(0, rrb.Vertical(*cameras))
+    return rrb.Blueprint(rrb.Horizontal(*columns), rrb.TimePanel(expanded=False))
+
+
+def save_rrd(
+    episodes: Sequence[contract.Episode],
+    path: str | Path,
+    *,
+    link_frames: LinkFrames | None = None,
+    force: bool = False,
+) -> Path:
+    """Write ``episodes`` with their blueprint to an .rrd file."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise DataError(f"{path} already exists; pass --force to overwrite it")
+    recording = rr.RecordingStream("twinrl", recording_id=episodes[0].meta.episode_id)
+    recording.save(str(path))
+    log_episodes(episodes, recording, link_frames=link_frames)
+    recording.flush()
+    recording.disconnect()
+    return path
+
+
+def spawn_viewer(
+    episodes: Sequence[contract.Episode], *, link_frames: LinkFrames | None = None
+) -> None:
+    """Open the Rerun viewer on ``episodes``."""
+    recording = rr.RecordingStream("twinrl", recording_id=episodes[0].meta.episode_id)
+    recording.spawn()
+    log_episodes(episodes, recording, link_frames=link_frames)
+    recording.flush()
