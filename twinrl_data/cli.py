@@ -66,6 +66,22 @@ def progress(disable: bool = False) -> Progress:
     )
 
 
+def export_with_progress(
+    episodes: Iterator[contract.Episode], count: int, to: Path, *, repo_id: str | None, force: bool
+) -> None:
+    """Export with a progress bar and a one-line summary."""
+    quiet_encoders()
+    with progress() as bar:
+        job = bar.add_task(f"export to {to}", total=count)
+        result = export_dataset(
+            episodes, to, repo_id=repo_id, force=force, on_episode=lambda _: bar.advance(job)
+        )
+    console.print(
+        f"{result.root}: {result.episodes} episodes, {result.frames} frames "
+        f"(repo id {result.repo_id})"
+    )
+
+
 @app.command("recover")
 def recover_command(
     file: Annotated[Path, typer.Argument(help="Truncated or damaged episode .mcap file.")],
@@ -113,17 +129,8 @@ def export_command(
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
 ) -> None:
     """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved)."""
-    quiet_encoders()
     episodes, count = episodes_of(source, where)
-    with progress() as bar:
-        job = bar.add_task(f"export to {to}", total=count)
-        result = export_dataset(
-            episodes, to, repo_id=repo_id, force=force, on_episode=lambda _: bar.advance(job)
-        )
-    console.print(
-        f"{result.root}: {result.episodes} episodes, {result.frames} frames "
-        f"(repo id {result.repo_id})"
-    )
+    export_with_progress(episodes, count, to, repo_id=repo_id, force=force)
 
 
 @app.command("import")
@@ -260,7 +267,6 @@ def curate_command(
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
 ) -> None:
     """Export exactly the selected catalog episodes as a new LeRobotDataset."""
-    quiet_encoders()
     table = catalog_lib.query(
         catalog, task=task, source=source, world=world, region=region, success=success, where=where
     )
@@ -268,13 +274,6 @@ def curate_command(
         raise DataError(
             "the selection is empty; loosen the filters (try `twinrl data query` first)"
         )
-    with progress() as bar:
-        job = bar.add_task(f"curate into {to}", total=table.num_rows)
-        result = export_dataset(
-            catalog_lib.load_selected(table),
-            to,
-            repo_id=repo_id,
-            force=force,
-            on_episode=lambda _: bar.advance(job),
-        )
-    console.print(f"{result.root}: {result.episodes} selected episodes, {result.frames} frames")
+    export_with_progress(
+        catalog_lib.load_selected(table), table.num_rows, to, repo_id=repo_id, force=force
+    )

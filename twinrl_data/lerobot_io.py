@@ -229,14 +229,12 @@ def iter_dataset_episodes(
     dataset = open_dataset(root)
     meta = dataset.meta
     sidecar = read_sidecar(root)
-    missing = missing_contract_fields(meta.features)
     if contract.STATE not in meta.features or contract.ACTION not in meta.features:
         raise DataError(
             f"{root} does not follow the episode contract: it lacks "
             f"{[k for k in (contract.STATE, contract.ACTION) if k not in meta.features]} "
             f"(it has {sorted(meta.features)})"
         )
-    del missing
     table = dataset.hf_dataset.with_format("numpy")
     episode_column = np.asarray(table["episode_index"])
     indices = episodes if episodes is not None else list(range(meta.total_episodes))

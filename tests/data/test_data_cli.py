@@ -39,7 +39,7 @@ def test_record_index_query_export_view(tmp_path):
     assert len(rows) == 2 and {r["source"] for r in rows} == {"teleop"}
     curated = twinrl("data", "curate", "--source", "twin_demo", "--to", "demos", cwd=tmp_path)
     assert curated.returncode == 0, curated.stderr
-    assert "2 selected episodes" in curated.stdout
+    assert "2 episodes" in curated.stdout
     saved = twinrl("view", "session#0", "session#2", "--save", "pair.rrd", cwd=tmp_path)
     assert saved.returncode == 0, saved.stderr
     assert (tmp_path / "pair.rrd").stat().st_size > 10_000
