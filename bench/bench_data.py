@@ -29,7 +29,12 @@ import pyarrow.parquet as pq
 import typer
 
 from twinrl_data.catalog import query
-from twinrl_data.lerobot_io import export_dataset, features_for, iter_dataset_episodes
+from twinrl_data.lerobot_io import (
+    WRITE_OPTIONS,
+    export_dataset,
+    features_for,
+    iter_dataset_episodes,
+)
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.schema import EpisodeMeta
 from twinrl_sim.env import TwinEnv
@@ -84,8 +89,7 @@ def lerobot_loop(episodes, root: Path) -> float:
         features=features_for(episodes[0]),
         root=root,
         robot_type="ur5e",
-        use_videos=True,
-        video_backend="pyav",
+        **WRITE_OPTIONS,
     )
     for episode in episodes:
         for t in range(len(episode)):

@@ -32,6 +32,9 @@ from twinrl_data.errors import DataError
 SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
 ACTION_NAMES = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
 VIDEO_BACKEND = "pyav"  # decodes everywhere, also without a system FFmpeg
+# Encode camera streams in background threads while frames are added (about twice as
+# fast as encoding after each episode on two cores).
+WRITE_OPTIONS = {"use_videos": True, "video_backend": VIDEO_BACKEND, "streaming_encoding": True}
 
 
 def _lerobot():
@@ -121,8 +124,7 @@ def export_dataset(
         features=features,
         root=root,
         robot_type=first.meta.robot,
-        use_videos=True,
-        video_backend=VIDEO_BACKEND,
+        **WRITE_OPTIONS,
     )
     sidecar = root / SIDECAR
     sidecar.parent.mkdir(parents=True, exist_ok=True)

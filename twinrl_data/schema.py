@@ -69,7 +69,8 @@ class EpisodeMeta:
 
     ``config`` is the initial configuration (enough for the twin to regenerate the
     initial state); ``twin`` is the digest of the scene spec used; ``names`` maps vector
-    fields to the names of their entries. ``success`` and ``num_interventions`` are
+    fields to the names of their entries; ``randomization`` records the visual domain
+    randomisation a synthesized episode was rendered with. ``success`` and ``num_interventions`` are
     filled in when the episode ends.
     """
 
@@ -87,6 +88,7 @@ class EpisodeMeta:
     robot: str = "ur5e"
     operator: str | None = None
     names: dict[str, list[str]] = field(default_factory=dict)
+    randomization: dict[str, Any] = field(default_factory=dict)
     episode_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
     created_at: str = field(default_factory=now_iso)
 

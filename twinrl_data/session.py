@@ -96,6 +96,30 @@ class Session:
         self._save()
         return writer
 
+    def register(self, path: Path, meta: EpisodeMeta, length: int) -> None:
+        """Add an episode file written elsewhere (e.g. by a worker process) to the manifest.
+
+        The file must already be inside this session's ``episodes/`` folder.
+        """
+        path = Path(path).resolve()
+        folder = (self.path / "episodes").resolve()
+        if path.parent != folder or not path.is_file():
+            raise DataError(f"{path} is not an episode file inside {folder}")
+        self.manifest["episodes"].append(
+            {
+                "file": f"episodes/{path.name}",
+                "episode_id": meta.episode_id,
+                "task": meta.task,
+                "source": meta.source,
+                "world": meta.world,
+                "created_at": meta.created_at,
+                "status": "complete",
+                "length": length,
+                "success": meta.success,
+            }
+        )
+        self._save()
+
     def _closed(self, meta: EpisodeMeta, length: int) -> None:
         for entry in self.manifest["episodes"]:
             if entry["episode_id"] == meta.episode_id:

@@ -22,6 +22,7 @@ sim_cli.app.command("expert")(robot_cli.expert)
 app.add_typer(sim_cli.app, name="sim")
 app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
+app.command("expand")(sim_cli.expand_command)
 
 USER_ERRORS = (ValueError, SpecError, FileNotFoundError, KeyError)
 

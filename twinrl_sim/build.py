@@ -153,7 +153,26 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
     body = spec.worldbody.add_body(
         name="table", pos=[table.center[0], table.center[1], table.top_height]
     )
+    material = ""
+    if table.texture != "plain":
+        builtin = {
+            "checker": mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+            "gradient": mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        }
+        spec.add_texture(
+            name="table_texture",
+            type=mujoco.mjtTexture.mjTEXTURE_2D,
+            builtin=builtin[table.texture],
+            rgb1=list(table.rgba[:3]),
+            rgb2=[0.6 * c for c in table.rgba[:3]],
+            width=256,
+            height=256,
+        )
+        material_spec = spec.add_material(name="table_material", texrepeat=[4, 4])
+        material_spec.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "table_texture"
+        material = "table_material"
     body.add_geom(
+        material=material,
         name="table_top",
         type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[table.size[0] / 2, table.size[1] / 2, table.thickness / 2],

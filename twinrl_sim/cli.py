@@ -9,8 +9,10 @@ from typing import Annotated
 import numpy as np
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from twinrl_data.cli import quiet_encoders
 from twinrl_data.lerobot_io import iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import STATE, Episode
@@ -19,7 +21,9 @@ from twinrl_data.view import LinkFrames, save_rrd, spawn_viewer
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import describe_effects
 from twinrl_sim.env import TwinEnv
+from twinrl_sim.expand import expand
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
+from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
 from twinrl_sim.tasks import TASKS, TaskConfig, make_task
 
 app = typer.Typer(
@@ -142,3 +146,83 @@ def view(
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
     else:
         spawn_viewer(episodes, link_frames=link_frames)
+
+
+def expand_command(
+    task: Annotated[str, typer.Argument(help=f"Task: {', '.join(TASKS)}.")],
+    out: Annotated[Path, typer.Option(help="Folder for the session, the dataset and expand.json.")],
+    id_count: Annotated[
+        int, typer.Option("--id", help="Demonstrations in the ID region.", min=0)
+    ] = 30,
+    ood_count: Annotated[
+        int, typer.Option("--ood", help="Demonstrations in the OOD region.", min=0)
+    ] = 30,
+    method: Annotated[
+        str, typer.Option(help="plan (grasp sampling + planner) or augment.")
+    ] = "plan",
+    from_demo: Annotated[
+        Path | None, typer.Option(help="Recorded demonstration (.mcap) to re-target with augment.")
+    ] = None,
+    randomize: Annotated[
+        str,
+        typer.Option(
+            help=f"Visual randomisation: comma-separated {', '.join(RANDOMIZATIONS)}, or all."
+        ),
+    ] = "",
+    seed: Annotated[
+        int, typer.Option(help="Seed (attempt k always gets the same configuration).")
+    ] = 0,
+    workers: Annotated[int, typer.Option(help="Worker processes (default: 2).", min=1)] = 2,
+    force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
+) -> None:
+    """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
+    kinds = RANDOMIZATIONS if randomize == "all" else tuple(k for k in randomize.split(",") if k)
+    quiet_encoders()
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[kept]} kept"),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+    ) as bar:
+        jobs = {
+            "ID": bar.add_task(f"{task} ID attempts", total=None, kept=0),
+            "OOD": bar.add_task(f"{task} OOD attempts", total=None, kept=0),
+        }
+        kept = {"ID": 0, "OOD": 0}
+
+        def advance(region: str, success: bool) -> None:
+            kept[region] += success
+            bar.update(jobs[region], advance=1, kept=kept[region])
+
+        report = expand(
+            task,
+            id_count=id_count,
+            ood_count=ood_count,
+            out=out,
+            method=method,
+            from_demo=from_demo,
+            randomize=kinds,
+            seed=seed,
+            workers=workers,
+            force=force,
+            on_demo=advance,
+        )
+    table = Table(
+        "region", "requested", "kept", "attempts", "yield", title=f"{task}: {method} demonstrations"
+    )
+    for region, requested in report.requested.items():
+        table.add_row(
+            region,
+            str(requested),
+            str(report.kept.get(region, 0)),
+            str(report.attempts.get(region, 0)),
+            f"{100 * report.yield_rate[region]:.0f} %",
+        )
+    console.print(table)
+    console.print(
+        f"synthesis {report.seconds_synthesis:.1f} s, export {report.seconds_export:.1f} s; "
+        f"episodes in {report.session}, dataset {report.dataset or '(none)'}"
+    )

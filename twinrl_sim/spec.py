@@ -149,6 +149,7 @@ class TableSpec(_Strict):
     top_height: Annotated[float, Field(ge=-1.0, le=1.5)] = 0.0
     friction: Annotated[float, Field(gt=0, le=5)] = 0.8
     rgba: Rgba = (0.55, 0.45, 0.35, 1.0)
+    texture: Literal["plain", "checker", "gradient"] = "plain"
 
 
 class CameraSpec(_Strict):

@@ -205,6 +205,16 @@ class Task(ABC):
         return reward
 
     @abstractmethod
+    def goal_poses(self, cell: Cell, config: TaskConfig) -> list[tuple[np.ndarray, float]]:
+        """Where the manipulated object must go: world positions and yaws of its body,
+        in order (one pose to place it; several for a path such as wiping)."""
+
+    @property
+    def releases_object(self) -> bool:
+        """Whether the object is let go at the last goal pose (placing) or kept (tools)."""
+        return True
+
+    @abstractmethod
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         """The scripted expert for ``config`` (privileged state, IK, sampled grasps)."""
 

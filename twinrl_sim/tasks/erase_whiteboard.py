@@ -140,6 +140,29 @@ class EraseWhiteboard(Task):
             },
         )
 
+    def goal_poses(self, cell: Cell, config: TaskConfig) -> list[tuple[np.ndarray, float]]:
+        """The eraser's path over the marks: two passes, felt flat on the board."""
+        board, board_quat = cell.object_pose(self.target_name)
+        board_yaw = yaw_of(board_quat)
+        yaw = nearest_equivalent(board_yaw + math.pi / 2, math.pi, config.object[2])
+        height = (
+            board[2]
+            + self.scene.object(self.target_name).pos[2]
+            + self.scene.object(self.object_name).pos[2]
+            - 0.001
+        )
+        row_a, row_b = WIPE_ROWS
+        path = [(-WIPE_RUN, row_a), (WIPE_RUN, row_a), (WIPE_RUN, row_b), (-WIPE_RUN, row_b)]
+        poses = []
+        for x, y in path:
+            xy = board[:2] + _rotate(board_yaw, np.array([[x, y]]))[0]
+            poses.append((np.array([xy[0], xy[1], height]), yaw))
+        return poses
+
+    @property
+    def releases_object(self) -> bool:
+        return False
+
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         eraser_half_height = self.scene.object(self.object_name).pos[2]
         board_half_height = self.scene.object(self.target_name).pos[2]

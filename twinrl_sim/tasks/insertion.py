@@ -55,6 +55,14 @@ class Insertion(Task):
             },
         )
 
+    def goal_poses(self, cell: Cell, config: TaskConfig) -> list[tuple[np.ndarray, float]]:
+        hole, hole_quat = cell.object_pose(self.target_name)
+        yaw = nearest_equivalent(yaw_of(hole_quat), self.symmetry, config.object[2])
+        rest = (
+            self.scene.object(self.object_name).pos[2] - self.scene.object(self.target_name).pos[2]
+        )
+        return [(hole + [0.0, 0.0, rest + 0.002], yaw)]
+
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         grasp_z = self.grasp_height
 

@@ -49,6 +49,13 @@ class PickPlace(Task):
             },
         )
 
+    def goal_poses(self, cell: Cell, config: TaskConfig) -> list[tuple[np.ndarray, float]]:
+        plate, _ = cell.object_pose(self.target_name)
+        height = (
+            self.scene.object(self.target_name).pos[2] + self.scene.object(self.object_name).pos[2]
+        )
+        return [(plate + [0.0, 0.0, height + 0.004], config.object[2])]
+
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         def grasp(view: ObsView) -> tuple[np.ndarray, float]:
             pos, yaw = view.position(self.object_name), view.yaw(self.object_name)

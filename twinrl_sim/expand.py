@@ -1,0 +1,258 @@
+"""Exploration-space expansion: synthesize twin demonstrations in ID and OOD regions.
+
+``expand(...)`` samples configurations per region, makes each demonstration with the
+planner or by re-targeting one recorded demo, executes it in twin physics (both cameras
+rendered, optionally visually randomised), keeps the successes as ``twin_demo``
+episodes in a session and exports them as a LeRobotDataset::
+
+    OUT/
+      session/      manifest.json + episodes/*.mcap   (every kept demonstration)
+      dataset/      LeRobotDataset v3                  (what SFT reads)
+      expand.json   counts, yield per region, seconds
+
+Attempts run in worker processes; attempt ``k`` of a region always uses the same
+configuration and seed, so a run is reproducible for a given seed whatever the number
+of workers.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.lerobot_io import ACTION_NAMES, export_dataset
+from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.schema import (
+    ACTION,
+    DONE,
+    ENVIRONMENT_STATE,
+    INTERVENTION,
+    JOINT_TARGET,
+    REWARD,
+    STATE,
+    SUCCESS,
+    Episode,
+    EpisodeMeta,
+)
+from twinrl_data.session import Session
+from twinrl_sim.augment import retarget
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.planner import plan_demo
+from twinrl_sim.randomize import check_kinds, randomize_scene
+from twinrl_sim.robots.ur5e import JOINT_NAMES
+from twinrl_sim.tasks import TaskConfig, make_task
+
+METHODS = ("plan", "augment")
+MAX_ATTEMPTS_PER_DEMO = 4
+
+
+@dataclass
+class ExpandReport:
+    """What an expansion produced."""
+
+    task: str
+    method: str
+    requested: dict[str, int]
+    kept: dict[str, int] = field(default_factory=dict)
+    attempts: dict[str, int] = field(default_factory=dict)
+    seconds_synthesis: float = 0.0
+    seconds_export: float = 0.0
+    session: str = ""
+    dataset: str = ""
+
+    @property
+    def yield_rate(self) -> dict[str, float]:
+        return {r: self.kept.get(r, 0) / max(self.attempts.get(r, 0), 1) for r in self.requested}
+
+    def to_json(self) -> dict[str, Any]:
+        return {**asdict(self), "yield": self.yield_rate}
+
+
+@dataclass(frozen=True)
+class _Job:
+    task: str
+    region: str
+    attempt: int
+    seed: int
+    method: str
+    randomize: tuple[str, ...]
+    demo_path: str | None
+    episode_dir: str
+
+
+_WORKER_CACHE: dict[str, Any] = {}
+
+
+def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
+    """Make one demonstration; write it only if it succeeds. Runs in a worker."""
+    rng = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt])
+    task = make_task(job.task)
+    config = task.sample_config(rng, job.region)
+    scene, record = task.scene, {}
+    if job.randomize:
+        scene, record = randomize_scene(task.scene, rng, job.randomize)
+    key = scene.digest
+    env = _WORKER_CACHE.get(key)
+    if env is None:
+        if len(_WORKER_CACHE) > 8:
+            for old in _WORKER_CACHE.values():
+                old.close()
+            _WORKER_CACHE.clear()
+        env = TwinEnv(job.task, scene=scene, images=True)
+        _WORKER_CACHE[key] = env
+    if job.method == "plan":
+        plan = plan_demo(env.task, env.cell, config, rng)
+        if plan is None:
+            return job, None
+        actions = plan.actions
+    else:
+        demo = _WORKER_CACHE.get(("demo", job.demo_path))
+        if demo is None:
+            demo = read_episode(job.demo_path)
+            _WORKER_CACHE[("demo", job.demo_path)] = demo
+        source = TaskConfig.from_dict(demo.meta.config)
+        actions = retarget(demo, source, config, releases_object=env.task.releases_object)
+    obs, info = env.reset(options={"config": config})
+    steps = []
+    for t, action in enumerate(actions[: env.max_steps]):
+        next_obs, reward, terminated, _, info = env.step(action)
+        done = terminated or t == min(len(actions), env.max_steps) - 1
+        steps.append(
+            {
+                **obs,
+                ACTION: action,
+                JOINT_TARGET: info["command.joint_target"],
+                INTERVENTION: False,
+                REWARD: reward,
+                DONE: done,
+                SUCCESS: terminated,
+            }
+        )
+        obs = next_obs
+        if terminated:
+            break
+    if not info["success"]:
+        return job, None
+    meta = EpisodeMeta(
+        task=env.task.name,
+        instruction=env.task.instruction,
+        source="twin_demo",
+        world="twin",
+        region=job.region,
+        config=config.to_dict(),
+        twin=task.scene.digest,
+        policy=f"synthesis:{job.method}",
+        fps=env.task.scene.physics.control_hz,
+        robot="ur5e",
+        names={
+            STATE: env.cell.state_names,
+            ENVIRONMENT_STATE: env.cell.environment_names,
+            ACTION: list(ACTION_NAMES),
+            JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
+        },
+        randomization=record,
+    )
+    path = Path(job.episode_dir) / f"{job.region}_{job.attempt:05d}_{meta.episode_id}.mcap"
+    with EpisodeWriter(path, meta) as log:
+        for step in steps:
+            log.append(step)
+    return job, {"path": str(path), "meta": log.meta.to_dict(), "length": len(steps)}
+
+
+def expand(
+    task: str,
+    *,
+    id_count: int,
+    ood_count: int,
+    out: str | Path,
+    method: str = "plan",
+    from_demo: str | Path | None = None,
+    randomize: tuple[str, ...] = (),
+    seed: int = 0,
+    workers: int | None = None,
+    export: bool = True,
+    force: bool = False,
+    on_demo: Callable[[str, bool], None] | None = None,
+) -> ExpandReport:
+    """Synthesize ``id_count`` + ``ood_count`` successful demonstrations of ``task``.
+
+    ``method`` is ``plan`` (grasp sampling + collision-checked waypoints) or ``augment``
+    (re-target the episode ``from_demo``, an .mcap file). ``on_demo(region, kept)`` is
+    called after each attempt (for progress bars).
+    """
+    make_task(task)
+    if method not in METHODS:
+        raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
+    if method == "augment":
+        if from_demo is None:
+            raise ValueError(
+                "--method augment needs --from-demo EPISODE.mcap (a recorded demonstration)"
+            )
+        demo = read_episode(from_demo)
+        if demo.meta.task != task:
+            raise ValueError(f"--from-demo is a {demo.meta.task} episode, not {task}")
+    elif from_demo is not None:
+        raise ValueError("--from-demo is only used with --method augment")
+    if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
+        raise ValueError("ask for at least one demonstration (--id N and/or --ood M)")
+    check_kinds(randomize)
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise ValueError(f"{out} exists and is not empty; pass --force to replace it")
+        shutil.rmtree(out)
+    session = Session.create(out / "session")
+    report = ExpandReport(task=task, method=method, requested={"ID": id_count, "OOD": ood_count})
+    common = {
+        "seed": seed,
+        "method": method,
+        "randomize": tuple(randomize),
+        "demo_path": str(from_demo) if from_demo else None,
+        "episode_dir": str(session.path / "episodes"),
+    }
+    workers = workers or min(2, os.cpu_count() or 1)
+    start = time.perf_counter()
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(workers) as pool:
+        for region, count in (("ID", id_count), ("OOD", ood_count)):
+            report.kept[region] = report.attempts[region] = 0
+            attempt = 0
+            # Waves of attempts in attempt order: results do not depend on the workers.
+            while report.kept[region] < count and attempt < count * MAX_ATTEMPTS_PER_DEMO:
+                wave = max(workers, count - report.kept[region])
+                jobs = [
+                    _Job(task=task, region=region, attempt=attempt + i, **common)
+                    for i in range(wave)
+                ]
+                attempt += wave
+                for _, result in pool.map(_run_job, jobs):
+                    if report.kept[region] >= count:
+                        if result is not None:
+                            Path(result["path"]).unlink()  # made in the same wave, not needed
+                        continue
+                    report.attempts[region] += 1
+                    if result is not None:
+                        meta = EpisodeMeta.from_dict(result["meta"])
+                        session.register(Path(result["path"]), meta, result["length"])
+                        report.kept[region] += 1
+                    if on_demo is not None:
+                        on_demo(region, result is not None)
+    report.seconds_synthesis = time.perf_counter() - start
+    report.session = str(session.path)
+    if export and sum(report.kept.values()):
+        start = time.perf_counter()
+        episodes: Iterator[Episode] = (read_episode(p) for p in session.episode_paths())
+        export_dataset(episodes, out / "dataset", repo_id=f"twinrl/{task}_twin_demos")
+        report.seconds_export = time.perf_counter() - start
+        report.dataset = str(out / "dataset")
+    (out / "expand.json").write_text(json.dumps(report.to_json(), indent=1))
+    return report
