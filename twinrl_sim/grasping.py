@@ -43,10 +43,36 @@ class Grasp:
 
 
 def _ray(cell: Cell, start: np.ndarray, direction: np.ndarray) -> tuple[float, int, np.ndarray]:
+    """First surface of anything along the ray: distance, geom id, normal."""
     geom = np.array([-1], dtype=np.int32)
     normal = np.zeros(3)
     distance = mujoco.mj_ray(cell.model, cell.data, start, direction, None, 1, -1, geom, normal)
     return distance, int(geom[0]), normal
+
+
+def _ray_object(
+    cell: Cell, start: np.ndarray, direction: np.ndarray, geoms: set[int]
+) -> tuple[float, int, np.ndarray]:
+    """First surface of the object's own geoms along the ray (others are ignored)."""
+    model, data = cell.model, cell.data
+    best = (-1.0, -1, np.zeros(3))
+    for g in geoms:
+        normal = np.zeros(3)
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+            distance = mujoco.mj_rayMesh(model, data, g, start, direction, normal)
+        else:
+            distance = mujoco.mju_rayGeom(
+                data.geom_xpos[g],
+                data.geom_xmat[g],
+                model.geom_size[g],
+                start,
+                direction,
+                int(model.geom_type[g]),
+                normal,
+            )
+        if distance >= 0 and (best[0] < 0 or distance < best[0]):
+            best = (distance, g, normal)
+    return best
 
 
 def sample_antipodal_grasps(
@@ -54,7 +80,7 @@ def sample_antipodal_grasps(
     object_name: str,
     rng: np.random.Generator,
     *,
-    samples: int = 96,
+    samples: int = 200,
     friction_angle: float = math.radians(12),
     reference_yaw: float = 0.0,
     min_clearance: float = 0.008,
@@ -96,10 +122,15 @@ def sample_antipodal_grasps(
         patch = 0.0
         for sign in (1.0, -1.0):
             start = line + sign * (radius + 0.05) * closing
-            distance, geom, normal = _ray(cell, start, -sign * closing)
-            if distance < 0 or geom not in object_geoms:
+            distance, _, normal = _ray_object(cell, start, -sign * closing, object_geoms)
+            if distance < 0:
                 break
-            hits.append((start - sign * distance * closing, normal))
+            contact = start - sign * distance * closing
+            # The finger needs room beside the contact: nothing else within FINGER_ROOM.
+            room, _, _ = _ray(cell, contact + sign * 0.001 * closing, sign * closing)
+            if 0 <= room < FINGER_ROOM:
+                break
+            hits.append((contact, normal))
             patch += _flatness(cell, start, -sign * closing, distance, along, object_geoms) / 2
         if len(hits) != 2:
             continue
@@ -125,6 +156,7 @@ def sample_antipodal_grasps(
     return grasps
 
 
+FINGER_ROOM = 0.02  # m of free space a finger pad needs beside its contact
 PATCH_OFFSET = 0.005  # m: how far around a contact the pad should find the same surface
 
 
@@ -146,7 +178,7 @@ def _flatness(
         PATCH_OFFSET * along,
         -PATCH_OFFSET * along,
     ):
-        d, geom, _ = _ray(cell, start + offset, direction)
+        d, geom, _ = _ray_object(cell, start + offset, direction, geoms)
         found += geom in geoms and abs(d - distance) < 0.001
     return found / 4
 

@@ -51,7 +51,7 @@ class PlannerSettings:
     acceleration: float = 1.0
     max_yaw_rate: float = 1.5  # rad/s
     grasps_to_try: int = 8
-    grasp_samples: int = 96
+    grasp_samples: int = 200
     close_steps: int = 5
     open_steps: int = 4
     settle_steps: int = 3

@@ -1,0 +1,171 @@
+"""Demo synthesis: antipodal grasps, collision-free plans, re-targeting geometry, expand."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_robot.scripted import run_scripted_expert
+from twinrl_sim.augment import PlanarMotion, commanded_path, keyframes, retarget
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.expand import expand
+from twinrl_sim.grasping import sample_antipodal_grasps
+from twinrl_sim.planner import CollisionChecker, object_pose_from_tcp, plan_demo, tcp_from_object
+from twinrl_sim.randomize import randomize_scene
+from twinrl_sim.spec import ObjectSpec
+from twinrl_sim.tasks import TaskConfig, make_task
+from twinrl_sim.tasks.pick_place import PickPlace
+
+
+@pytest.mark.parametrize("name", ["pick_place", "insert_hexagon", "insert_triple_column"])
+def test_grasps_are_antipodal_and_fit_the_gripper(name, rng):
+    task = make_task(name)
+    cell = Cell(compile_scene(task.scene))
+    task.start(cell, task.sample_config(rng, "ID"))
+    grasps = sample_antipodal_grasps(cell, task.object_name, rng)
+    assert len(grasps) >= 3
+    assert all(0 < g.width <= 0.08 and g.quality >= math.cos(math.radians(12)) for g in grasps)
+    assert [g.score for g in grasps] == sorted((g.score for g in grasps), reverse=True)
+    if name == "insert_hexagon":  # a parallel grasp closes on two flat faces: 30 deg + k * 60 deg
+        offsets = [((g.yaw - math.pi / 6) % (math.pi / 3)) for g in grasps[:3]]
+        assert all(min(o, math.pi / 3 - o) < math.radians(12) for o in offsets)
+        assert grasps[0].width == pytest.approx(2 * 0.024 * math.cos(math.pi / 6), abs=2e-3)
+
+
+def test_grasp_frame_round_trip():
+    grasp = sample_antipodal_grasps(*_started("pick_place"), np.random.default_rng(0))[0]
+    tcp, yaw = tcp_from_object(np.array([0.4, 0.1, 0.02]), 0.7, grasp)
+    obj, _ = object_pose_from_tcp(tcp, yaw, grasp)
+    np.testing.assert_allclose(obj, [0.4, 0.1, 0.02], atol=1e-12)
+
+
+def _started(name):
+    task = make_task(name)
+    cell = Cell(compile_scene(task.scene))
+    task.start(cell, task.sample_config(np.random.default_rng(0), "ID"))
+    return cell, task.object_name
+
+
+def test_plans_are_collision_free_and_succeed(rng):
+    env = TwinEnv("insert_hexagon")
+    config = env.task.sample_config(rng, "OOD")
+    plan = plan_demo(env.task, env.cell, config, np.random.default_rng(1))
+    assert plan is not None
+    checker = CollisionChecker(env.cell, env.task.object_name)
+    lift, above = plan.waypoints[3], plan.waypoints[4]
+    for s in np.linspace(0, 1, 15):  # the transport segment, object held
+        point = lift.position + s * (above.position - lift.position)
+        assert not checker.collides(
+            point, lift.yaw + s * (above.yaw - lift.yaw), plan.grasp, plan.grasp.width
+        )
+    env.reset(options={"config": config})
+    for action in plan.actions:
+        *_, terminated, _, info = env.step(action)
+        if terminated:
+            break
+    assert info["success"]
+
+
+def test_an_obstacle_raises_the_transport_height():
+    """A tall wall between object and plate: the planner must go over it."""
+    base = PickPlace.default_scene()
+    wall = ObjectSpec(
+        name="wall",
+        role="fixture",
+        pos=(0.45, -0.2, 0.1),
+        geoms=[{"type": "box", "size": [0.1, 0.01, 0.1]}],
+    )
+    scene = base.model_copy(update={"objects": [*base.objects, wall]})
+    task = PickPlace(scene)
+    cell = Cell(compile_scene(scene))
+    config = TaskConfig(object=(0.45, -0.32, 0.0), target=(0.45, -0.08, 0.0))
+    low = plan_demo(PickPlace(), Cell(compile_scene(base)), config, np.random.default_rng(0))
+    high = plan_demo(task, cell, config, np.random.default_rng(0))
+    assert low is not None and high is not None
+    assert high.transport_height > low.transport_height
+    top = max(w.position[2] for w in high.waypoints)
+    assert top > 0.2 + 0.02  # over the wall
+
+
+def test_retargeted_paths_keep_their_pose_relative_to_object_and_target(tmp_path):
+    session = Session.create(tmp_path / "demo")
+    run_scripted_expert("pick_place", world="twin", episodes=1, regions=("ID",), session=session)
+    demo = read_episode(session.episode_paths()[0])
+    source = TaskConfig.from_dict(demo.meta.config)
+    target = TaskConfig(object=(0.5, 0.2, source.object[2] + 0.4), target=(0.35, 0.3, 0.2))
+    actions = retarget(demo, source, target, extend_steps=0)
+    original, _ = commanded_path(demo)
+    start = original[0]
+    new = start + np.vstack([np.zeros(3), np.cumsum(actions[:, :3], axis=0)])
+    grasp, handover = keyframes(demo, releases_object=True)
+    np.testing.assert_allclose(
+        new[grasp],
+        PlanarMotion.between(source.object, target.object).apply(original[grasp]),
+        atol=1e-6,
+    )
+    np.testing.assert_allclose(
+        new[handover],
+        PlanarMotion.between(source.target, target.target).apply(original[handover]),
+        atol=1e-6,
+    )
+    np.testing.assert_array_equal(actions[:, 6], demo.data["action"][:, 6])
+    same = retarget(demo, source, source, extend_steps=0)
+    np.testing.assert_allclose(same, demo.data["action"], atol=1e-6)
+
+
+def test_randomisation_is_seeded_and_recorded():
+    scene = make_task("pick_place").scene
+    a, record_a = randomize_scene(
+        scene, np.random.default_rng(4), ("lighting", "colors", "textures", "camera")
+    )
+    b, record_b = randomize_scene(
+        scene, np.random.default_rng(4), ("lighting", "colors", "textures", "camera")
+    )
+    assert a == b and record_a == record_b
+    assert a.digest != scene.digest and set(record_a) == {
+        "lighting",
+        "colors",
+        "textures",
+        "camera",
+    }
+    with pytest.raises(ValueError, match="unknown randomisation 'fog'"):
+        randomize_scene(scene, np.random.default_rng(0), ("fog",))
+
+
+def test_expand_writes_episodes_dataset_and_report(tmp_path):
+    report = expand("pick_place", id_count=2, ood_count=1, out=tmp_path / "out", workers=1, seed=5)
+    assert report.kept == {"ID": 2, "OOD": 1}
+    session = Session(tmp_path / "out" / "session")
+    episodes = [read_episode(p) for p in session.episode_paths()]
+    assert {e.meta.source for e in episodes} == {"twin_demo"} and all(
+        e.meta.success for e in episodes
+    )
+    assert sorted(e.meta.region for e in episodes) == ["ID", "ID", "OOD"]
+    assert all(e.cameras == ["front", "wrist"] for e in episodes)
+    saved = json.loads((tmp_path / "out" / "expand.json").read_text())
+    assert (
+        saved["yield"]["ID"] > 0 and (tmp_path / "out" / "dataset" / "meta" / "info.json").is_file()
+    )
+    expand(
+        "pick_place",
+        id_count=2,
+        ood_count=1,
+        out=tmp_path / "again",
+        workers=2,
+        seed=5,
+        export=False,
+    )
+    configs = sorted(
+        json.dumps(read_episode(p).meta.config)
+        for p in Session(tmp_path / "again" / "session").episode_paths()
+    )
+    assert configs == sorted(json.dumps(e.meta.config) for e in episodes)
+    with pytest.raises(ValueError, match="not empty"):
+        expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "out")
+    with pytest.raises(ValueError, match="needs --from-demo"):
+        expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "x", method="augment")
