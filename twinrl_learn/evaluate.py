@@ -1,0 +1,279 @@
+"""Evaluation by region: roll a policy out over a grid of configurations, in the twin or
+the plant, log every rollout, and map success over the table.
+
+The grid covers the bounding box of the task's ID and OOD regions; each cell whose
+centre lies in a region is evaluated with the target (where the object's centre ends
+up) at the cell centre, the object placed in the same region. Outputs in ``out``::
+
+    out/session/        every rollout as an episode (source ``eval``)
+    out/eval.json       {"success_rate": {"ID": x, "OOD": y}, "episodes": n, "cells": [...]}
+    out/heatmap.png     success over the table, regions outlined (like TwinRL's Fig. 2b)
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.lerobot_io import ACTION_NAMES
+from twinrl_data.schema import (
+    ACTION,
+    ACTION_POLICY,
+    DONE,
+    ENVIRONMENT_STATE,
+    INTERVENTION,
+    JOINT_TARGET,
+    REWARD,
+    STATE,
+    SUCCESS,
+    EpisodeMeta,
+)
+from twinrl_data.session import Session
+from twinrl_learn.runners import Runner
+from twinrl_robot.plant import Plant
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.robots.ur5e import JOINT_NAMES
+from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
+
+
+@dataclass
+class Cell:
+    x: float
+    y: float
+    region: str
+    episodes: int = 0
+    successes: int = 0
+
+    @property
+    def rate(self) -> float:
+        return self.successes / max(self.episodes, 1)
+
+
+@dataclass
+class EvalReport:
+    task: str
+    world: str
+    policy: str
+    cells: list[Cell]
+
+    def success_rate(self) -> dict[str, float]:
+        rates = {}
+        for region in REGION_NAMES:
+            inside = [c for c in self.cells if c.region == region]
+            if inside:
+                rates[region] = sum(c.successes for c in inside) / max(
+                    sum(c.episodes for c in inside), 1
+                )
+        return rates
+
+    @property
+    def episodes(self) -> int:
+        return sum(c.episodes for c in self.cells)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "task": self.task,
+            "world": self.world,
+            "policy": self.policy,
+            "success_rate": self.success_rate(),
+            "episodes": self.episodes,
+            "cells": [asdict(c) | {"success_rate": c.rate} for c in self.cells],
+        }
+
+
+def grid_cells(task_name: str, grid: tuple[int, int]) -> list[Cell]:
+    """Cell centres over the regions' bounding box that fall inside a region."""
+    task = make_task(task_name)
+    areas = list(task.regions.values())
+    x_low, x_high = min(a.x[0] for a in areas), max(a.x[1] for a in areas)
+    y_low, y_high = min(a.y[0] for a in areas), max(a.y[1] for a in areas)
+    cells = []
+    for i in range(grid[0]):
+        for j in range(grid[1]):
+            x = x_low + (i + 0.5) * (x_high - x_low) / grid[0]
+            y = y_low + (j + 0.5) * (y_high - y_low) / grid[1]
+            region = next((name for name, a in task.regions.items() if a.contains(x, y)), None)
+            if region is not None:
+                cells.append(Cell(x=x, y=y, region=region))
+    return cells
+
+
+def _cell_config(task, cell: Cell, rng: np.random.Generator) -> TaskConfig:
+    area = task.region(cell.region)
+    for _ in range(1000):
+        obj = area.sample(rng)
+        if np.hypot(obj[0] - cell.x, obj[1] - cell.y) >= task.min_separation:
+            return TaskConfig(
+                object=(*obj, rng.uniform(*task.object_yaw)),
+                target=(cell.x, cell.y, rng.uniform(*task.target_yaw)),
+            )
+    raise RuntimeError(
+        f"no object position fits region {cell.region} with the target at ({cell.x}, {cell.y})"
+    )
+
+
+def evaluate(
+    runner: Runner,
+    task_name: str,
+    *,
+    world: str = "twin",
+    effects: str | Path | dict | None = None,
+    grid: tuple[int, int] = (8, 8),
+    episodes: int = 1,
+    seed: int = 0,
+    out: str | Path,
+    on_episode: Callable[[Cell, bool], None] | None = None,
+) -> EvalReport:
+    """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``."""
+    if world not in ("twin", "plant"):
+        raise ValueError(f"--world must be twin or plant, got '{world}'")
+    if world == "twin" and effects is not None:
+        raise ValueError("--effects applies to --world plant only")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    cells = grid_cells(task_name, grid)
+    session = Session.create(out / "session")
+    if world == "twin":
+        env = TwinEnv(task_name, images=runner.needs_images, cameras=runner.cameras or None)
+        task = env.task
+    else:
+        plant = Plant(task_name, effects=effects, seed=seed, images=runner.cameras)
+        task = plant.task
+    rng = np.random.default_rng(seed)
+    try:
+        for cell in cells:
+            for k in range(episodes):
+                config = _cell_config(task, cell, rng)
+                runner.reset(task, config, seed=int(rng.integers(2**31)))
+                if world == "twin":
+                    obs, info = env.reset(options={"config": config})
+                    names = {
+                        STATE: env.cell.state_names,
+                        ENVIRONMENT_STATE: env.cell.environment_names,
+                    }
+                else:
+                    obs = plant.reset(config)
+                    names = {STATE: plant.state_names, ENVIRONMENT_STATE: plant.environment_names}
+                meta = EpisodeMeta(
+                    task=task.name,
+                    instruction=task.instruction,
+                    source="eval",
+                    world=world,
+                    region=cell.region,
+                    config=config.to_dict(),
+                    twin=task.scene.digest,
+                    policy=runner.name,
+                    names={
+                        **names,
+                        ACTION: list(ACTION_NAMES),
+                        JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
+                    },
+                )
+                success = False
+                with session.record(meta) as log:
+                    for t in range(task.max_steps):
+                        action = np.asarray(runner.act(obs), np.float32)
+                        if world == "twin":
+                            next_obs, _, terminated, _, info = env.step(action)
+                            success, target = bool(terminated), info["command.joint_target"]
+                        else:
+                            plant.act(action)
+                            next_obs, success, target = (
+                                plant.observe(),
+                                plant.success,
+                                plant.last_joint_target,
+                            )
+                        done = success or t == task.max_steps - 1
+                        log.append(
+                            {
+                                **{
+                                    k: v
+                                    for k, v in obs.items()
+                                    if not k.startswith("observation.images.")
+                                    or k[19:] in runner.cameras
+                                },
+                                ACTION: action,
+                                ACTION_POLICY: action,
+                                JOINT_TARGET: target,
+                                INTERVENTION: False,
+                                REWARD: task.reward(Progress(success=success), "sparse"),
+                                DONE: done,
+                                SUCCESS: success,
+                            }
+                        )
+                        obs = next_obs
+                        if success:
+                            break
+                cell.episodes += 1
+                cell.successes += success
+                if on_episode is not None:
+                    on_episode(cell, success)
+    finally:
+        (env if world == "twin" else plant).close()
+    report = EvalReport(task=task_name, world=world, policy=runner.name, cells=cells)
+    (out / "eval.json").write_text(json.dumps(report.to_json(), indent=1))
+    plot_heatmap(report, grid, out / "heatmap.png")
+    return report
+
+
+def plot_heatmap(report: EvalReport, grid: tuple[int, int], path: Path) -> None:
+    """Success rate per cell over the table (robot at the bottom), regions outlined."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    task = make_task(report.task)
+    areas = list(task.regions.values())
+    x_low, x_high = min(a.x[0] for a in areas), max(a.x[1] for a in areas)
+    y_low, y_high = min(a.y[0] for a in areas), max(a.y[1] for a in areas)
+    values = np.full((grid[0], grid[1]), np.nan)
+    for cell in report.cells:
+        i = min(grid[0] - 1, int((cell.x - x_low) / (x_high - x_low) * grid[0]))
+        j = min(grid[1] - 1, int((cell.y - y_low) / (y_high - y_low) * grid[1]))
+        values[i, j] = cell.rate
+    fig, ax = plt.subplots(figsize=(6, 4.2), dpi=120)
+    image = ax.imshow(
+        values,
+        origin="lower",
+        extent=(y_low, y_high, x_low, x_high),
+        vmin=0,
+        vmax=1,
+        cmap="RdYlGn",
+        aspect="equal",
+    )
+    for name, area in task.regions.items():
+        ax.add_patch(
+            Rectangle(
+                (area.y[0], area.x[0]),
+                area.y[1] - area.y[0],
+                area.x[1] - area.x[0],
+                fill=False,
+                lw=2,
+                ec="black",
+            )
+        )
+        rate = report.success_rate().get(name)
+        label = f"{name}: {100 * rate:.0f} %" if rate is not None else name
+        ax.text(
+            (area.y[0] + area.y[1]) / 2,
+            area.x[1] + 0.01,
+            label,
+            ha="center",
+            va="bottom",
+            fontsize=9,
+        )
+    ax.set_xlabel("y (m, base frame)")
+    ax.set_ylabel("x (m)")
+    ax.set_title(f"{report.task} in the {report.world}: {report.policy}", fontsize=9)
+    fig.colorbar(image, ax=ax, label="success rate")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,297 @@
+"""The policy: camera images + language instruction + proprio -> an action (chunk).
+
+Two variants share one head and one checkpoint format:
+
+- ``vla``: a small CNN per camera (``front``, ``wrist``) trained from scratch, its
+  feature maps FiLM-conditioned on the instruction's sentence embedding
+  (all-MiniLM-L6-v2), fused with the proprio state;
+- ``state`` (**privileged**): proprio + ``observation.environment_state`` (object poses
+  known only in the twin and the plant), for fast experiments.
+
+The head is a tanh-squashed Gaussian over normalised actions in [-1, 1]: its
+log-likelihood is the imitation loss now and the same network serves as the actor of
+the Q-guided objective later. Actions are normalised with the dataset's min/max, states
+with its mean/std.
+
+A checkpoint is a folder::
+
+    CKPT/
+      config.json          PolicyConfig, normalisation stats, instruction embeddings
+      model.safetensors    weights
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
+
+KINDS = ("vla", "state")
+LOG_STD_RANGE = (-5.0, 1.0)
+ACTION_MARGIN = 0.9
+EPS = 1e-4
+
+
+@dataclass
+class PolicyConfig:
+    """Architecture and normalisation; everything needed to rebuild the policy."""
+
+    kind: str
+    state_dim: int
+    env_dim: int = 0
+    action_dim: int = 7
+    chunk: int = 1
+    cameras: list[str] = field(default_factory=lambda: ["front", "wrist"])
+    image_size: int = 64
+    hidden: int = 256
+    tcp_index: int = -1  # where tcp.x is in observation.state (-1: unknown)
+    # Entries of observation.state the policy reads (default: all). Joint velocities are
+    # left out by SFT: in demonstrations they are a clock that a rollout does not keep.
+    state_inputs: list[int] = field(default_factory=list)
+    object_indices: list[int] = field(default_factory=list)  # where each <object>.x is in env
+    seed: int = 0
+    stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
+    instructions: dict[str, list[float]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"policy kind must be one of {', '.join(KINDS)}, got '{self.kind}'")
+        if self.kind == "state" and self.env_dim == 0:
+            raise ValueError("the state policy needs observation.environment_state (env_dim > 0)")
+
+
+class SpatialSoftmax(nn.Module):
+    """Expected image coordinates of each channel's softmax: where things are."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n, c, h, w = x.shape
+        weights = torch.softmax(x.flatten(2), dim=-1).view(n, c, h, w)
+        ys = torch.linspace(-1, 1, h, device=x.device)
+        xs = torch.linspace(-1, 1, w, device=x.device)
+        return torch.cat([(weights.sum(3) * ys).sum(-1), (weights.sum(2) * xs).sum(-1)], dim=-1)
+
+
+class FiLMConvEncoder(nn.Module):
+    """Four conv blocks; each block's channels are scaled and shifted by the instruction
+    embedding (FiLM); a spatial softmax turns the last maps into keypoints."""
+
+    def __init__(self, channels: tuple[int, ...] = (32, 64, 64, 128)) -> None:
+        super().__init__()
+        blocks, films = [], []
+        previous = 3
+        for width in channels:
+            blocks.append(
+                nn.Sequential(
+                    nn.Conv2d(previous, width, 3, stride=2, padding=1), nn.GroupNorm(8, width)
+                )
+            )
+            films.append(nn.Linear(EMBEDDING_DIM, 2 * width))
+            previous = width
+        self.blocks = nn.ModuleList(blocks)
+        self.films = nn.ModuleList(films)
+        self.keypoints = SpatialSoftmax()
+        self.out_dim = 2 * previous
+
+    def forward(self, images: torch.Tensor, text: torch.Tensor) -> torch.Tensor:
+        x = images
+        for block, film in zip(self.blocks, self.films, strict=True):
+            gamma, beta = film(text).chunk(2, dim=-1)
+            x = block(x) * (1 + gamma[..., None, None]) + beta[..., None, None]
+            x = F.relu(x)
+        return self.keypoints(x)
+
+
+class Policy(nn.Module):
+    """See the module docstring. ``forward`` works on normalised tensors; :meth:`act`
+    takes one observation dict of the episode contract and returns a physical action."""
+
+    def __init__(self, config: PolicyConfig) -> None:
+        super().__init__()
+        self.config = config
+        c = config
+        self.encoders = nn.ModuleDict()
+        features = 0
+        if c.kind == "vla":
+            for camera in c.cameras:
+                self.encoders[camera] = FiLMConvEncoder()
+                features += self.encoders[camera].out_dim
+            proprio = self.state_width
+        else:
+            proprio = self.state_width + c.env_dim + 3 * len(c.object_indices)
+        self.proprio = nn.Sequential(
+            nn.Linear(proprio, c.hidden), nn.LayerNorm(c.hidden), nn.ReLU()
+        )
+        self.trunk = nn.Sequential(
+            nn.Linear(features + c.hidden + EMBEDDING_DIM, c.hidden),
+            nn.ReLU(),
+            nn.Linear(c.hidden, c.hidden),
+            nn.ReLU(),
+        )
+        self.head = nn.Linear(c.hidden, 2 * c.chunk * c.action_dim)
+        self.instructions = InstructionCache(c.instructions)
+        self._stats = {k: {s: torch.tensor(v) for s, v in d.items()} for k, d in c.stats.items()}
+
+    @property
+    def state_width(self) -> int:
+        return len(self.config.state_inputs) or self.config.state_dim
+
+    # ------------------------------------------------------------------ core
+    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Trunk features of a normalised batch (the critic reuses them later)."""
+        text = batch["text"]
+        parts = []
+        if self.config.kind == "vla":
+            for camera, encoder in self.encoders.items():
+                parts.append(encoder(batch[f"image.{camera}"], text))
+            parts.append(self.proprio(batch["state"]))
+        else:
+            parts.append(
+                self.proprio(torch.cat([batch["state"], batch["env"], batch["relative"]], dim=-1))
+            )
+        parts.append(text)
+        return self.trunk(torch.cat(parts, dim=-1))
+
+    def distribution(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and log-std of the pre-tanh Gaussian, shape (B, chunk, action_dim)."""
+        out = self.head(self.features(batch)).view(-1, self.config.chunk, 2, self.config.action_dim)
+        mean, log_std = out[:, :, 0], out[:, :, 1].clamp(*LOG_STD_RANGE)
+        return mean, log_std
+
+    def log_prob(self, batch: dict[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
+        """log pi(a|s) of normalised actions in (-1, 1) under the tanh-squashed Gaussian."""
+        mean, log_std = self.distribution(batch)
+        clipped = actions.clamp(-1 + EPS, 1 - EPS)
+        pre_tanh = torch.atanh(clipped)
+        normal = (
+            -0.5 * ((pre_tanh - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
+        )
+        jacobian = torch.log(1 - clipped**2 + 1e-6)
+        return (normal - jacobian).sum(dim=(-1, -2))
+
+    def sample(self, batch: dict[str, torch.Tensor], deterministic: bool = False) -> torch.Tensor:
+        mean, log_std = self.distribution(batch)
+        if deterministic:
+            return torch.tanh(mean)
+        return torch.tanh(mean + log_std.exp() * torch.randn_like(mean))
+
+    # ------------------------------------------------------------ normalising
+    def _action_range(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Dataset min/max per action dimension; a constant dimension maps to itself."""
+        low, high = self._stats["action"]["min"], self._stats["action"]["max"]
+        constant = (high - low) < 1e-6
+        return torch.where(constant, low - 1, low), torch.where(constant, high + 1, high)
+
+    def normalize(self, key: str, values: torch.Tensor) -> torch.Tensor:
+        """States to zero mean and unit std; actions from [min, max] to [-0.9, 0.9], so
+        that demonstrated extremes stay where the tanh is not yet flat."""
+        stats = self._stats[key]
+        if key == "action":
+            low, high = self._action_range()
+            return ACTION_MARGIN * (2 * (values - low) / (high - low) - 1)
+        normalized = (values - stats["mean"]) / stats["std"].clamp_min(1e-6)
+        if key == "state" and self.config.state_inputs:
+            normalized = normalized[..., self.config.state_inputs]
+        return normalized
+
+    def unnormalize_action(self, values: torch.Tensor) -> torch.Tensor:
+        """Back to physical units, within the demonstrated range; a dimension that never
+        varied in the data (e.g. tilting a top-down tool) keeps its constant value."""
+        low, high = self._action_range()
+        physical = (values / ACTION_MARGIN + 1) / 2 * (high - low) + low
+        data_low, data_high = self._stats["action"]["min"], self._stats["action"]["max"]
+        return torch.minimum(torch.maximum(physical, data_low), data_high)
+
+    def relative_positions(self, state: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
+        """Each object's position relative to the TCP (m x 10): what a reaching policy
+        needs, invariant to where on the table things are."""
+        if not self.config.object_indices:
+            return state.new_zeros((state.shape[0], 0))
+        tcp = state[:, self.config.tcp_index : self.config.tcp_index + 3]
+        return torch.cat(
+            [(env[:, i : i + 3] - tcp) * 10.0 for i in self.config.object_indices], dim=-1
+        )
+
+    def prepare_images(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 (B, H, W, 3) -> float (B, 3, S, S) in [0, 1] at the policy's image size."""
+        x = images.permute(0, 3, 1, 2).float() / 255.0
+        size = self.config.image_size
+        if x.shape[-1] != size or x.shape[-2] != size:
+            x = F.interpolate(
+                x, size=(size, size), mode="bilinear", align_corners=False, antialias=True
+            )
+        return x
+
+    @torch.no_grad()
+    def act(
+        self, observation: dict[str, Any], instruction: str, deterministic: bool = True
+    ) -> np.ndarray:
+        """The next action (physical units) for one observation of the episode contract."""
+        batch = {
+            "state": self.normalize(
+                "state", torch.as_tensor(observation["observation.state"])[None]
+            ),
+            "text": torch.as_tensor(self.instructions(instruction))[None],
+        }
+        if self.config.kind == "vla":
+            for camera in self.config.cameras:
+                image = torch.as_tensor(np.asarray(observation[f"observation.images.{camera}"]))[
+                    None
+                ]
+                batch[f"image.{camera}"] = self.prepare_images(image)
+        else:
+            state = torch.as_tensor(observation["observation.state"])[None]
+            env = torch.as_tensor(observation["observation.environment_state"])[None]
+            batch["env"] = self.normalize("env", env)
+            batch["relative"] = self.relative_positions(state, env)
+        action = self.unnormalize_action(self.sample(batch, deterministic)[:, 0])
+        return action[0].numpy().astype(np.float32)
+
+    @property
+    def needs_images(self) -> bool:
+        return self.config.kind == "vla"
+
+    # ------------------------------------------------------------ checkpoints
+    def save_pretrained(self, path: str | Path) -> Path:
+        """Write ``config.json`` and ``model.safetensors`` into the folder ``path``."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        self.config.instructions = self.instructions.to_dict()
+        (path / "config.json").write_text(json.dumps(asdict(self.config), indent=1))
+        weights = {k: v.contiguous() for k, v in self.state_dict().items()}
+        save_file(weights, path / "model.safetensors")
+        return path
+
+    @classmethod
+    def from_pretrained(cls, path: str | Path) -> Policy:
+        path = Path(path)
+        if not (path / "config.json").is_file() or not (path / "model.safetensors").is_file():
+            raise ValueError(
+                f"{path} is not a twinrl policy checkpoint "
+                "(needs config.json and model.safetensors)"
+            )
+        config = PolicyConfig(**json.loads((path / "config.json").read_text()))
+        policy = cls(config)
+        policy.load_state_dict(load_file(path / "model.safetensors"))
+        policy.eval()
+        return policy
+
+
+def is_checkpoint(path: str | Path) -> bool:
+    """Whether ``path`` is a twinrl policy checkpoint (lerobot's have a ``type`` instead)."""
+    path = Path(path)
+    if not ((path / "config.json").is_file() and (path / "model.safetensors").is_file()):
+        return False
+    try:
+        return json.loads((path / "config.json").read_text()).get("kind") in KINDS
+    except json.JSONDecodeError:
+        return False

@@ -1,0 +1,125 @@
+"""Policies behind one ``act(observation) -> action`` interface for evaluation.
+
+- :class:`TwinrlRunner`: a twinrl checkpoint (``Policy.from_pretrained``);
+- :class:`LeRobotRunner`: any lerobot policy checkpoint (ACT, Diffusion, SmolVLA, ...),
+  with lerobot's own pre/post-processors (normalisation, tokenisation);
+- :class:`ExpertRunner`: the task's scripted expert (a reference for the evaluation).
+
+``load_runner(path_or_name)`` picks the right one.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from twinrl_learn.policy import Policy, is_checkpoint
+from twinrl_sim.tasks import Task, TaskConfig
+
+
+class Runner(Protocol):
+    """Acts in episodes: ``reset`` at each start, ``act`` at each control step."""
+
+    name: str
+    needs_images: bool
+    cameras: tuple[str, ...]
+
+    def reset(self, task: Task, config: TaskConfig, seed: int) -> None: ...
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
+class TwinrlRunner:
+    def __init__(self, path: str | Path) -> None:
+        self.policy = Policy.from_pretrained(path)
+        self.name = f"twinrl:{Path(path).name}"
+        self.needs_images = self.policy.needs_images
+        self.cameras = tuple(self.policy.config.cameras) if self.needs_images else ()
+        self._instruction = ""
+
+    def reset(self, task: Task, config: TaskConfig, seed: int) -> None:
+        self._instruction = task.instruction
+        torch.manual_seed(seed)
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        return self.policy.act(observation, self._instruction)
+
+
+class ExpertRunner:
+    """The scripted expert: privileged state; an upper reference for evaluations."""
+
+    name = "expert"
+    needs_images = False
+    cameras = ()
+
+    def __init__(self) -> None:
+        self._expert = None
+
+    def reset(self, task: Task, config: TaskConfig, seed: int) -> None:
+        self._expert = task.expert(config, np.random.default_rng(seed))
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        return self._expert.act(observation)
+
+
+class LeRobotRunner:
+    """A lerobot policy checkpoint (the ``pretrained_model`` folder lerobot-train writes)."""
+
+    def __init__(self, path: str | Path) -> None:
+        from lerobot.configs.policies import PreTrainedConfig
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        path = Path(path)
+        config = PreTrainedConfig.from_pretrained(path)
+        config.device = "cpu"
+        policy_class = get_policy_class(config.type)
+        self.policy = policy_class.from_pretrained(path, config=config)
+        self.policy.eval()
+        self.pre, self.post = make_pre_post_processors(config, pretrained_path=str(path))
+        self.name = f"lerobot:{config.type}"
+        self.input_features = dict(config.input_features)
+        self.cameras = tuple(
+            k.removeprefix("observation.images.")
+            for k in self.input_features
+            if k.startswith("observation.images.")
+        )
+        self.needs_images = bool(self.cameras)
+        self._instruction = ""
+
+    def reset(self, task: Task, config: TaskConfig, seed: int) -> None:
+        self._instruction = task.instruction
+        self.policy.reset()
+        torch.manual_seed(seed)
+
+    @torch.no_grad()
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        batch: dict[str, Any] = {"task": [self._instruction]}
+        for key in self.input_features:
+            value = np.asarray(observation[key])
+            if key.startswith("observation.images."):
+                batch[key] = torch.from_numpy(value).permute(2, 0, 1)[None].float() / 255.0
+            else:
+                batch[key] = torch.from_numpy(value.astype(np.float32))[None]
+        action = self.post(self.policy.select_action(self.pre(batch)))
+        return np.asarray(action[0].cpu().numpy(), np.float32)
+
+
+def load_runner(spec: str | Path) -> Runner:
+    """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder."""
+    if str(spec) == "expert":
+        return ExpertRunner()
+    path = Path(spec)
+    if is_checkpoint(path):
+        return TwinrlRunner(path)
+    if (path / "config.json").is_file() and "type" in json.loads(
+        (path / "config.json").read_text()
+    ):
+        return LeRobotRunner(path)
+    raise ValueError(
+        f"{path} is not a policy checkpoint: give a twinrl SFT output folder, a lerobot "
+        "pretrained_model folder, or 'expert'"
+    )
