@@ -83,3 +83,80 @@ def test_effects_lists_the_library():
     result = runner.invoke(app, ["sim", "effects"])
     assert result.exit_code == 0
     assert "actuator_delay" in result.output and "gripper_force" in result.output
+
+
+def test_train_and_eval_commands(tmp_path):
+    run = twinrl(
+        "sim", "expert", "pick_place", "--episodes", "1", "--out", str(tmp_path / "session")
+    )
+    assert run.returncode == 0, run.stderr
+    assert (
+        twinrl("data", "export", str(tmp_path / "session"), "--to", str(tmp_path / "ds")).returncode
+        == 0
+    )
+    trained = twinrl(
+        "train",
+        "sft",
+        "--dataset",
+        str(tmp_path / "ds"),
+        "--policy",
+        "state",
+        "--steps",
+        "20",
+        "--out",
+        str(tmp_path / "policy"),
+    )
+    assert trained.returncode == 0, trained.stderr
+    assert "20 steps" in trained.stdout
+    evaluated = twinrl(
+        "eval",
+        str(tmp_path / "policy"),
+        "--task",
+        "pick_place",
+        "--grid",
+        "1x2",
+        "--out",
+        str(tmp_path / "eval"),
+    )
+    assert evaluated.returncode == 0, evaluated.stderr
+    assert (tmp_path / "eval" / "heatmap.png").is_file() and "ID" in evaluated.stdout
+    resumed = twinrl(
+        "train",
+        "sft",
+        "--dataset",
+        str(tmp_path / "ds"),
+        "--policy",
+        "state",
+        "--steps",
+        "30",
+        "--out",
+        str(tmp_path / "policy"),
+        "--resume",
+    )
+    assert resumed.returncode == 0, resumed.stderr
+    assert "30 steps" in resumed.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["train", "sft", "--dataset", "nowhere", "--out", "x"], "is not a LeRobotDataset"),
+        (["eval", "nowhere", "--task", "pick_place", "--out", "x"], "is not a policy checkpoint"),
+        (
+            ["eval", "expert", "--task", "pick_place", "--grid", "8by8", "--out", "x"],
+            "--grid must look like",
+        ),
+        (["expand", "pick_place", "--out", "x", "--randomize", "fog"], "unknown randomisation"),
+        (["expand", "pick_place", "--out", "x", "--method", "augment"], "needs --from-demo"),
+    ],
+)
+def test_stage1_bad_input(args, message, tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", *args],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr

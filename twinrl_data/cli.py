@@ -29,7 +29,7 @@ app = typer.Typer(
     help="Episode logs: recover MCAP, export/import LeRobot datasets, catalog.",
     no_args_is_help=True,
 )
-console = Console()
+console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 CatalogOption = Annotated[Path, typer.Option("--catalog", help="Catalog Parquet file.")]
 DEFAULT_COLUMNS = (
     "episode_id",

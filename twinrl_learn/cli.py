@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
+from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
 
 from twinrl_data import cli as data_cli
+from twinrl_learn.evaluate import evaluate
+from twinrl_learn.runners import load_runner
+from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
+from twinrl_learn.stage1 import Stage1Settings, run_stage1
 from twinrl_robot import cli as robot_cli
 from twinrl_sim import cli as sim_cli
 from twinrl_sim.spec import SpecError
+from twinrl_sim.tasks import TASKS
 
 app = typer.Typer(
     help="twinrl: digital-twin-guided reinforcement learning for real robot arms.",
@@ -23,6 +32,184 @@ app.add_typer(sim_cli.app, name="sim")
 app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)
+
+train_app = typer.Typer(help="Train policies (SFT now; RL stages later).", no_args_is_help=True)
+app.add_typer(train_app, name="train")
+console = Console(soft_wrap=True)  # paths and figures are never broken across lines
+
+
+def _progress(**fields: object) -> Progress:
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        *[TextColumn(f"{name} {{task.fields[{name}]}}") for name in fields],
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+    )
+
+
+@train_app.command("sft")
+def train_sft_command(
+    dataset: Annotated[
+        list[Path], typer.Option(help="LeRobotDataset folder; repeat to mix datasets.")
+    ],
+    out: Annotated[
+        Path, typer.Option(help="Checkpoint folder to create (or continue with --resume).")
+    ],
+    policy: Annotated[
+        str, typer.Option(help="vla (cameras + language + proprio) or state (privileged).")
+    ] = "vla",
+    weights: Annotated[
+        str | None, typer.Option(help="Sampling weight per --dataset, e.g. 1,2.")
+    ] = None,
+    steps: Annotated[
+        int | None,
+        typer.Option(
+            help=f"Training steps (default: {DEFAULTS['vla'][0]} vla, "
+            f"{DEFAULTS['state'][0]} state)."
+        ),
+    ] = None,
+    batch_size: Annotated[int | None, typer.Option(help="Batch size (default by policy).")] = None,
+    lr: Annotated[float | None, typer.Option(help="Learning rate (default by policy).")] = None,
+    chunk: Annotated[
+        int, typer.Option(help="Actions predicted and executed per look (action chunking).", min=1)
+    ] = 8,
+    seed: Annotated[int, typer.Option(help="Seed (initialisation, sampling, augmentation).")] = 0,
+    resume: Annotated[
+        bool, typer.Option(help="Continue the run in --out exactly where it stopped.")
+    ] = False,
+) -> None:
+    """Supervised fine-tuning on demonstrations (real and twin), with a loss curve."""
+    missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
+    if missing:
+        raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
+    if policy not in DEFAULTS:
+        raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
+    parsed = [float(w) for w in weights.split(",")] if weights else None
+    config = SFTConfig(
+        datasets=[str(d) for d in dataset],
+        out=str(out),
+        policy=policy,
+        weights=parsed,
+        steps=steps,
+        batch_size=batch_size,
+        lr=lr,
+        chunk=chunk,
+        seed=seed,
+    ).resolved()
+    with _progress(loss="", rate="") as bar:
+        job = bar.add_task(f"SFT {policy}", total=config.steps, loss="-", rate="-")
+
+        def report(step: int, metrics: dict[str, float]) -> None:
+            bar.update(
+                job,
+                completed=step,
+                loss=f"{metrics['loss']:.3f}",
+                rate=f"{metrics['steps_per_s']:.0f}/s",
+            )
+
+        result = train_sft(config, resume=resume, progress=report)
+    tail = result.losses[-50:]
+    console.print(
+        f"{result.out}: {result.steps} steps in {result.seconds:.0f} s, final loss "
+        f"{sum(tail) / max(len(tail), 1):.3f}; curve {result.out / 'loss.png'}"
+    )
+
+
+def _grid(text: str) -> tuple[int, int]:
+    try:
+        rows, cols = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--grid must look like 8x8, got '{text}'") from None
+    if rows < 1 or cols < 1:
+        raise ValueError(f"--grid needs positive sizes, got '{text}'")
+    return rows, cols
+
+
+@app.command("eval")
+def eval_command(
+    checkpoint: Annotated[
+        str, typer.Argument(help="twinrl checkpoint, lerobot pretrained_model folder, or 'expert'.")
+    ],
+    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")],
+    out: Annotated[Path, typer.Option(help="Folder for episodes, eval.json and heatmap.png.")],
+    world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
+    effects: Annotated[Path | None, typer.Option(help="Hidden effects YAML for the plant.")] = None,
+    grid: Annotated[
+        str, typer.Option(help="Grid of target positions over ID and OOD, e.g. 8x8.")
+    ] = "8x8",
+    episodes: Annotated[int, typer.Option(help="Episodes per grid cell.", min=1)] = 1,
+    seed: Annotated[int, typer.Option(help="Seed for object placement and sampling.")] = 0,
+) -> None:
+    """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
+    if task not in TASKS:
+        sim_cli.make_task(task)  # raises with the nearest task name
+    if effects is not None and not effects.is_file():
+        raise ValueError(f"--effects {effects} does not exist")
+    runner = load_runner(checkpoint)
+    with _progress(success="") as bar:
+        job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
+        done = {"n": 0, "ok": 0}
+
+        def advance(cell, success: bool) -> None:
+            done["n"] += 1
+            done["ok"] += success
+            bar.update(job, advance=1, success=f"{done['ok']}/{done['n']}")
+
+        report = evaluate(
+            runner,
+            task,
+            world=world,
+            effects=effects,
+            grid=_grid(grid),
+            episodes=episodes,
+            seed=seed,
+            out=out,
+            on_episode=advance,
+        )
+    table = Table("region", "success", "episodes", title=f"{task}: {runner.name} in the {world}")
+    for region, rate in report.success_rate().items():
+        count = sum(c.episodes for c in report.cells if c.region == region)
+        table.add_row(region, f"{100 * rate:.0f} %", str(count))
+    console.print(table)
+    console.print(f"{out / 'eval.json'}, {out / 'heatmap.png'}, episodes in {out / 'session'}")
+
+
+bench_app = typer.Typer(help="Reproduce the paper's experiments.", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("stage1")
+def bench_stage1(
+    out: Annotated[Path, typer.Option(help="Folder for datasets, policies, heatmaps, table1.md.")],
+    tasks: Annotated[
+        str, typer.Option(help="Comma-separated tasks.")
+    ] = "pick_place,insert_hexagon",
+    policies: Annotated[
+        str, typer.Option(help="Comma-separated policy kinds: state, vla.")
+    ] = "state",
+    scale: Annotated[
+        float, typer.Option(help="Multiply every demo count (0.1 for a smoke run).")
+    ] = 1.0,
+    grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "4x4",
+    vla_steps: Annotated[int | None, typer.Option(help="SFT steps of the image policy.")] = None,
+    state_steps: Annotated[int | None, typer.Option(help="SFT steps of the state policy.")] = None,
+) -> None:
+    """TwinRL's Table I in the plant: real-only SFT vs real + twin ID/OOD demos."""
+    steps = {k: v for k, v in (("vla", vla_steps), ("state", state_steps)) if v}
+    settings = Stage1Settings(
+        tasks=tuple(t for t in tasks.split(",") if t),
+        policies=tuple(p for p in policies.split(",") if p),
+        scale=scale,
+        grid=_grid(grid),
+        steps=steps,
+    )
+    data_cli.quiet_encoders()
+    run_stage1(settings, out, log=lambda line: console.print(line))
+    console.print((out / "table1.md").read_text())
+
 
 USER_ERRORS = (ValueError, SpecError, FileNotFoundError, KeyError)
 

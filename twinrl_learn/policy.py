@@ -139,6 +139,7 @@ class Policy(nn.Module):
         )
         self.head = nn.Linear(c.hidden, 2 * c.chunk * c.action_dim)
         self.instructions = InstructionCache(c.instructions)
+        self._queue: list[np.ndarray] = []
         self._stats = {k: {s: torch.tensor(v) for s, v in d.items()} for k, d in c.stats.items()}
 
     @property
@@ -235,7 +236,13 @@ class Policy(nn.Module):
     def act(
         self, observation: dict[str, Any], instruction: str, deterministic: bool = True
     ) -> np.ndarray:
-        """The next action (physical units) for one observation of the episode contract."""
+        """The next action (physical units) for one observation of the episode contract.
+
+        With ``chunk > 1`` the policy predicts ``chunk`` actions and executes them in
+        turn before looking again (action chunking); :meth:`reset` starts afresh.
+        """
+        if self._queue:
+            return self._queue.pop(0)
         batch = {
             "state": self.normalize(
                 "state", torch.as_tensor(observation["observation.state"])[None]
@@ -253,8 +260,13 @@ class Policy(nn.Module):
             env = torch.as_tensor(observation["observation.environment_state"])[None]
             batch["env"] = self.normalize("env", env)
             batch["relative"] = self.relative_positions(state, env)
-        action = self.unnormalize_action(self.sample(batch, deterministic)[:, 0])
-        return action[0].numpy().astype(np.float32)
+        chunk = self.unnormalize_action(self.sample(batch, deterministic))[0].numpy()
+        self._queue = [a.astype(np.float32) for a in chunk[1:]]
+        return chunk[0].astype(np.float32)
+
+    def reset(self) -> None:
+        """Forget the rest of the current action chunk (call at each episode start)."""
+        self._queue = []
 
     @property
     def needs_images(self) -> bool:

@@ -43,6 +43,7 @@ class TwinrlRunner:
 
     def reset(self, task: Task, config: TaskConfig, seed: int) -> None:
         self._instruction = task.instruction
+        self.policy.reset()
         torch.manual_seed(seed)
 
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:

@@ -48,7 +48,7 @@ class SFTConfig:
     steps: int | None = None
     batch_size: int | None = None
     lr: float | None = None
-    chunk: int = 1
+    chunk: int = 8
     image_size: int = 64
     seed: int = 0
     checkpoint_every: int = 500
@@ -202,7 +202,7 @@ def train_sft(
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
         optimizer.step()
         step += 1
-        losses.append(float(loss))
+        losses.append(loss.item())
         if progress is not None and (step % config.log_every == 0 or step == config.steps):
             rate = config.log_every / max(time.perf_counter() - window, 1e-9)
             window = time.perf_counter()

@@ -16,7 +16,7 @@ from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
 from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class
 
-console = Console()
+console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
 
 def expert(

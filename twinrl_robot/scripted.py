@@ -145,6 +145,7 @@ def run_scripted_expert(
     effects: dict | str | Path | None = None,
     seed: int = 0,
     session: Session | None = None,
+    action_noise: float = 0.0,
     on_episode: Callable[[ExpertEpisode], None] | None = None,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
@@ -152,7 +153,8 @@ def run_scripted_expert(
     ``effects`` only applies to the plant (``None``: the built-in plant's hidden effects).
     With a ``session``, every episode is recorded (both cameras): in the twin as
     ``twin_demo`` demonstrations, in the plant as ``teleop`` (the expert stands in for
-    the human operator).
+    the human operator). ``action_noise`` (m) adds human-like jitter to the expert's
+    translations (and ten times as much, in rad, to its rotations).
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {', '.join(WORLDS)}, got '{world}'")
@@ -172,6 +174,7 @@ def run_scripted_expert(
             for i in range(episodes):
                 config = sim.task.sample_config(rng, region)
                 expert = sim.task.expert(config, np.random.default_rng([seed, r, i]))
+                jitter = np.random.default_rng([seed, r, i, 1])
                 obs = sim.reset(config)
                 log = None
                 if session is not None:
@@ -179,6 +182,10 @@ def run_scripted_expert(
                 steps = 0
                 while steps < sim.task.max_steps and not sim.success:
                     action = expert.act(obs)
+                    if action_noise > 0:
+                        action = action.copy()
+                        action[:3] += jitter.normal(0.0, action_noise, 3)
+                        action[3:6] += jitter.normal(0.0, 10 * action_noise, 3)
                     next_obs, joint_target = sim.step(action)
                     steps += 1
                     if log is not None:

@@ -29,7 +29,7 @@ from twinrl_sim.tasks import TASKS, TaskConfig, make_task
 app = typer.Typer(
     help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
 )
-console = Console()
+console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
 
 def parse_config(text: str) -> TaskConfig:
