@@ -33,8 +33,14 @@ SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
 ACTION_NAMES = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
 VIDEO_BACKEND = "pyav"  # decodes everywhere, also without a system FFmpeg
 # Encode camera streams in background threads while frames are added (about twice as
-# fast as encoding after each episode on two cores).
-WRITE_OPTIONS = {"use_videos": True, "video_backend": VIDEO_BACKEND, "streaming_encoding": True}
+# fast as encoding after each episode on two cores). lerobot drops a frame when the
+# encoder's queue is full, so the queue is made long enough never to be.
+WRITE_OPTIONS = {
+    "use_videos": True,
+    "video_backend": VIDEO_BACKEND,
+    "streaming_encoding": True,
+    "encoder_queue_maxsize": 100_000,
+}
 
 
 def _lerobot():
