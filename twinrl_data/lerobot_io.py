@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -226,8 +226,11 @@ def iter_dataset_episodes(
     source: str = "teleop",
     world: str = "real",
     episodes: list[int] | None = None,
+    cameras: Sequence[str] | None = None,
 ) -> Iterable[contract.Episode]:
     """Episodes of a LeRobotDataset, in index order; fields it lacks stay absent.
+
+    ``cameras`` limits which camera videos are decoded (``None``: all, ``[]``: none).
 
     twinrl's sidecar metadata is used when present; otherwise ``source`` and ``world``
     describe where the data came from and the task is the dataset's task text.
@@ -246,7 +249,9 @@ def iter_dataset_episodes(
     table = dataset.hf_dataset.with_format("numpy")
     episode_column = np.asarray(table["episode_index"])
     indices = episodes if episodes is not None else list(range(meta.total_episodes))
-    cameras = [k for k, ft in meta.features.items() if ft["dtype"] in ("video", "image")]
+    video_keys = [k for k, ft in meta.features.items() if ft["dtype"] == "video"]
+    if cameras is not None:
+        video_keys = [k for k in video_keys if k.removeprefix(contract.IMAGES_PREFIX) in cameras]
     for index in indices:
         rows = np.flatnonzero(episode_column == index)
         if len(rows) == 0:
@@ -265,9 +270,7 @@ def iter_dataset_episodes(
                 data[key] = values
         timestamps = [float(t) for t in np.asarray(part["timestamp"])]
         images = {}
-        for key in cameras:
-            if meta.features[key]["dtype"] != "video":
-                continue
+        for key in video_keys:
             record = meta.episodes[index]
             offset = float(record[f"videos/{key}/from_timestamp"])
             path = Path(root) / meta.get_video_file_path(index, key)

@@ -138,7 +138,7 @@ def load_frames(
     total = 0
     names: dict[str, list[str]] = {}
     for index, root in enumerate(roots):
-        for episode in iter_dataset_episodes(root):
+        for episode in iter_dataset_episodes(root, cameras=list(cameras)):
             names = names or episode.meta.names
             missing = [c for c in cameras if c not in episode.images]
             if missing:
