@@ -168,16 +168,33 @@ class Policy(nn.Module):
         mean, log_std = out[:, :, 0], out[:, :, 1].clamp(*LOG_STD_RANGE)
         return mean, log_std
 
-    def log_prob(self, batch: dict[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
-        """log pi(a|s) of normalised actions in (-1, 1) under the tanh-squashed Gaussian."""
+    def _log_prob_terms(
+        self, batch: dict[str, torch.Tensor], actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         mean, log_std = self.distribution(batch)
         clipped = actions.clamp(-1 + EPS, 1 - EPS)
         pre_tanh = torch.atanh(clipped)
-        normal = (
-            -0.5 * ((pre_tanh - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
-        )
-        jacobian = torch.log(1 - clipped**2 + 1e-6)
-        return (normal - jacobian).sum(dim=(-1, -2))
+        z = (pre_tanh - mean) / log_std.exp()
+        normal = -0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)
+        return normal - torch.log(1 - clipped**2 + 1e-6), log_std
+
+    def log_prob(self, batch: dict[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
+        """log pi(a|s) of normalised actions in (-1, 1) under the tanh-squashed Gaussian."""
+        terms, _ = self._log_prob_terms(batch, actions)
+        return terms.sum(dim=(-1, -2))
+
+    def imitation_loss(
+        self, batch: dict[str, torch.Tensor], actions: torch.Tensor, beta: float = 1.0
+    ) -> torch.Tensor:
+        """L_IL = -E[log pi(a|s)], each term weighted by sigma^(2 beta) (beta-NLL).
+
+        Plain NLL lets the learned spread decide how closely the mean is fitted, and a
+        policy then stops short of its targets; beta = 1 gives the mean the gradients of
+        a squared error while the spread is still learned (Seitzer et al., 2022).
+        """
+        terms, log_std = self._log_prob_terms(batch, actions)
+        weight = torch.exp(2 * beta * log_std).detach()
+        return -(weight * terms).sum(dim=(-1, -2)).mean()
 
     def sample(self, batch: dict[str, torch.Tensor], deterministic: bool = False) -> torch.Tensor:
         mean, log_std = self.distribution(batch)

@@ -196,7 +196,7 @@ def train_sft(
     while step < config.steps:
         rows = _sample_rows(frames, weights, config.batch_size, generator)
         batch, actions = _batch(policy, frames, rows, generator, config.chunk, augment=True)
-        loss = -policy.log_prob(batch, actions).mean()
+        loss = policy.imitation_loss(batch, actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
