@@ -20,16 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from twinrl_data.lerobot_io import ACTION_NAMES
 from twinrl_data.schema import (
     ACTION,
     ACTION_POLICY,
     DONE,
-    ENVIRONMENT_STATE,
     INTERVENTION,
     JOINT_TARGET,
     REWARD,
-    STATE,
     SUCCESS,
     EpisodeMeta,
 )
@@ -37,7 +34,6 @@ from twinrl_data.session import Session
 from twinrl_learn.runners import Runner
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
-from twinrl_sim.robots.ur5e import JOINT_NAMES
 from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
 
 
@@ -153,13 +149,10 @@ def evaluate(
                 runner.reset(task, config, seed=int(rng.integers(2**31)))
                 if world == "twin":
                     obs, info = env.reset(options={"config": config})
-                    names = {
-                        STATE: env.cell.state_names,
-                        ENVIRONMENT_STATE: env.cell.environment_names,
-                    }
+                    names = env.cell.contract_names()
                 else:
                     obs = plant.reset(config)
-                    names = {STATE: plant.state_names, ENVIRONMENT_STATE: plant.environment_names}
+                    names = plant.contract_names()
                 meta = EpisodeMeta(
                     task=task.name,
                     instruction=task.instruction,
@@ -169,11 +162,7 @@ def evaluate(
                     config=config.to_dict(),
                     twin=task.scene.digest,
                     policy=runner.name,
-                    names={
-                        **names,
-                        ACTION: list(ACTION_NAMES),
-                        JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
-                    },
+                    names=names,
                 )
                 success = False
                 with session.record(meta) as log:

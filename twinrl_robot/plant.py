@@ -102,6 +102,10 @@ class Plant:
         self.state_names = self._cell.state_names
         self.environment_names = self._cell.environment_names
 
+    def contract_names(self) -> dict[str, list[str]]:
+        """Names of the vector entries of this cell's episodes (see ``Cell.contract_names``)."""
+        return self._cell.contract_names()
+
     @property
     def elapsed_seconds(self) -> float:
         """Real time the plant has run, counted in control steps."""

@@ -10,22 +10,18 @@ from typing import Any, Literal
 
 import numpy as np
 
-from twinrl_data.lerobot_io import ACTION_NAMES
 from twinrl_data.schema import (
     ACTION,
     DONE,
-    ENVIRONMENT_STATE,
     INTERVENTION,
     JOINT_TARGET,
     REWARD,
-    STATE,
     SUCCESS,
     EpisodeMeta,
 )
 from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
-from twinrl_sim.robots.ur5e import JOINT_NAMES
 from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
 
 World = Literal["twin", "plant"]
@@ -80,10 +76,7 @@ class _TwinWorld:
     def __init__(self, task: str, images: bool) -> None:
         self.env = TwinEnv(task, images=images)
         self.task = self.env.task
-        self.names = {
-            STATE: self.env.cell.state_names,
-            ENVIRONMENT_STATE: self.env.cell.environment_names,
-        }
+        self.names = self.env.cell.contract_names()
         self._success = False
 
     def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
@@ -115,10 +108,7 @@ class _PlantWorld:
             task, effects=effects, seed=seed, images=("front", "wrist") if images else ()
         )
         self.task = self.plant.task
-        self.names = {
-            STATE: self.plant.state_names,
-            ENVIRONMENT_STATE: self.plant.environment_names,
-        }
+        self.names = self.plant.contract_names()
 
     def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
         return self.plant.reset(config)
@@ -227,9 +217,5 @@ def _episode_meta(sim: _TwinWorld | _PlantWorld, config: TaskConfig, region: str
         fps=sim.task.scene.physics.control_hz,
         robot=sim.task.scene.robot.builtin or "custom",
         operator="scripted_expert" if sim.source == "teleop" else None,
-        names={
-            **sim.names,
-            ACTION: list(ACTION_NAMES),
-            JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
-        },
+        names=sim.names,
     )

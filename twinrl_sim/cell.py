@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from twinrl_data.lerobot_io import ACTION_NAMES
+from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, JOINT_TARGET, STATE
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import EndEffectorController
 from twinrl_sim.robots.gripper import opening_from_joint
@@ -192,6 +194,15 @@ class Cell:
             pos, quat = self.object_pose(name)
             parts.extend([pos, quat])
         return np.concatenate(parts).astype(np.float32) if parts else np.zeros(0, np.float32)
+
+    def contract_names(self) -> dict[str, list[str]]:
+        """Names of the entries of every vector field an episode of this cell logs."""
+        return {
+            STATE: self.state_names,
+            ENVIRONMENT_STATE: self.environment_names,
+            ACTION: list(ACTION_NAMES),
+            JOINT_TARGET: [f"target.{j}" for j in self.layout.arm_joints],
+        }
 
     def render(
         self, camera: str, *, width: int | None = None, height: int | None = None

@@ -29,16 +29,14 @@ from typing import Any
 
 import numpy as np
 
-from twinrl_data.lerobot_io import ACTION_NAMES, export_dataset
+from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.schema import (
     ACTION,
     DONE,
-    ENVIRONMENT_STATE,
     INTERVENTION,
     JOINT_TARGET,
     REWARD,
-    STATE,
     SUCCESS,
     Episode,
     EpisodeMeta,
@@ -48,7 +46,6 @@ from twinrl_sim.augment import retarget
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.planner import plan_demo
 from twinrl_sim.randomize import check_kinds, randomize_scene
-from twinrl_sim.robots.ur5e import JOINT_NAMES
 from twinrl_sim.tasks import TaskConfig, make_task
 
 METHODS = ("plan", "augment")
@@ -153,12 +150,7 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
         policy=f"synthesis:{job.method}",
         fps=env.task.scene.physics.control_hz,
         robot="ur5e",
-        names={
-            STATE: env.cell.state_names,
-            ENVIRONMENT_STATE: env.cell.environment_names,
-            ACTION: list(ACTION_NAMES),
-            JOINT_TARGET: [f"target.{j}" for j in JOINT_NAMES],
-        },
+        names=env.cell.contract_names(),
         randomization=record,
     )
     path = Path(job.episode_dir) / f"{job.region}_{job.attempt:05d}_{meta.episode_id}.mcap"
