@@ -253,15 +253,16 @@ def plot_heatmap(report: EvalReport, grid: tuple[int, int], path: Path) -> None:
         label = f"{name}: {100 * rate:.0f} %" if rate is not None else name
         ax.text(
             (area.y[0] + area.y[1]) / 2,
-            area.x[1] + 0.01,
+            area.x[0] + 0.01,
             label,
             ha="center",
             va="bottom",
             fontsize=9,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
         )
     ax.set_xlabel("y (m, base frame)")
     ax.set_ylabel("x (m)")
-    ax.set_title(f"{report.task} in the {report.world}: {report.policy}", fontsize=9)
+    ax.set_title(f"{report.task} in the {report.world}\n{report.policy}", fontsize=9, pad=8)
     fig.colorbar(image, ax=ax, label="success rate")
     fig.tight_layout()
     fig.savefig(path)
