@@ -54,11 +54,14 @@ def quiet_encoders() -> None:
     datasets.disable_progress_bars()
 
 
-def progress(disable: bool = False) -> Progress:
+def progress(*fields: str, disable: bool = False) -> Progress:
+    """The progress bar of every long twinrl command (on stderr); ``fields`` are extra
+    task fields shown after the count, e.g. ``progress("loss")``."""
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
+        *[TextColumn(f"{name} {{task.fields[{name}]}}") for name in fields],
         TimeElapsedColumn(),
         console=Console(stderr=True),
         transient=True,

@@ -8,7 +8,6 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from twinrl_data import cli as data_cli
@@ -36,18 +35,6 @@ app.command("expand")(sim_cli.expand_command)
 train_app = typer.Typer(help="Train policies (SFT now; RL stages later).", no_args_is_help=True)
 app.add_typer(train_app, name="train")
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
-
-
-def _progress(**fields: object) -> Progress:
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        *[TextColumn(f"{name} {{task.fields[{name}]}}") for name in fields],
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        transient=True,
-    )
 
 
 @train_app.command("sft")
@@ -99,7 +86,7 @@ def train_sft_command(
         chunk=chunk,
         seed=seed,
     ).resolved()
-    with _progress(loss="", rate="") as bar:
+    with data_cli.progress("loss", "rate") as bar:
         job = bar.add_task(f"SFT {policy}", total=config.steps, loss="-", rate="-")
 
         def report(step: int, metrics: dict[str, float]) -> None:
@@ -149,7 +136,7 @@ def eval_command(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     runner = load_runner(checkpoint)
-    with _progress(success="") as bar:
+    with data_cli.progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
         done = {"n": 0, "ok": 0}
 

@@ -8,9 +8,9 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from twinrl_data.cli import progress
 from twinrl_data.session import Session
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
@@ -57,15 +57,7 @@ def expert(
     regions = (region,) if region else REGION_NAMES
     session = Session.create(out, exist_ok=append) if out is not None else None
     reports: list[ExpertReport] = []
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        disable=as_json,
-        transient=True,
-    ) as bar:
+    with progress(disable=as_json) as bar:
         for name in tasks:
             for place in worlds:
                 job = bar.add_task(f"{name} in the {place}", total=episodes * len(regions))

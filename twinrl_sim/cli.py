@@ -9,10 +9,9 @@ from typing import Annotated
 import numpy as np
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from twinrl_data.cli import quiet_encoders
+from twinrl_data.cli import progress, quiet_encoders
 from twinrl_data.lerobot_io import iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import STATE, Episode
@@ -178,15 +177,7 @@ def expand_command(
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
     kinds = RANDOMIZATIONS if randomize == "all" else tuple(k for k in randomize.split(",") if k)
     quiet_encoders()
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[kept]} kept"),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        transient=True,
-    ) as bar:
+    with progress("kept") as bar:
         jobs = {
             "ID": bar.add_task(f"{task} ID attempts", total=None, kept=0),
             "OOD": bar.add_task(f"{task} OOD attempts", total=None, kept=0),
