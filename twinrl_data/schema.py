@@ -162,6 +162,33 @@ class Episode:
         return list(self.images)
 
 
+def step_record(
+    observation: Mapping[str, Any],
+    action: np.ndarray,
+    joint_target: np.ndarray,
+    reward: float,
+    done: bool,
+    success: bool,
+    *,
+    action_policy: np.ndarray | None = None,
+    intervention: bool = False,
+) -> dict[str, Any]:
+    """One step of the contract: the observation the action was chosen from, the action
+    (and what the policy proposed, if it differs), the servo targets and the outcome."""
+    record = {
+        **observation,
+        ACTION: action,
+        JOINT_TARGET: joint_target,
+        INTERVENTION: intervention,
+        REWARD: reward,
+        DONE: done,
+        SUCCESS: success,
+    }
+    if action_policy is not None:
+        record[ACTION_POLICY] = action_policy
+    return record
+
+
 def validate_step(
     step: Mapping[str, Any], expected: Mapping[str, tuple[int, ...]] | None = None
 ) -> None:

@@ -20,16 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import (
-    ACTION,
-    ACTION_POLICY,
-    DONE,
-    INTERVENTION,
-    JOINT_TARGET,
-    REWARD,
-    SUCCESS,
-    EpisodeMeta,
-)
+from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_learn.runners import Runner
 from twinrl_robot.plant import Plant
@@ -144,7 +135,7 @@ def evaluate(
     rng = np.random.default_rng(seed)
     try:
         for cell in cells:
-            for k in range(episodes):
+            for _ in range(episodes):
                 config = _cell_config(task, cell, rng)
                 runner.reset(task, config, seed=int(rng.integers(2**31)))
                 if world == "twin":
@@ -179,22 +170,11 @@ def evaluate(
                                 plant.last_joint_target,
                             )
                         done = success or t == task.max_steps - 1
+                        reward = task.reward(Progress(success=success), "sparse")
                         log.append(
-                            {
-                                **{
-                                    k: v
-                                    for k, v in obs.items()
-                                    if not k.startswith("observation.images.")
-                                    or k[19:] in runner.cameras
-                                },
-                                ACTION: action,
-                                ACTION_POLICY: action,
-                                JOINT_TARGET: target,
-                                INTERVENTION: False,
-                                REWARD: task.reward(Progress(success=success), "sparse"),
-                                DONE: done,
-                                SUCCESS: success,
-                            }
+                            step_record(
+                                obs, action, target, reward, done, success, action_policy=action
+                            )
                         )
                         obs = next_obs
                         if success:

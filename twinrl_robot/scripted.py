@@ -10,15 +10,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from twinrl_data.schema import (
-    ACTION,
-    DONE,
-    INTERVENTION,
-    JOINT_TARGET,
-    REWARD,
-    SUCCESS,
-    EpisodeMeta,
-)
+from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
@@ -182,15 +174,7 @@ def run_scripted_expert(
                         done = sim.success or steps >= sim.task.max_steps
                         reward = sim.task.reward(Progress(success=sim.success), "sparse")
                         log.append(
-                            {
-                                **obs,
-                                ACTION: action,
-                                JOINT_TARGET: joint_target,
-                                INTERVENTION: False,
-                                REWARD: reward,
-                                DONE: done,
-                                SUCCESS: sim.success,
-                            }
+                            step_record(obs, action, joint_target, reward, done, sim.success)
                         )
                     obs = next_obs
                 if log is not None:

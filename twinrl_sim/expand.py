@@ -31,16 +31,7 @@ import numpy as np
 
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
-from twinrl_data.schema import (
-    ACTION,
-    DONE,
-    INTERVENTION,
-    JOINT_TARGET,
-    REWARD,
-    SUCCESS,
-    Episode,
-    EpisodeMeta,
-)
+from twinrl_data.schema import Episode, EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_sim.augment import retarget
 from twinrl_sim.env import TwinEnv
@@ -124,15 +115,7 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
         next_obs, reward, terminated, _, info = env.step(action)
         done = terminated or t == min(len(actions), env.max_steps) - 1
         steps.append(
-            {
-                **obs,
-                ACTION: action,
-                JOINT_TARGET: info["command.joint_target"],
-                INTERVENTION: False,
-                REWARD: reward,
-                DONE: done,
-                SUCCESS: terminated,
-            }
+            step_record(obs, action, info["command.joint_target"], reward, done, terminated)
         )
         obs = next_obs
         if terminated:
