@@ -28,3 +28,34 @@ def expert_commands(env, config, seed: int = 0, steps: int = 40):
         targets.append(info["command.joint_target"])
         gripper.append(action[6])
     return np.array(targets, float), np.array(gripper, float)
+
+
+def lerobot_train(dataset, output_dir, *options: str):
+    """Run lerobot's own trainer offline: a few ACT steps on ``dataset``."""
+    import os
+    import subprocess
+    import sys
+
+    trainer = os.path.join(os.path.dirname(sys.executable), "lerobot-train")
+    return subprocess.run(
+        [
+            trainer,
+            f"--dataset.repo_id=tests/{dataset.name}",
+            f"--dataset.root={dataset}",
+            "--dataset.video_backend=pyav",
+            "--policy.type=act",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--policy.pretrained_backbone_weights=null",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            f"--output_dir={output_dir}",
+            "--wandb.enable=false",
+            *options,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )

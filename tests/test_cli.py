@@ -12,10 +12,14 @@ from twinrl_learn.cli import app
 runner = CliRunner()
 
 
-def twinrl(*args: str) -> subprocess.CompletedProcess:
+def twinrl(*args: str, cwd=None) -> subprocess.CompletedProcess:
     """Run the real entry point (so exit codes and stderr are what a user sees)."""
     return subprocess.run(
-        [sys.executable, "-m", "twinrl_learn", *args], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "twinrl_learn", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=cwd,
     )
 
 
@@ -151,12 +155,6 @@ def test_train_and_eval_commands(tmp_path):
     ],
 )
 def test_stage1_bad_input(args, message, tmp_path):
-    result = subprocess.run(
-        [sys.executable, "-m", "twinrl_learn", *args],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        timeout=300,
-    )
+    result = twinrl(*args, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from tests.conftest import lerobot_train
 from tests.data.conftest import make_meta, write_episode
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes, open_dataset, read_sidecar
@@ -124,35 +125,8 @@ def test_training_batches_with_windows(exported):
 @pytest.mark.slow
 def test_lerobots_own_trainer_starts_on_a_twinrl_dataset(exported, tmp_path):
     """lerobot-train runs a few ACT steps offline on an exported dataset."""
-    import os
-    import subprocess
-    import sys
-
     result, _ = exported
-    trainer = os.path.join(os.path.dirname(sys.executable), "lerobot-train")
-    run = subprocess.run(
-        [
-            trainer,
-            "--dataset.repo_id=tests/pick_place",
-            f"--dataset.root={result.root}",
-            "--dataset.video_backend=pyav",
-            "--policy.type=act",
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--policy.pretrained_backbone_weights=null",
-            "--steps=2",
-            "--batch_size=2",
-            "--num_workers=0",
-            "--save_checkpoint=false",
-            f"--output_dir={tmp_path / 'train'}",
-            "--wandb.enable=false",
-            "--log_freq=1",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )
+    run = lerobot_train(result.root, tmp_path / "train", "--save_checkpoint=false", "--log_freq=1")
     assert run.returncode == 0, run.stderr[-2000:]
     assert "End of training" in run.stdout + run.stderr
 

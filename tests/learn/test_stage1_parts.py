@@ -1,14 +1,12 @@
 """Policy, SFT, evaluation and the lerobot adapter on a small recorded dataset."""
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import torch
 
+from tests.conftest import lerobot_train
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -116,29 +114,7 @@ def test_runner_selection(dataset, tmp_path):
 
 @pytest.mark.slow
 def test_a_lerobot_policy_is_evaluated_through_the_adapter(dataset, tmp_path):
-    trainer = os.path.join(os.path.dirname(sys.executable), "lerobot-train")
-    run = subprocess.run(
-        [
-            trainer,
-            "--dataset.repo_id=tests/demos",
-            f"--dataset.root={dataset}",
-            "--dataset.video_backend=pyav",
-            "--policy.type=act",
-            "--policy.device=cpu",
-            "--policy.push_to_hub=false",
-            "--policy.pretrained_backbone_weights=null",
-            "--steps=2",
-            "--batch_size=2",
-            "--num_workers=0",
-            "--save_freq=2",
-            f"--output_dir={tmp_path / 'act'}",
-            "--wandb.enable=false",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
-    )
+    run = lerobot_train(dataset, tmp_path / "act", "--save_freq=2")
     assert run.returncode == 0, run.stderr[-2000:]
     checkpoint = tmp_path / "act" / "checkpoints" / "last" / "pretrained_model"
     runner = load_runner(checkpoint)
