@@ -4,7 +4,8 @@ For each task:
 
 1. "Real" demonstrations: ``real`` episodes recorded in the plant (hidden effects on)
    by the scripted expert acting as a teleoperator with human-like noise, region ID
-   (the paper's region A) only.
+   (the paper's region A) only; like an operator's dataset, only successful ones are
+   kept (a quarter more are recorded to make up for the failures).
 2. Twin demonstrations: planner-synthesized ID and OOD demos in the twin.
 3. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
    (30, 30), (60, 30), (30, 60) (scaled by ``scale``).
@@ -17,6 +18,7 @@ reference), ``out/stage1.json`` and one heatmap per policy.
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +35,7 @@ from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.expand import expand
 
+TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operator corrects
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
 PAPER_TABLE1 = {(0, 0): (40, 0), (30, 30): (70, 30), (60, 30): (80, 40), (30, 60): (70, 70)}
 
@@ -44,7 +47,7 @@ class Stage1Settings:
     real: int = 30
     scale: float = 1.0  # multiplies every demo count (0.1 for a smoke run)
     grid: tuple[int, int] = (4, 4)
-    episodes_per_cell: int = 1
+    episodes_per_cell: int = 4
     steps: dict[str, int] = field(default_factory=dict)  # SFT steps per policy kind
     seed: int = 0
 
@@ -72,16 +75,22 @@ def run_stage1(
         base = out / task
         log(f"{task}: recording {n(settings.real)} noisy teleop demos in the plant (region ID)")
         session = Session.create(base / "real_session")
-        run_scripted_expert(
+        report = run_scripted_expert(
             task,
             world="plant",
-            episodes=n(settings.real),
+            episodes=math.ceil(n(settings.real) * 1.25),
             regions=("ID",),
             seed=settings.seed,
             session=session,
-            action_noise=0.002,
+            action_noise=TELEOP_NOISE,
         )
-        export_dataset((read_episode(p) for p in session.episode_paths()), base / "real")
+        kept = [
+            path
+            for path, episode in zip(session.episode_paths(), report.episodes, strict=True)
+            if episode.success
+        ][: n(settings.real)]
+        log(f"{task}: keeping {len(kept)} successful demos of {len(report.episodes)} recorded")
+        export_dataset((read_episode(p) for p in kept), base / "real")
         most_id = max(m[0] for m in MIXES)
         most_ood = max(m[1] for m in MIXES)
         log(f"{task}: synthesizing {n(most_id)} ID + {n(most_ood)} OOD twin demos")
@@ -152,7 +161,7 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
         "",
         f"{settings.real} real (plant, teleop-like) demos in region ID; twin demos added per row; "
         f"evaluation in the plant over a {settings.grid[0]}x{settings.grid[1]} grid "
-        f"({settings.episodes_per_cell} episode per cell). Paper: one task, real robot.",
+        f"({settings.episodes_per_cell} episodes per cell). Paper: one task, real robot.",
         "",
         "| task | policy | twin ID | twin OOD | ID SR | OOD SR | avg | paper ID | paper OOD |",
         "|---|---|---|---|---|---|---|---|---|",

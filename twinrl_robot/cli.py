@@ -33,6 +33,14 @@ def expert(
         ),
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed for configurations and grasps.")] = 0,
+    noise: Annotated[
+        float,
+        typer.Option(
+            help="Operator-like jitter the expert corrects: m per step (rotations: 5x, in "
+            "rad), e.g. 0.002 for teleop-like demos.",
+            min=0.0,
+        ),
+    ] = 0.0,
     out: Annotated[
         Path | None,
         typer.Option(help="Record every episode (MCAP, both cameras) into this session folder."),
@@ -69,6 +77,7 @@ def expert(
                     effects=effects if place == "plant" else None,
                     seed=seed,
                     session=session,
+                    action_noise=noise,
                     on_episode=lambda _, job=job: bar.advance(job),
                 )
                 reports.append(report)

@@ -136,7 +136,8 @@ def run_scripted_expert(
     With a ``session``, every episode is recorded (both cameras): in the twin as
     ``twin_demo`` demonstrations, in the plant as ``teleop`` (the expert stands in for
     the human operator). ``action_noise`` (m) adds human-like jitter to the expert's
-    translations (and ten times as much, in rad, to its rotations).
+    translations (and five times as much, in rad, to its rotations), which the expert
+    then corrects like an operator watching the arm.
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {', '.join(WORLDS)}, got '{world}'")
@@ -165,9 +166,10 @@ def run_scripted_expert(
                 while steps < sim.task.max_steps and not sim.success:
                     action = expert.act(obs)
                     if action_noise > 0:
+                        shake = jitter.normal(0.0, action_noise, 6) * [1, 1, 1, 5, 5, 5]
                         action = action.copy()
-                        action[:3] += jitter.normal(0.0, action_noise, 3)
-                        action[3:6] += jitter.normal(0.0, 10 * action_noise, 3)
+                        action[:6] += shake
+                        expert.perturb(shake[:3], shake[3:])
                     next_obs, joint_target = sim.step(action)
                     steps += 1
                     if log is not None:

@@ -86,3 +86,12 @@ def test_scripted_expert_solves_the_plant():
     assert all(rate >= 0.9 for rate in report.success_rate().values())
     with pytest.raises(ValueError, match="plant only"):
         run_scripted_expert("pick_place", world="twin", effects={})
+
+
+def test_the_expert_corrects_operator_jitter():
+    steady = run_scripted_expert("pick_place", world="plant", episodes=5, regions=("ID",), seed=3)
+    shaky = run_scripted_expert(
+        "pick_place", world="plant", episodes=5, regions=("ID",), seed=3, action_noise=0.002
+    )
+    assert [e.steps for e in shaky.episodes] != [e.steps for e in steady.episodes]
+    assert shaky.success_rate()["ID"] >= 0.8

@@ -151,6 +151,16 @@ class ScriptedExpert:
         self._ref = (ref_pos + step, new_quat / np.linalg.norm(new_quat))
         return np.concatenate([step, rot, [phase.gripper]]).astype(np.float32)
 
+    def perturb(self, translation: np.ndarray, rotation: np.ndarray) -> None:
+        """Shift the reference by what was executed on top of the last action (an
+        operator's unsteady hand), so the following actions correct it instead of
+        leaving the arm off by a random walk."""
+        if self._ref is None:
+            return
+        ref_pos, ref_quat = self._ref
+        quat = quat_mul(rotvec_to_quat(np.asarray(rotation, float)), ref_quat)
+        self._ref = (ref_pos + np.asarray(translation, float), quat / np.linalg.norm(quat))
+
 
 # ---------------------------------------------------------------- building blocks
 def grasp_yaw(object_yaw: float, period: float, offset: float, reference: float) -> float:
