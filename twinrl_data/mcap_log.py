@@ -242,7 +242,7 @@ class EpisodeWriter:
         if self._closed:
             return self.meta
         self._closed = True
-        final_success = self.last_success if success is None else success
+        final_success = self.last_success if success is None else bool(success)
         self.meta = self.meta.replace(success=final_success, num_interventions=self.interventions)
         end = {
             "success": final_success,

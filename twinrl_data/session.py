@@ -120,6 +120,21 @@ class Session:
         )
         self._save()
 
+    def truncate(self, keep: int) -> list[Path]:
+        """Forget every episode after the first ``keep`` (e.g. a round an interrupted run
+        did not finish): their files move to ``discarded/``, nothing is deleted."""
+        dropped = self.manifest["episodes"][keep:]
+        moved = []
+        if dropped:
+            (self.path / "discarded").mkdir(exist_ok=True)
+            for entry in dropped:
+                source = self.path / entry["file"]
+                if source.exists():
+                    moved.append(source.replace(self.path / "discarded" / source.name))
+            self.manifest["episodes"] = self.manifest["episodes"][:keep]
+            self._save()
+        return moved
+
     def _closed(self, meta: EpisodeMeta, length: int) -> None:
         for entry in self.manifest["episodes"]:
             if entry["episode_id"] == meta.episode_id:

@@ -2,23 +2,29 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Annotated
 
+import torch
 import typer
 from rich.console import Console
 from rich.table import Table
 
 from twinrl_data import cli as data_cli
+from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.mining import mine
+from twinrl_learn.policy import is_checkpoint
 from twinrl_learn.runners import load_runner
 from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
 from twinrl_learn.stage1 import Stage1Settings, run_stage1
+from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot import cli as robot_cli
 from twinrl_sim import cli as sim_cli
 from twinrl_sim.spec import SpecError
-from twinrl_sim.tasks import TASKS
+from twinrl_sim.tasks import TASKS, make_task
 
 app = typer.Typer(
     help="twinrl: digital-twin-guided reinforcement learning for real robot arms.",
@@ -32,7 +38,7 @@ app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)
 
-train_app = typer.Typer(help="Train policies (SFT now; RL stages later).", no_args_is_help=True)
+train_app = typer.Typer(help="Train policies: SFT, twin RL.", no_args_is_help=True)
 app.add_typer(train_app, name="train")
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
@@ -164,6 +170,163 @@ def eval_command(
     console.print(f"{out / 'eval.json'}, {out / 'heatmap.png'}, episodes in {out / 'session'}")
 
 
+def _rl_config(method: str, **options) -> RLConfig:
+    if method not in METHODS:
+        raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
+    return RLConfig.for_method(method, **{k: v for k, v in options.items() if v is not None})
+
+
+@train_app.command("twin-rl")
+def train_twin_rl_command(
+    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")],
+    out: Annotated[Path, typer.Option(help="Run folder to create (or continue with --resume).")],
+    init: Annotated[
+        Path | None, typer.Option(help="SFT checkpoint to start from (not needed with --resume).")
+    ] = None,
+    demos: Annotated[
+        list[Path] | None,
+        typer.Option(help="LeRobotDataset(s) for the demo buffer (the SFT data); repeatable."),
+    ] = None,
+    envs: Annotated[int, typer.Option(help="Parallel twin environments.", min=1)] = 8,
+    steps: Annotated[int, typer.Option(help="Twin environment steps in all.", min=1)] = 8000,
+    method: Annotated[str, typer.Option(help=f"Objective: {', '.join(METHODS)}.")] = "twinrl",
+    beta: Annotated[float | None, typer.Option(help="Weight of the imitation term.")] = None,
+    eta: Annotated[float | None, typer.Option(help="Weight of the Q term.")] = None,
+    utd: Annotated[float | None, typer.Option(help="Updates per environment step.")] = None,
+    offline_steps: Annotated[
+        int | None, typer.Option(help="Offline (Cal-QL + BC) updates before rollouts.")
+    ] = None,
+    demo_ratio: Annotated[
+        float | None, typer.Option(help="Share of each batch from demos/interventions.")
+    ] = None,
+    failures: Annotated[
+        int, typer.Option(help="Failed rollouts to add to the exported twin buffer (at most).")
+    ] = 0,
+    seed: Annotated[int, typer.Option(help="Seed (networks, configurations, sampling).")] = 0,
+    resume: Annotated[
+        bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
+    ] = False,
+) -> None:
+    """Stage II: online RL in parallel twin envs; exports the twin buffer that seeds real RL."""
+    make_task(task)
+    if not resume and init is None:
+        raise ValueError("--init SFT_CHECKPOINT is needed to start a run (or pass --resume)")
+    if init is not None and not is_checkpoint(init):
+        raise ValueError(
+            f"--init {init} is not a twinrl policy checkpoint; train one with `twinrl train sft`"
+        )
+    missing = [str(d) for d in demos or [] if not (d / "meta" / "info.json").is_file()]
+    if missing:
+        raise ValueError(f"--demos {missing[0]} is not a LeRobotDataset (no meta/info.json)")
+    if resume:
+        saved = (
+            json.loads((out / "agent" / "rl_config.json").read_text())
+            if (out / "agent" / "rl_config.json").is_file()
+            else None
+        )
+        if saved is None:
+            raise ValueError(f"--resume: {out} holds no twin RL run to continue")
+        rl = RLConfig(**saved)
+    else:
+        rl = _rl_config(
+            method,
+            beta=beta,
+            eta=eta,
+            utd=utd,
+            offline_steps=offline_steps,
+            demo_ratio=demo_ratio,
+            seed=seed,
+        )
+    settings = TwinRLSettings(
+        task=task,
+        init=str(init or ""),
+        out=str(out),
+        demos=[str(d) for d in demos or []],
+        envs=envs,
+        steps=steps,
+        failures=failures,
+        rl=rl,
+    )
+    torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
+    data_cli.quiet_encoders()
+    with data_cli.progress("ID", "OOD", "q") as bar:
+        offline = bar.add_task("offline updates", total=rl.offline_steps, ID="", OOD="", q="")
+        job = bar.add_task("twin steps", total=steps, ID="-", OOD="-", q="-")
+
+        def on_round(record, run) -> None:
+            rates = run.success_rates(4 * envs)
+            bar.update(
+                job,
+                completed=min(record.env_steps, steps),
+                **{r: f"{100 * rates[r]:.0f} %" for r in rates},
+                q=f"{record.metrics.get('q', float('nan')):.2f}",
+            )
+
+        run = run_twin_rl(
+            settings,
+            resume=resume,
+            on_round=on_round,
+            on_update=lambda n: bar.update(offline, completed=n),
+        )
+    rates = run.success_rates(4 * envs)
+    console.print(
+        f"{out}: {run.agent.env_steps} twin steps, {run.agent.updates} updates; recent success "
+        + ", ".join(f"{r} {100 * v:.0f} %" for r, v in rates.items())
+    )
+    buffer = out / "twin_buffer"
+    console.print(
+        f"policy {out / 'agent'}, curve {out / 'curve.png'}, "
+        + (f"twin buffer {buffer}" if buffer.exists() else "no successful rollout to export")
+    )
+
+
+@app.command("mine")
+def mine_command(
+    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")],
+    policy: Annotated[str, typer.Option(help="Policy checkpoint (twinrl or lerobot).")],
+    out: Annotated[Path, typer.Option(help="targets.json to write (evaluation goes beside).")],
+    episodes_from: Annotated[
+        Path | None,
+        typer.Option(help="Catalog (Parquet) whose twin evaluations of --policy to reuse."),
+    ] = None,
+    tau: Annotated[
+        float, typer.Option(help="Success below which a configuration is a target.")
+    ] = 0.8,
+    k: Annotated[int, typer.Option(help="How many targets to keep.", min=1)] = 20,
+    grid: Annotated[str, typer.Option(help="Configuration grid over ID and OOD.")] = "8x8",
+    episodes: Annotated[int, typer.Option(help="Twin episodes per grid cell.", min=1)] = 2,
+    seed: Annotated[int, typer.Option(help="Seed for the evaluation.")] = 0,
+) -> None:
+    """Stage III support: where does the policy fail in the twin? Ranked reset targets."""
+    make_task(task)
+    runner = load_runner(policy)
+    result = mine(
+        runner,
+        task,
+        out=out,
+        grid=_grid(grid),
+        episodes=episodes,
+        tau=tau,
+        k=k,
+        seed=seed,
+        catalog=episodes_from,
+    )
+    table = Table("#", "region", "x", "y", "est. success", "score", title=f"targets (tau {tau})")
+    for i, target in enumerate(result["targets"], 1):
+        table.add_row(
+            str(i),
+            target["region"],
+            f"{target['x']:.3f}",
+            f"{target['y']:.3f}",
+            f"{100 * target['estimated_success']:.0f} %",
+            f"{target['score']:.2f}",
+        )
+    console.print(table)
+    console.print(
+        f"{len(result['targets'])} targets from {result['episodes']} twin episodes: {out}"
+    )
+
+
 bench_app = typer.Typer(help="Reproduce the paper's experiments.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 
@@ -181,6 +344,8 @@ def bench_stage1(
         float, typer.Option(help="Multiply every demo count (0.1 for a smoke run).")
     ] = 1.0,
     grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "4x4",
+    episodes: Annotated[int, typer.Option(help="Evaluation episodes per grid cell.", min=1)] = 4,
+    seed: Annotated[int, typer.Option(help="Seed for demos, SFT and evaluation.")] = 0,
     vla_steps: Annotated[int | None, typer.Option(help="SFT steps of the image policy.")] = None,
     state_steps: Annotated[int | None, typer.Option(help="SFT steps of the state policy.")] = None,
 ) -> None:
@@ -191,7 +356,9 @@ def bench_stage1(
         policies=tuple(p for p in policies.split(",") if p),
         scale=scale,
         grid=_grid(grid),
+        episodes_per_cell=episodes,
         steps=steps,
+        seed=seed,
     )
     data_cli.quiet_encoders()
     run_stage1(settings, out, log=lambda line: console.print(line))

@@ -162,6 +162,30 @@ class Policy(nn.Module):
         parts.append(text)
         return self.trunk(torch.cat(parts, dim=-1))
 
+    def critic_inputs(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+        """What a critic reads: the image encoders' keypoints (no gradient: the critic
+        sits on frozen encoder features, as in TwinRL) or the privileged state, plus
+        proprio and the instruction embedding."""
+        parts = []
+        if self.config.kind == "vla":
+            with torch.no_grad():
+                for camera, encoder in self.encoders.items():
+                    parts.append(encoder(batch[f"image.{camera}"], batch["text"]))
+            parts.append(batch["state"])
+        else:
+            parts += [batch["state"], batch["env"], batch["relative"]]
+        parts.append(batch["text"])
+        return torch.cat(parts, dim=-1)
+
+    @property
+    def critic_input_dim(self) -> int:
+        c = self.config
+        if c.kind == "vla":
+            width = sum(e.out_dim for e in self.encoders.values()) + self.state_width
+        else:
+            width = self.state_width + c.env_dim + 3 * len(c.object_indices)
+        return width + EMBEDDING_DIM
+
     def distribution(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and log-std of the pre-tanh Gaussian, shape (B, chunk, action_dim)."""
         out = self.head(self.features(batch)).view(-1, self.config.chunk, 2, self.config.action_dim)
@@ -195,6 +219,16 @@ class Policy(nn.Module):
         terms, log_std = self._log_prob_terms(batch, actions)
         weight = torch.exp(2 * beta * log_std).detach()
         return -(weight * terms).sum(dim=(-1, -2)).mean()
+
+    def rsample(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterised normalised actions (B, chunk, A) and their log-probabilities (B)."""
+        mean, log_std = self.distribution(batch)
+        pre_tanh = mean + log_std.exp() * torch.randn_like(mean)
+        actions = torch.tanh(pre_tanh)
+        z = (pre_tanh - mean) / log_std.exp()
+        log_prob = -0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi)
+        log_prob = log_prob - torch.log(1 - actions.pow(2) + 1e-6)
+        return actions, log_prob.sum(dim=(-1, -2))
 
     def sample(self, batch: dict[str, torch.Tensor], deterministic: bool = False) -> torch.Tensor:
         mean, log_std = self.distribution(batch)
@@ -249,7 +283,54 @@ class Policy(nn.Module):
             )
         return x
 
+    def inputs(
+        self,
+        state: np.ndarray | torch.Tensor,
+        environment_state: np.ndarray | torch.Tensor | None,
+        images: dict[str, np.ndarray | torch.Tensor],
+        instructions: list[str],
+    ) -> dict[str, torch.Tensor]:
+        """A normalised input batch from raw arrays (B rows): what :meth:`features` reads."""
+        state = torch.as_tensor(np.asarray(state, np.float32))
+        batch = {
+            "state": self.normalize("state", state),
+            "text": torch.as_tensor(np.stack([self.instructions(i) for i in instructions])),
+        }
+        if self.config.kind == "vla":
+            for camera in self.config.cameras:
+                batch[f"image.{camera}"] = self.prepare_images(torch.as_tensor(images[camera]))
+        else:
+            if environment_state is None:
+                raise ValueError("the state policy needs observation.environment_state")
+            env = torch.as_tensor(np.asarray(environment_state, np.float32))
+            batch["env"] = self.normalize("env", env)
+            batch["relative"] = self.relative_positions(state, env)
+        return batch
+
+    def observation_inputs(
+        self, observations: dict[str, Any], instructions: list[str]
+    ) -> dict[str, torch.Tensor]:
+        """:meth:`inputs` from a batch of contract observations (leading batch axis)."""
+        images = {}
+        if self.config.kind == "vla":
+            images = {
+                c: np.asarray(observations[f"observation.images.{c}"]) for c in self.config.cameras
+            }
+        return self.inputs(
+            observations["observation.state"],
+            observations.get("observation.environment_state"),
+            images,
+            instructions,
+        )
+
     @torch.no_grad()
+    def act_chunks(
+        self, observations: dict[str, Any], instructions: list[str], deterministic: bool = True
+    ) -> np.ndarray:
+        """Action chunks (B, chunk, A) in physical units for a batch of observations."""
+        batch = self.observation_inputs(observations, instructions)
+        return self.unnormalize_action(self.sample(batch, deterministic)).numpy().astype(np.float32)
+
     def act(
         self, observation: dict[str, Any], instruction: str, deterministic: bool = True
     ) -> np.ndarray:
@@ -260,26 +341,10 @@ class Policy(nn.Module):
         """
         if self._queue:
             return self._queue.pop(0)
-        batch = {
-            "state": self.normalize(
-                "state", torch.as_tensor(observation["observation.state"])[None]
-            ),
-            "text": torch.as_tensor(self.instructions(instruction))[None],
-        }
-        if self.config.kind == "vla":
-            for camera in self.config.cameras:
-                image = torch.as_tensor(np.asarray(observation[f"observation.images.{camera}"]))[
-                    None
-                ]
-                batch[f"image.{camera}"] = self.prepare_images(image)
-        else:
-            state = torch.as_tensor(observation["observation.state"])[None]
-            env = torch.as_tensor(observation["observation.environment_state"])[None]
-            batch["env"] = self.normalize("env", env)
-            batch["relative"] = self.relative_positions(state, env)
-        chunk = self.unnormalize_action(self.sample(batch, deterministic))[0].numpy()
-        self._queue = [a.astype(np.float32) for a in chunk[1:]]
-        return chunk[0].astype(np.float32)
+        batch = {k: np.asarray(v)[None] for k, v in observation.items()}
+        chunk = self.act_chunks(batch, [instruction], deterministic)[0]
+        self._queue = list(chunk[1:])
+        return chunk[0]
 
     def reset(self) -> None:
         """Forget the rest of the current action chunk (call at each episode start)."""

@@ -87,21 +87,15 @@ def _batch(
     chunk: int,
     augment: bool,
 ):
-    state = torch.from_numpy(frames.state[rows])
-    batch = {
-        "state": policy.normalize("state", state),
-        "text": torch.from_numpy(
-            np.stack([policy.instructions(frames.instruction[r]) for r in rows])
-        ),
-    }
-    if policy.config.kind == "vla":
+    batch = policy.inputs(
+        frames.state[rows],
+        None if frames.environment_state is None else frames.environment_state[rows],
+        {camera: frames.images[camera][rows] for camera in frames.images},
+        [frames.instruction[r] for r in rows],
+    )
+    if augment and policy.config.kind == "vla":
         for camera in policy.config.cameras:
-            images = policy.prepare_images(torch.from_numpy(frames.images[camera][rows]))
-            batch[f"image.{camera}"] = _random_shift(images, generator) if augment else images
-    else:
-        env = torch.from_numpy(frames.environment_state[rows])
-        batch["env"] = policy.normalize("env", env)
-        batch["relative"] = policy.relative_positions(state, env)
+            batch[f"image.{camera}"] = _random_shift(batch[f"image.{camera}"], generator)
     if augment:  # robustness to the small state errors a rollout makes (noise in std units)
         for key in ("state", "env", "relative"):
             if key in batch:

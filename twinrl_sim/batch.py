@@ -137,6 +137,7 @@ class BatchEnv:
     axis); ``step(actions)`` applies one action per env and returns ``(obs, reward,
     terminated, truncated, info)`` batches. Finished envs keep their last state until
     the next :meth:`reset` (no autoreset: the caller decides what to log and resample).
+    ``cameras`` adds those cameras' images to every observation (rendered per env).
     """
 
     def __init__(
@@ -147,6 +148,7 @@ class BatchEnv:
         effects: dict | None = None,
         reward: str = "sparse",
         nthread: int | None = None,
+        cameras: tuple[str, ...] = (),
     ) -> None:
         if num_envs < 1:
             raise ValueError(f"num_envs must be at least 1, got {num_envs}")
@@ -160,12 +162,16 @@ class BatchEnv:
         self._trackers: list[Any] = [None] * num_envs
         self._steps = np.zeros(num_envs, dtype=int)
         self._low, self._high = action_bounds()
+        self.cameras = tuple(cameras)
 
     def _obs(self) -> dict[str, np.ndarray]:
-        return {
+        obs = {
             "observation.state": np.stack([c.state_vector() for c in self.cells]),
             "observation.environment_state": np.stack([c.environment_vector() for c in self.cells]),
         }
+        for camera in self.cameras:
+            obs[f"observation.images.{camera}"] = np.stack([c.render(camera) for c in self.cells])
+        return obs
 
     def reset(self, configs: list[TaskConfig | dict]) -> dict[str, np.ndarray]:
         if len(configs) != self.num_envs:

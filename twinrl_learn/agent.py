@@ -1,0 +1,295 @@
+"""The off-policy actor-critic that fine-tunes a Stage I policy with RL.
+
+- **Actor**: the SFT policy itself (its tanh-Gaussian head), trained with TwinRL's
+  ConRFT-style objective ``L = beta * L_IL + eta * L_Q``: ``L_IL`` is the policy's
+  imitation loss on demo and intervention rows, ``L_Q = -Q(s, a ~ pi)`` normalised by
+  the batch's mean |Q| (as TD3+BC does) so that beta and eta weigh comparable terms;
+  optional entropy ``alpha * log pi`` with a learned temperature (SAC).
+- **Critic**: an ensemble of LayerNorm MLPs on :meth:`Policy.critic_inputs` (frozen
+  image features or the privileged state, proprio, instruction) and the whole action
+  chunk (Q-chunking: the critic scores the chunk the policy executes), TD targets from
+  the minimum of the target ensemble, soft target updates.
+- **Offline phase** (before online data): a Cal-QL regulariser pushes Q down on
+  sampled actions and up on the data's, with the policy's Q clipped from below by the
+  data's Monte-Carlo return so it stays calibrated for the online switch.
+
+Three settings (``RLConfig.method``) give the methods compared in TwinRL:
+``twinrl`` / ``conrft`` (the objective above, offline Cal-QL then online) and
+``hil-serl`` (SAC with entropy, no imitation term, no offline phase).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from twinrl_learn.policy import Policy
+from twinrl_learn.replay import RewardSettings, TransitionBatch
+
+METHODS = ("twinrl", "conrft", "hil-serl")
+
+
+@dataclass
+class RLConfig:
+    """Hyper-parameters of the agent (defaults: TwinRL's where the paper gives them)."""
+
+    method: str = "twinrl"
+    gamma: float = 0.98
+    tau: float = 0.005
+    critics: int = 2
+    hidden: int = 256
+    batch_size: int = 256
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    beta: float = 1.0  # weight of L_IL
+    eta: float = 1.0  # weight of L_Q
+    beta_online: float | None = None  # beta after the offline phase (None: unchanged)
+    cql_alpha: float = 0.1
+    cql_actions: int = 4
+    entropy: bool = False  # SAC temperature term in the actor and the TD target
+    target_entropy_per_dim: float = -1.0
+    demo_ratio: float = 0.5  # share of each batch from demos + interventions (RLPD)
+    utd: float = 1.0  # gradient updates per environment step
+    offline_steps: int = 500
+    rewards: RewardSettings = field(default_factory=RewardSettings)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.rewards, dict):
+            self.rewards = RewardSettings(**self.rewards)
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {', '.join(METHODS)}, got '{self.method}'")
+        if self.critics < 2:
+            raise ValueError(f"the critic ensemble needs at least 2 members, got {self.critics}")
+        if not 0 <= self.demo_ratio <= 1:
+            raise ValueError(f"demo_ratio must be in [0, 1], got {self.demo_ratio}")
+        if self.beta < 0 or self.eta < 0:
+            raise ValueError("beta and eta must be non-negative")
+
+    @classmethod
+    def for_method(cls, method: str, **overrides) -> RLConfig:
+        """The settings that define each compared method."""
+        base: dict = {"method": method}
+        if method == "hil-serl":
+            base |= {
+                "beta": 0.0,
+                "eta": 1.0,
+                "entropy": True,
+                "offline_steps": 0,
+                "cql_alpha": 0.0,
+            }
+        return cls(**(base | overrides))
+
+
+class CriticEnsemble(nn.Module):
+    """``critics`` independent LayerNorm MLPs Q(s, a_chunk); output (E, B)."""
+
+    def __init__(self, input_dim: int, action_dim: int, members: int, hidden: int) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(
+            nn.Sequential(
+                nn.Linear(input_dim + action_dim, hidden),
+                nn.LayerNorm(hidden),
+                nn.ReLU(),
+                nn.Linear(hidden, hidden),
+                nn.LayerNorm(hidden),
+                nn.ReLU(),
+                nn.Linear(hidden, 1),
+            )
+            for _ in range(members)
+        )
+
+    def forward(self, inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([inputs, actions.flatten(1)], dim=-1)
+        return torch.stack([m(x).squeeze(-1) for m in self.members])
+
+
+class Agent:
+    """Actor (a :class:`Policy`), critic ensemble, targets, optimizers and counters."""
+
+    def __init__(self, policy: Policy, config: RLConfig) -> None:
+        self.policy = policy
+        self.config = config
+        torch.manual_seed(config.seed)
+        c = policy.config
+        self.critic = CriticEnsemble(
+            policy.critic_input_dim, c.chunk * c.action_dim, config.critics, config.hidden
+        )
+        self.target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = torch.zeros((), requires_grad=True)
+        self.actor_opt = torch.optim.Adam(policy.parameters(), lr=config.actor_lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=config.actor_lr)
+        self.updates = 0
+        self.env_steps = 0
+        self.generator = torch.Generator().manual_seed(config.seed)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self.log_alpha.exp().detach() if self.config.entropy else torch.zeros(())
+
+    def online(self) -> bool:
+        return self.updates >= self.config.offline_steps
+
+    def weights(self) -> tuple[float, float]:
+        """(beta, eta) for the current phase."""
+        beta = self.config.beta
+        if self.online() and self.config.beta_online is not None:
+            beta = self.config.beta_online
+        return beta, self.config.eta
+
+    def _tensors(self, batch: TransitionBatch) -> dict[str, torch.Tensor | dict]:
+        p = self.policy
+        return {
+            "obs": p.inputs(batch.state, batch.environment_state, batch.images, batch.instruction),
+            "next": p.inputs(
+                batch.next_state, batch.next_environment_state, batch.next_images, batch.instruction
+            ),
+            "actions": p.normalize("action", torch.from_numpy(batch.actions)).clamp(-1, 1),
+            "reward": torch.from_numpy(batch.reward),
+            "discount": torch.from_numpy(batch.discount),
+            "mc_return": torch.from_numpy(batch.mc_return),
+        }
+
+    # ------------------------------------------------------------------ losses
+    def critic_loss(self, t: dict, online: bool) -> tuple[torch.Tensor, dict[str, float]]:
+        p = self.policy
+        inputs = p.critic_inputs(t["obs"])
+        with torch.no_grad():
+            next_inputs = p.critic_inputs(t["next"])
+            next_actions, next_log_prob = p.rsample(t["next"])
+            next_q = self.target(next_inputs, next_actions).min(0).values
+            next_q = next_q - self.alpha * next_log_prob
+            target = t["reward"] + t["discount"] * next_q
+        q = self.critic(inputs, t["actions"])
+        td = ((q - target) ** 2).mean()
+        metrics = {"q": q.mean().item(), "td": td.item()}
+        loss = td
+        if not online and self.config.cql_alpha > 0:
+            regulariser = self._cal_ql(inputs, t, q)
+            loss = loss + self.config.cql_alpha * regulariser
+            metrics["cql"] = regulariser.item()
+        return loss, metrics
+
+    def _cal_ql(self, inputs: torch.Tensor, t: dict, q_data: torch.Tensor) -> torch.Tensor:
+        """Cal-QL: logsumexp of Q over uniform and policy actions (the policy's Q
+        clipped from below by the Monte-Carlo return) minus Q of the data's actions."""
+        n, (b, h, a) = self.config.cql_actions, t["actions"].shape
+        repeated = inputs.repeat(n, 1)
+        uniform = torch.rand((n * b, h, a), generator=self.generator) * 2 - 1
+        with torch.no_grad():
+            obs = {k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in t["obs"].items()}
+            policy_actions, _ = self.policy.rsample(obs)
+        q_uniform = self.critic(repeated, uniform).view(-1, n, b)
+        q_policy = self.critic(repeated, policy_actions).view(-1, n, b)
+        q_policy = torch.maximum(q_policy, t["mc_return"][None, None])
+        stacked = torch.cat([q_uniform, q_policy], dim=1)
+        return (torch.logsumexp(stacked, dim=1) - q_data).mean()
+
+    def actor_loss(self, t: dict, demo_rows: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+        """beta * L_IL(demo rows) + eta * L_Q (+ alpha * log pi with entropy)."""
+        beta, eta = self.weights()
+        p = self.policy
+        loss = torch.zeros(())
+        metrics: dict[str, float] = {}
+        if eta > 0 or self.config.entropy:
+            actions, log_prob = p.rsample(t["obs"])
+            q = self.critic(p.critic_inputs(t["obs"]), actions).min(0).values
+            scale = q.abs().mean().detach().clamp_min(1e-3)
+            l_q = -(q / scale).mean()
+            loss = loss + eta * l_q + (self.alpha * log_prob).mean() / scale
+            metrics |= {"l_q": l_q.item(), "log_pi": log_prob.mean().item()}
+            if self.config.entropy:
+                target = self.config.target_entropy_per_dim * actions[0].numel()
+                alpha_loss = -(self.log_alpha * (log_prob.detach() + target)).mean()
+                self.alpha_opt.zero_grad(set_to_none=True)
+                alpha_loss.backward()
+                self.alpha_opt.step()
+                metrics["alpha"] = self.alpha.item()
+        if beta > 0 and bool(demo_rows.any()):
+            demo = {k: v[demo_rows] for k, v in t["obs"].items()}
+            l_il = p.imitation_loss(demo, t["actions"][demo_rows])
+            loss = loss + beta * l_il
+            metrics["l_il"] = l_il.item()
+        return loss, metrics
+
+    # ------------------------------------------------------------------ update
+    def update(self, batch: TransitionBatch) -> dict[str, float]:
+        """One gradient step of critic and actor on ``batch`` (the imitation term uses
+        its ``demo`` rows: demonstrations and interventions)."""
+        online = self.online()
+        t = self._tensors(batch)
+        self.policy.train()
+        critic_loss, metrics = self.critic_loss(t, online)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        nn.utils.clip_grad_norm_(self.critic.parameters(), 10.0)
+        self.critic_opt.step()
+        actor_loss, actor_metrics = self.actor_loss(t, torch.from_numpy(batch.demo))
+        if actor_loss.requires_grad:
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)
+            self.actor_opt.step()
+        with torch.no_grad():
+            for target, source in zip(
+                self.target.parameters(), self.critic.parameters(), strict=True
+            ):
+                target.lerp_(source, self.config.tau)
+        self.policy.eval()
+        self.updates += 1
+        return metrics | actor_metrics | {"online": float(online)}
+
+    # -------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        return {
+            "policy": self.policy.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target": self.target.state_dict(),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "updates": self.updates,
+            "env_steps": self.env_steps,
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.policy.load_state_dict(state["policy"])
+        self.critic.load_state_dict(state["critic"])
+        self.target.load_state_dict(state["target"])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.alpha_opt.load_state_dict(state["alpha_opt"])
+        self.updates, self.env_steps = state["updates"], state["env_steps"]
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+
+    def save(self, folder: str | Path) -> Path:
+        """The policy as a normal checkpoint (``Policy.from_pretrained`` reads it) plus
+        ``agent.pt`` (critics, optimizers, counters, RNG) and ``rl_config.json``."""
+        folder = Path(folder)
+        self.policy.save_pretrained(folder)
+        torch.save(self.state_dict(), folder / "agent.pt")
+        (folder / "rl_config.json").write_text(json.dumps(asdict(self.config), indent=1))
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path) -> Agent:
+        folder = Path(folder)
+        if not (folder / "agent.pt").is_file():
+            raise ValueError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
+        config = RLConfig(**json.loads((folder / "rl_config.json").read_text()))
+        agent = cls(Policy.from_pretrained(folder), config)
+        agent.load_state_dict(torch.load(folder / "agent.pt", weights_only=False))
+        return agent

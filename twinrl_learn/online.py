@@ -1,0 +1,225 @@
+"""Online RL bookkeeping shared by twin RL (Stage II) and real/plant RL (Stage III).
+
+An :class:`OnlineRun` owns the agent, the demo buffer (demos + interventions) and the
+online buffer, the session every rollout is logged to, the sampling RNG and the
+learning history. Rollouts happen in *rounds* (one episode per environment); a round's
+episodes are read back from the log into the online buffer (the buffer is a view over
+the logged episodes), and checkpoints are taken between rounds, so ``resume`` continues
+exactly: same buffers, networks, optimizers, counters and random streams.
+
+Folder layout::
+
+    out/session/        every rollout as an episode
+    out/agent/          the latest policy (Policy.from_pretrained) + agent.pt
+    out/run.json        counters, RNG state and history (what resume reads)
+    out/curve.png       success per region against environment steps
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.schema import Episode
+from twinrl_data.session import Session
+from twinrl_learn.agent import Agent
+from twinrl_learn.replay import MixedSampler, ReplayBuffer
+
+RUN_FILE = "run.json"
+
+
+@dataclass
+class RoundRecord:
+    """What one round of rollouts did (one row of the learning history)."""
+
+    env_steps: int
+    updates: int
+    episodes: int
+    successes: dict[str, list[int]]  # region -> [successes, episodes]
+    interventions: int = 0
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+class OnlineRun:
+    """See the module docstring. Create with :meth:`start` or :meth:`resume`."""
+
+    def __init__(
+        self,
+        out: Path,
+        agent: Agent,
+        demo: ReplayBuffer,
+        online: ReplayBuffer,
+        session: Session,
+        rng: np.random.Generator,
+        history: list[RoundRecord],
+    ) -> None:
+        self.out, self.agent, self.demo, self.online = out, agent, demo, online
+        self.session, self.rng, self.history = session, rng, history
+        ratio = agent.config.demo_ratio
+        self.sampler = MixedSampler([demo, online], [ratio, 1.0 - ratio])
+        self._pending_updates = 0.0
+
+    # ------------------------------------------------------------ lifecycle
+    @classmethod
+    def start(cls, out: str | Path, agent: Agent, demo: ReplayBuffer) -> OnlineRun:
+        out = Path(out)
+        if out.exists() and any(out.iterdir()):
+            raise ValueError(f"{out} already holds a run; pass --resume or choose another --out")
+        session = Session.create(out / "session")
+        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+        rng = np.random.default_rng(agent.config.seed)
+        return cls(out, agent, demo, online, session, rng, [])
+
+    @classmethod
+    def resume(cls, out: str | Path, demo: ReplayBuffer) -> OnlineRun:
+        """Continue the run in ``out`` from its last checkpoint (between two rounds)."""
+        out = Path(out)
+        if not (out / RUN_FILE).is_file():
+            raise ValueError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
+        state = json.loads((out / RUN_FILE).read_text())
+        agent = Agent.load(out / "agent")
+        session = Session(out / "session")
+        kept = state["episodes_logged"]
+        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+        paths = session.episode_paths()[:kept]
+        for path in paths:
+            episode = read_episode(path, images=bool(demo.cameras))
+            (demo if _has_interventions(episode) else online).add(episode)
+        session.truncate(kept)  # episodes of a round the interruption cut short
+        rng = np.random.default_rng()
+        rng.bit_generator.state = state["rng"]
+        history = [RoundRecord(**r) for r in state["history"]]
+        run = cls(out, agent, demo, online, session, rng, history)
+        run._pending_updates = state["pending_updates"]
+        return run
+
+    def checkpoint(self) -> None:
+        """Save everything :meth:`resume` needs (call between rounds)."""
+        self.agent.save(self.out / "agent")
+        state = {
+            "episodes_logged": len(self.session.entries),
+            "rng": self.rng.bit_generator.state,
+            "pending_updates": self._pending_updates,
+            "history": [r.__dict__ for r in self.history],
+        }
+        tmp = self.out / f".{RUN_FILE}"
+        tmp.write_text(json.dumps(state, indent=1))
+        tmp.replace(self.out / RUN_FILE)
+
+    # -------------------------------------------------------------- learning
+    def learn(self, env_steps: int) -> dict[str, float]:
+        """Count ``env_steps`` new environment steps and run the updates they buy
+        (``utd`` per step); returns the last update's metrics."""
+        agent = self.agent
+        agent.env_steps += env_steps
+        self._pending_updates += agent.config.utd * env_steps
+        metrics: dict[str, float] = {}
+        while self._pending_updates >= 1:
+            metrics = self.update()
+            self._pending_updates -= 1
+        return metrics
+
+    def update(self) -> dict[str, float]:
+        """One gradient update on an RLPD batch."""
+        agent = self.agent
+        chunk, gamma = agent.policy.config.chunk, agent.config.gamma
+        batch, _ = self.sampler.sample(agent.config.batch_size, self.rng, chunk=chunk, gamma=gamma)
+        return agent.update(batch)
+
+    def pretrain(self, progress: Callable[[int], None] | None = None) -> None:
+        """The offline phase: ``offline_steps`` updates on the demo buffer (Cal-QL + BC)."""
+        while self.agent.updates < self.agent.config.offline_steps:
+            self.update()
+            if progress is not None:
+                progress(self.agent.updates)
+
+    def add_episodes(self, paths: list[Path]) -> list[Episode]:
+        """Read a round's logged episodes back into the buffers: episodes with human
+        interventions into the demo buffer (as HiL-SERL and ConRFT do), others online."""
+        episodes = []
+        for path in paths:
+            episode = read_episode(path, images=bool(self.demo.cameras))
+            (self.demo if _has_interventions(episode) else self.online).add(episode)
+            episodes.append(episode)
+        return episodes
+
+    def record_round(self, episodes: list[Episode], metrics: dict[str, float]) -> RoundRecord:
+        successes: dict[str, list[int]] = {}
+        for episode in episodes:
+            counts = successes.setdefault(episode.meta.region or "all", [0, 0])
+            counts[0] += int(bool(episode.meta.success))
+            counts[1] += 1
+        record = RoundRecord(
+            env_steps=self.agent.env_steps,
+            updates=self.agent.updates,
+            episodes=len(episodes),
+            successes=successes,
+            interventions=sum(e.meta.num_interventions for e in episodes),
+            metrics={k: float(v) for k, v in metrics.items()},
+        )
+        self.history.append(record)
+        return record
+
+    def success_rates(self, last_episodes: int) -> dict[str, float]:
+        """Success per region over (about) the last ``last_episodes`` episodes."""
+        totals: dict[str, list[int]] = {}
+        seen = 0
+        for record in reversed(self.history):
+            for region, (wins, count) in record.successes.items():
+                pair = totals.setdefault(region, [0, 0])
+                pair[0] += wins
+                pair[1] += count
+            seen += record.episodes
+            if seen >= last_episodes:
+                break
+        return {region: wins / count for region, (wins, count) in totals.items() if count}
+
+
+def _has_interventions(episode: Episode) -> bool:
+    flags = episode.data.get("intervention")
+    return flags is not None and bool(np.asarray(flags).any())
+
+
+def plot_curve(
+    history: list[RoundRecord],
+    path: Path,
+    *,
+    x: str = "env_steps",
+    steps_per_minute: float | None = None,
+    window: int = 20,
+    title: str = "",
+) -> None:
+    """Success rate per region (running over ``window`` episodes) against environment
+    steps, or plant minutes when ``steps_per_minute`` is given."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=120)
+    regions = sorted({r for record in history for r in record.successes})
+    for region in regions:
+        xs, ys, outcomes = [], [], []
+        for record in history:
+            wins, count = record.successes.get(region, [0, 0])
+            outcomes += [1] * wins + [0] * (count - wins)
+            if count:
+                value = getattr(record, x)
+                xs.append(value / steps_per_minute if steps_per_minute else value)
+                ys.append(float(np.mean(outcomes[-window:])))
+        ax.plot(xs, ys, label=region, lw=1.6)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("plant minutes" if steps_per_minute else "environment steps")
+    ax.set_ylabel(f"success (last {window} episodes)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    if regions:
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

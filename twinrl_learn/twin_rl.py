@@ -1,0 +1,171 @@
+"""Stage II: online RL in N parallel twin environments from the SFT policy.
+
+Each round resets the ``envs`` batched twin environments to configurations drawn
+uniformly over the task's regions (ID and OOD), rolls the current policy out (sampling
+from its tanh-Gaussian, one action chunk at a time) and logs every rollout as an
+episode (source ``twin_rl``); after every vector step the agent takes ``utd`` updates
+per new environment step on RLPD batches of demos and online rollouts. A checkpoint
+follows every round. At the end the **twin buffer** is exported: a LeRobotDataset of
+the successful rollouts (failures only on request, capped, since TwinRL found that
+random twin failures slow real RL down) that seeds Stage III's replay buffer.
+
+Outputs (besides :mod:`twinrl_learn.online`'s)::
+
+    out/twin_buffer/    LeRobotDataset: the rollouts that seed the real replay buffer
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
+from twinrl_learn.policy import Policy
+from twinrl_learn.replay import ReplayBuffer
+from twinrl_sim.batch import BatchEnv
+from twinrl_sim.tasks import REGION_NAMES, Progress, make_task
+
+
+@dataclass
+class TwinRLSettings:
+    """What to run: ``steps`` twin environment steps in rounds of ``envs`` episodes."""
+
+    task: str
+    init: str  # SFT checkpoint (or an RL checkpoint folder's policy)
+    out: str
+    demos: list[str] = field(default_factory=list)  # LeRobotDatasets for the demo buffer
+    envs: int = 8
+    steps: int = 8000
+    regions: tuple[str, ...] = REGION_NAMES
+    failures: int = 0  # failed rollouts added to the exported twin buffer (at most)
+    rl: RLConfig = field(default_factory=RLConfig)
+
+
+def load_demo_buffer(demos: list[str], policy: Policy, rl: RLConfig) -> ReplayBuffer:
+    cameras = tuple(policy.config.cameras) if policy.needs_images else ()
+    return ReplayBuffer.from_datasets(demos, cameras=cameras, rewards=rl.rewards)
+
+
+def run_twin_rl(
+    settings: TwinRLSettings,
+    *,
+    resume: bool = False,
+    on_round: Callable[[RoundRecord, OnlineRun], None] | None = None,
+    on_update: Callable[[int], None] | None = None,
+) -> OnlineRun:
+    """Run (or continue) Stage II; returns the finished :class:`OnlineRun`."""
+    task = make_task(settings.task)
+    for region in settings.regions:
+        task.region(region)
+    if settings.envs < 1:
+        raise ValueError(f"--envs must be at least 1, got {settings.envs}")
+    if resume:
+        policy = Policy.from_pretrained(Path(settings.out) / "agent")
+        run = OnlineRun.resume(settings.out, load_demo_buffer(settings.demos, policy, settings.rl))
+    else:
+        policy = Policy.from_pretrained(settings.init)
+        demo = load_demo_buffer(settings.demos, policy, settings.rl)
+        run = OnlineRun.start(settings.out, Agent(policy, settings.rl), demo)
+        run.pretrain(on_update)
+        run.checkpoint()
+    cameras = tuple(policy.config.cameras) if policy.needs_images else ()
+    env = BatchEnv(task, settings.envs, cameras=cameras)
+    try:
+        while run.agent.env_steps < settings.steps:
+            episodes, metrics = _round(run, env, settings)
+            record = run.record_round(episodes, metrics)
+            run.checkpoint()
+            if on_round is not None:
+                on_round(record, run)
+    finally:
+        env.close()
+    plot_curve(run.history, run.out / "curve.png", title=f"twin RL: {task.name}")
+    export_twin_buffer(run, settings.failures)
+    return run
+
+
+def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
+    """One episode per env, logged and learned from; returns (episodes, last metrics)."""
+    task, agent, n = env.task, run.agent, env.num_envs
+    regions = [settings.regions[int(run.rng.integers(len(settings.regions)))] for _ in range(n)]
+    configs = [task.sample_config(run.rng, region) for region in regions]
+    obs = env.reset([c.to_dict() for c in configs])
+    names = env.cells[0].contract_names()
+    logs = [
+        run.session.record(
+            EpisodeMeta(
+                task=task.name,
+                instruction=task.instruction,
+                source="twin_rl",
+                world="twin",
+                region=region,
+                config=config.to_dict(),
+                twin=task.scene.digest,
+                policy=f"rl:{agent.config.method}",
+                names=names,
+            )
+        )
+        for region, config in zip(regions, configs, strict=True)
+    ]
+    paths = [log.path for log in logs]
+    active = np.ones(n, bool)
+    success = np.zeros(n, bool)
+    queues: list[list[np.ndarray]] = [[] for _ in range(n)]
+    metrics: dict[str, float] = {}
+    instructions = [task.instruction] * n
+    while active.any():
+        need = [i for i in range(n) if active[i] and not queues[i]]
+        if need:
+            chunks = agent.policy.act_chunks(
+                {k: v[need] for k, v in obs.items()}, instructions[: len(need)], False
+            )
+            for i, chunk in zip(need, chunks, strict=True):
+                queues[i] = list(chunk)
+        actions = np.zeros((n, agent.policy.config.action_dim), np.float32)
+        stepping = np.flatnonzero(active)
+        for i in stepping:
+            actions[i] = queues[i].pop(0)
+        next_obs, _, terminated, truncated, info = env.step(actions)
+        for i in stepping:
+            done = bool(terminated[i] or truncated[i])
+            success[i] = bool(terminated[i])
+            reward = task.reward(Progress(success=success[i]), "sparse")
+            logs[i].append(
+                step_record(
+                    {k: v[i] for k, v in obs.items()},
+                    actions[i],
+                    info["command.joint_target"][i],
+                    reward,
+                    done,
+                    success[i],
+                    action_policy=actions[i],
+                )
+            )
+            if done:
+                logs[i].close(success=bool(success[i]))
+                active[i] = False
+        obs = next_obs
+        metrics = run.learn(len(stepping)) or metrics
+    return run.add_episodes(paths), metrics
+
+
+def export_twin_buffer(run: OnlineRun, failures: int) -> Path | None:
+    """Export the successful twin rollouts (plus at most ``failures`` failed ones, the
+    most recent) as ``out/twin_buffer``; returns its path, or None if nothing qualifies."""
+    paths = run.session.episode_paths()
+    entries = run.session.entries
+    wins = [p for p, e in zip(paths, entries, strict=True) if e.get("success")]
+    losses = [p for p, e in zip(paths, entries, strict=True) if not e.get("success")]
+    chosen = wins + (losses[-failures:] if failures > 0 else [])
+    if not chosen:
+        return None
+    root = run.out / "twin_buffer"
+    export_dataset((read_episode(p) for p in chosen), root)
+    return root
