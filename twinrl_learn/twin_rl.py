@@ -167,5 +167,6 @@ def export_twin_buffer(run: OnlineRun, failures: int) -> Path | None:
     if not chosen:
         return None
     root = run.out / "twin_buffer"
-    export_dataset((read_episode(p) for p in chosen), root)
+    # Derived from the session, which keeps every episode: a resumed run re-exports it.
+    export_dataset((read_episode(p) for p in chosen), root, force=True)
     return root

@@ -1,0 +1,222 @@
+"""RL parts: replay buffers, the actor objective, twin RL resume, failure mining."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tests.test_cli import twinrl as run_cli
+from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.schema import Episode, EpisodeMeta
+from twinrl_data.session import Session
+from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.mining import estimate_cell, load_targets, select_targets
+from twinrl_learn.policy import Policy
+from twinrl_learn.replay import MixedSampler, ReplayBuffer, RewardSettings, discounted_returns
+from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+from twinrl_robot.scripted import run_scripted_expert
+
+
+def synthetic_episode(length: int, success: bool, source: str = "twin_rl", offset: float = 0.0):
+    steps = np.arange(length, dtype=np.float32)
+    outcome = np.zeros(length, bool)
+    outcome[-1] = success
+    return Episode(
+        meta=EpisodeMeta(task="pick_place", source=source, world="twin", success=success),
+        data={
+            "observation.state": (steps[:, None] + offset) * np.ones((1, 3), np.float32),
+            "observation.environment_state": np.zeros((length, 2), np.float32),
+            "action": steps[:, None] * np.ones((1, 7), np.float32),
+            "next.success": outcome,
+            "intervention": np.zeros(length, bool),
+        },
+    )
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    """Two recorded expert demos as a dataset and a tiny state policy trained on them."""
+    folder = tmp_path_factory.mktemp("rl")
+    session = Session.create(folder / "session")
+    run_scripted_expert("pick_place", world="twin", episodes=1, session=session, seed=3)
+    export_dataset((read_episode(p) for p in session.episode_paths()), folder / "dataset")
+    train_sft(
+        SFTConfig(
+            datasets=[str(folder / "dataset")],
+            out=str(folder / "sft"),
+            policy="state",
+            steps=30,
+            batch_size=16,
+            chunk=4,
+        )
+    )
+    return folder / "dataset", folder / "sft"
+
+
+def test_chunked_transitions_sum_rewards_and_stop_at_success():
+    rewards = RewardSettings(success=10.0, step=-1.0)
+    buffer = ReplayBuffer(rewards=rewards)
+    buffer.add(synthetic_episode(5, success=True))
+    buffer.add(synthetic_episode(6, success=False, offset=100))
+    gamma = 0.5
+    starts = buffer.valid_starts(chunk=3, gamma=gamma)
+    # success episode: every start has a known outcome; timeout: only those 3+ from the end
+    assert starts.tolist() == [0, 1, 2, 3, 4, 5, 6, 7]
+    batch = buffer.transitions(np.array([0, 3, 5]), chunk=3, gamma=gamma)
+    assert batch.reward[0] == pytest.approx(-1 - 0.5 - 0.25)
+    assert batch.discount[0] == pytest.approx(0.125)
+    assert batch.next_state[0, 0] == 3
+    assert batch.reward[1] == pytest.approx(-1 + 0.5 * 10)  # steps 3, 4 then success
+    assert batch.discount[1] == 0
+    np.testing.assert_array_equal(batch.actions[1, :, 0], [3, 4, 4])  # last action repeated
+    assert batch.next_state[2, 0] == 103
+    assert batch.mc_return[0] == pytest.approx(
+        discounted_returns(np.array([-1, -1, -1, -1, 10.0]), 0.5)[0]
+    )
+    assert not batch.demo.any()
+
+
+def test_buffers_are_sampled_in_the_configured_ratio():
+    demo = ReplayBuffer(episodes=[synthetic_episode(20, True, source="teleop")])
+    online = ReplayBuffer(episodes=[synthetic_episode(20, False, offset=100)])
+    rng = np.random.default_rng(0)
+    sampler = MixedSampler([demo, online], [0.25, 0.75])
+    batch, origin = sampler.sample(64, rng, chunk=2, gamma=0.9)
+    assert (origin == 0).sum() == 16 and (origin == 1).sum() == 48
+    np.testing.assert_array_equal(batch.demo, origin == 0)
+    assert (batch.state[origin == 1, 0] >= 100).all()
+    empty = MixedSampler([demo, ReplayBuffer()], [0.5, 0.5])
+    _, origin = empty.sample(10, rng, chunk=1, gamma=0.9)
+    assert (origin == 0).all()  # an empty buffer gives its share to the others
+    with pytest.raises(ValueError, match="non-negative"):
+        MixedSampler([demo], [-1.0])
+
+
+def test_buffer_is_saved_and_loaded_as_a_dataset(demos, tmp_path):
+    dataset, _ = demos
+    buffer = ReplayBuffer.from_datasets([dataset])
+    buffer.save(tmp_path / "copy")
+    again = ReplayBuffer.from_datasets([tmp_path / "copy"])
+    assert again.num_steps == buffer.num_steps
+    rows = np.arange(buffer.num_steps - 1)
+    a = buffer.transitions(rows, chunk=1, gamma=0.9)
+    b = again.transitions(rows, chunk=1, gamma=0.9)
+    np.testing.assert_array_equal(a.state, b.state)
+    np.testing.assert_array_equal(a.actions, b.actions)
+    assert a.demo.all()  # teleop-like expert demos are imitation data
+    with pytest.raises(ValueError, match="empty"):
+        ReplayBuffer().save(tmp_path / "none")
+
+
+def test_actor_objective_reduces_to_bc_and_to_pure_q(demos):
+    dataset, sft = demos
+    buffer = ReplayBuffer.from_datasets([dataset])
+    batch = buffer.sample(32, np.random.default_rng(0), chunk=4, gamma=0.98)
+    demo_rows = torch.from_numpy(batch.demo)
+
+    def gradients(beta, eta):
+        agent = Agent(Policy.from_pretrained(sft), RLConfig(beta=beta, eta=eta, seed=1))
+        torch.manual_seed(5)
+        t = agent._tensors(batch)
+        loss, _ = agent.actor_loss(t, demo_rows)
+        return agent, t, loss
+
+    agent, t, loss = gradients(beta=1.0, eta=0.0)
+    assert loss.item() == pytest.approx(agent.policy.imitation_loss(t["obs"], t["actions"]).item())
+    agent, t, loss = gradients(beta=0.0, eta=1.0)
+    torch.manual_seed(5)
+    actions, _ = agent.policy.rsample(t["obs"])
+    q = agent.critic(agent.policy.critic_inputs(t["obs"]), actions).min(0).values
+    assert loss.item() == pytest.approx((-(q / q.abs().mean())).mean().item(), rel=1e-5)
+
+
+def test_twin_rl_logs_rollouts_and_resumes_exactly(demos, tmp_path):
+    dataset, sft = demos
+    torch.set_num_threads(1)
+    rl = RLConfig(offline_steps=4, batch_size=16, utd=0.05)
+
+    def settings(out, steps):
+        return TwinRLSettings(
+            task="pick_place", init=str(sft), out=str(out), demos=[str(dataset)],
+            envs=2, steps=steps, rl=rl, failures=1,
+        )  # fmt: skip
+
+    straight = run_twin_rl(settings(tmp_path / "straight", 2 * 200))
+    run_twin_rl(settings(tmp_path / "split", 200))
+    resumed = run_twin_rl(settings(tmp_path / "split", 2 * 200), resume=True)
+    assert straight.agent.env_steps == resumed.agent.env_steps
+    assert straight.agent.updates == resumed.agent.updates > 4
+    for key, value in straight.agent.state_dict()["critic"].items():
+        torch.testing.assert_close(value, resumed.agent.state_dict()["critic"][key], rtol=0, atol=0)
+    for key, value in straight.agent.policy.state_dict().items():
+        torch.testing.assert_close(value, resumed.agent.policy.state_dict()[key], rtol=0, atol=0)
+    entries = Session(tmp_path / "split" / "session").entries
+    assert len(entries) == 4 and {e["source"] for e in entries} == {"twin_rl"}
+    assert (tmp_path / "split" / "curve.png").stat().st_size > 1000
+    assert (tmp_path / "split" / "twin_buffer" / "meta" / "info.json").is_file()  # 1 failure
+    assert Policy.from_pretrained(tmp_path / "split" / "agent").config.chunk == 4
+    with pytest.raises(ValueError, match="already holds a run"):
+        run_twin_rl(settings(tmp_path / "split", 400))
+
+
+def test_mining_prefers_failure_prone_informative_configurations():
+    # A synthetic success map over the 4x4 grid: target y decides the true rate.
+    rng = np.random.default_rng(0)
+    from twinrl_learn.evaluate import grid_cells
+
+    cells = grid_cells("pick_place", (4, 4))
+    rate_of = {c.y: r for c, r in zip(cells[:4], [0.0, 0.5, 0.95, 1.0], strict=True)}
+    outcomes = []
+    for cell in cells:
+        for _ in range(20):
+            config = {"object": [0.5, 0.0, 0.0], "target": [cell.x, cell.y, 0.0]}
+            outcomes.append((config, cell.region, bool(rng.random() < rate_of[cell.y])))
+    estimates, targets = select_targets(outcomes, "pick_place", (4, 4), tau=0.8, k=6)
+    assert len(estimates) == len(cells)
+    columns = [round(t.y, 3) for t in targets]
+    half, hopeless = round(cells[1].y, 3), round(cells[0].y, 3)
+    per_column = sum(1 for c in cells if round(c.y, 3) == half)
+    # the 50 % column outranks the hopeless one; the solved columns are never targets
+    assert columns == [half] * per_column + [hopeless] * (6 - per_column)
+    assert all(t.estimated_success < 0.8 for t in targets)
+    scores = [t.score for t in targets]
+    assert scores == sorted(scores, reverse=True)
+    solved = estimate_cell(0, 0, "ID", 20, 20, 0.8)
+    hopeless = estimate_cell(0, 0, "ID", 0, 20, 0.8)
+    informative = estimate_cell(0, 0, "ID", 10, 20, 0.8)
+    assert informative.score > hopeless.score > solved.score
+
+
+def test_mine_and_twin_rl_commands(demos, tmp_path):
+    dataset, sft = demos
+    result = run_cli(
+        "mine", "--task", "pick_place", "--policy", str(sft), "--grid", "2x2",
+        "--episodes", "1", "--k", "3", "--out", str(tmp_path / "targets.json"),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    targets = load_targets(tmp_path / "targets.json")
+    data = json.loads((tmp_path / "targets.json").read_text())
+    assert len(targets) <= 3 and len(data["cells"]) >= 2
+    assert (tmp_path / "targets" / "heatmap.png").is_file()
+    again = run_cli(
+        "mine",
+        "--task",
+        "pick_place",
+        "--policy",
+        str(sft),
+        "--out",
+        str(tmp_path / "targets.json"),
+    )
+    assert again.returncode == 2 and "exists" in again.stderr
+    missing = run_cli("train", "twin-rl", "--task", "pick_place", "--out", str(tmp_path / "r"))
+    assert missing.returncode == 2 and "--init" in missing.stderr
+    wrong = run_cli(
+        "train", "twin-rl", "--task", "pick_place", "--init", str(dataset),
+        "--out", str(tmp_path / "r"),
+    )  # fmt: skip
+    assert wrong.returncode == 2 and "not a twinrl policy checkpoint" in wrong.stderr
+    with pytest.raises(ValueError, match="does not exist"):
+        load_targets(tmp_path / "nothing.json")
