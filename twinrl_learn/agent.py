@@ -54,6 +54,9 @@ class RLConfig:
     entropy: bool = False  # SAC temperature term in the actor and the TD target
     target_entropy_per_dim: float = -1.0
     demo_ratio: float = 0.5  # share of each batch from demos + interventions (RLPD)
+    # Rollouts sample with the policy's spread times this: a spread learned by BC from
+    # noisy teleop is too wide for mm-precise tasks (SAC learns its own: 1.0).
+    exploration: float = 0.3
     utd: float = 1.0  # gradient updates per environment step
     offline_steps: int = 500
     rewards: RewardSettings = field(default_factory=RewardSettings)
@@ -82,6 +85,7 @@ class RLConfig:
                 "entropy": True,
                 "offline_steps": 0,
                 "cql_alpha": 0.0,
+                "exploration": 1.0,
             }
         return cls(**(base | overrides))
 

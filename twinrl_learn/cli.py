@@ -199,6 +199,10 @@ def train_twin_rl_command(
     demo_ratio: Annotated[
         float | None, typer.Option(help="Share of each batch from demos/interventions.")
     ] = None,
+    exploration: Annotated[
+        float | None,
+        typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
+    ] = None,
     failures: Annotated[
         int, typer.Option(help="Failed rollouts to add to the exported twin buffer (at most).")
     ] = 0,
@@ -235,6 +239,7 @@ def train_twin_rl_command(
             utd=utd,
             offline_steps=offline_steps,
             demo_ratio=demo_ratio,
+            exploration=exploration,
             seed=seed,
         )
     settings = TwinRLSettings(

@@ -230,11 +230,14 @@ class Policy(nn.Module):
         log_prob = log_prob - torch.log(1 - actions.pow(2) + 1e-6)
         return actions, log_prob.sum(dim=(-1, -2))
 
-    def sample(self, batch: dict[str, torch.Tensor], deterministic: bool = False) -> torch.Tensor:
+    def sample(
+        self, batch: dict[str, torch.Tensor], deterministic: bool = False, std_scale: float = 1.0
+    ) -> torch.Tensor:
+        """Normalised actions: the mode, or a draw with the spread scaled by ``std_scale``."""
         mean, log_std = self.distribution(batch)
         if deterministic:
             return torch.tanh(mean)
-        return torch.tanh(mean + log_std.exp() * torch.randn_like(mean))
+        return torch.tanh(mean + std_scale * log_std.exp() * torch.randn_like(mean))
 
     # ------------------------------------------------------------ normalising
     def _action_range(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -325,11 +328,16 @@ class Policy(nn.Module):
 
     @torch.no_grad()
     def act_chunks(
-        self, observations: dict[str, Any], instructions: list[str], deterministic: bool = True
+        self,
+        observations: dict[str, Any],
+        instructions: list[str],
+        deterministic: bool = True,
+        std_scale: float = 1.0,
     ) -> np.ndarray:
         """Action chunks (B, chunk, A) in physical units for a batch of observations."""
         batch = self.observation_inputs(observations, instructions)
-        return self.unnormalize_action(self.sample(batch, deterministic)).numpy().astype(np.float32)
+        actions = self.sample(batch, deterministic, std_scale)
+        return self.unnormalize_action(actions).numpy().astype(np.float32)
 
     def act(
         self, observation: dict[str, Any], instruction: str, deterministic: bool = True

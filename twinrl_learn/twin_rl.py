@@ -124,7 +124,10 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
         need = [i for i in range(n) if active[i] and not queues[i]]
         if need:
             chunks = agent.policy.act_chunks(
-                {k: v[need] for k, v in obs.items()}, instructions[: len(need)], False
+                {k: v[need] for k, v in obs.items()},
+                instructions[: len(need)],
+                deterministic=False,
+                std_scale=agent.config.exploration,
             )
             for i, chunk in zip(need, chunks, strict=True):
                 queues[i] = list(chunk)
