@@ -75,6 +75,14 @@ class RLConfig:
             raise ValueError("beta and eta must be non-negative")
 
     @classmethod
+    def load(cls, folder: str | Path) -> RLConfig:
+        """The settings an RL checkpoint folder was trained with."""
+        path = Path(folder) / "rl_config.json"
+        if not path.is_file():
+            raise ValueError(f"{folder} holds no rl_config.json; it is not an RL checkpoint")
+        return cls(**json.loads(path.read_text()))
+
+    @classmethod
     def for_method(cls, method: str, **overrides) -> RLConfig:
         """The settings that define each compared method."""
         base: dict = {"method": method}
@@ -293,7 +301,6 @@ class Agent:
         folder = Path(folder)
         if not (folder / "agent.pt").is_file():
             raise ValueError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
-        config = RLConfig(**json.loads((folder / "rl_config.json").read_text()))
-        agent = cls(Policy.from_pretrained(folder), config)
+        agent = cls(Policy.from_pretrained(folder), RLConfig.load(folder))
         agent.load_state_dict(torch.load(folder / "agent.pt", weights_only=False))
         return agent

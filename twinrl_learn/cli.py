@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -223,14 +222,7 @@ def train_twin_rl_command(
     if missing:
         raise ValueError(f"--demos {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     if resume:
-        saved = (
-            json.loads((out / "agent" / "rl_config.json").read_text())
-            if (out / "agent" / "rl_config.json").is_file()
-            else None
-        )
-        if saved is None:
-            raise ValueError(f"--resume: {out} holds no twin RL run to continue")
-        rl = RLConfig(**saved)
+        rl = RLConfig.load(out / "agent")
     else:
         rl = _rl_config(
             method,

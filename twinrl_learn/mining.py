@@ -113,7 +113,7 @@ def select_targets(
         estimate = estimate_cell(cell.x, cell.y, cell.region, wins, len(runs), tau)
         estimates.append(estimate)
         failed = [c for c, s in runs if not s]
-        if runs and estimate.success_mean < tau and failed:
+        if failed and estimate.success_mean < tau:
             targets.append(
                 Target(
                     config=failed[0],

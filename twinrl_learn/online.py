@@ -85,16 +85,13 @@ class OnlineRun:
         agent = Agent.load(out / "agent")
         session = Session(out / "session")
         kept = state["episodes_logged"]
-        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
-        paths = session.episode_paths()[:kept]
-        for path in paths:
-            episode = read_episode(path, images=bool(demo.cameras))
-            (demo if _has_interventions(episode) else online).add(episode)
         session.truncate(kept)  # episodes of a round the interruption cut short
+        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
         rng = np.random.default_rng()
         rng.bit_generator.state = state["rng"]
         history = [RoundRecord(**r) for r in state["history"]]
         run = cls(out, agent, demo, online, session, rng, history)
+        run.add_episodes(session.episode_paths())
         run._pending_updates = state["pending_updates"]
         return run
 
@@ -186,16 +183,9 @@ def _has_interventions(episode: Episode) -> bool:
 
 
 def plot_curve(
-    history: list[RoundRecord],
-    path: Path,
-    *,
-    x: str = "env_steps",
-    steps_per_minute: float | None = None,
-    window: int = 20,
-    title: str = "",
+    history: list[RoundRecord], path: Path, *, window: int = 20, title: str = ""
 ) -> None:
-    """Success rate per region (running over ``window`` episodes) against environment
-    steps, or plant minutes when ``steps_per_minute`` is given."""
+    """Success rate per region (running over ``window`` episodes) against environment steps."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -209,12 +199,11 @@ def plot_curve(
             wins, count = record.successes.get(region, [0, 0])
             outcomes += [1] * wins + [0] * (count - wins)
             if count:
-                value = getattr(record, x)
-                xs.append(value / steps_per_minute if steps_per_minute else value)
+                xs.append(record.env_steps)
                 ys.append(float(np.mean(outcomes[-window:])))
         ax.plot(xs, ys, label=region, lw=1.6)
     ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel("plant minutes" if steps_per_minute else "environment steps")
+    ax.set_xlabel("environment steps")
     ax.set_ylabel(f"success (last {window} episodes)")
     ax.set_title(title, fontsize=9)
     ax.grid(alpha=0.3)

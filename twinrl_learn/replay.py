@@ -2,8 +2,8 @@
 
 A :class:`ReplayBuffer` holds whole episodes of the episode contract (demos,
 interventions, RL rollouts) and indexes their steps for sampling; it is saved as a
-LeRobotDataset and loaded from LeRobotDatasets or MCAP sessions, so a buffer is never a
-format of its own.
+LeRobotDataset and loaded from LeRobotDatasets or from logged episodes, so a buffer is
+never a format of its own.
 
 Sampling follows the policy's action chunks (Q-chunking): a transition from step ``t``
 is the chunk of actions ``a[t : t+h]``, the discounted reward over those steps, and the
@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
-from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import (
     ACTION,
     ENVIRONMENT_STATE,
@@ -36,7 +35,6 @@ from twinrl_data.schema import (
     SUCCESS,
     Episode,
 )
-from twinrl_data.session import Session
 
 DEMO_SOURCES = ("teleop", "twin_demo")  # episodes whose every action is a demonstration
 
@@ -94,6 +92,7 @@ class ReplayBuffer:
         self._images: dict[str, np.ndarray] = {}
         self._instructions: list[str] = []
         self._built_for: float | None = None  # the gamma the arrays were built with
+        self._starts: dict[int, np.ndarray] = {}  # valid starts per chunk length
         episodes, self.episodes = self.episodes, []
         self.extend(episodes)
 
@@ -128,19 +127,6 @@ class ReplayBuffer:
         buffer = cls(cameras=tuple(cameras), **kwargs)
         for root in roots:
             buffer.extend(iter_dataset_episodes(root, cameras=list(cameras)))
-        return buffer
-
-    @classmethod
-    def from_sessions(
-        cls, paths: Sequence[str | Path], *, cameras: Sequence[str] = (), **kwargs
-    ) -> ReplayBuffer:
-        """A buffer over the complete episodes of recorded MCAP sessions."""
-        buffer = cls(cameras=tuple(cameras), **kwargs)
-        for path in paths:
-            session = Session(path)
-            for entry, file in zip(session.entries, session.episode_paths(), strict=True):
-                if entry.get("status") == "complete":
-                    buffer.add(read_episode(file, images=bool(cameras)))
         return buffer
 
     def save(self, root: str | Path) -> Path:
@@ -192,17 +178,21 @@ class ReplayBuffer:
             del columns["env"]  # some episode lacks object poses: none are used
         self._arrays = {k: np.concatenate(v) for k, v in columns.items() if v}
         self._images = {c: np.concatenate(v) for c, v in images.items() if v}
+        self._starts = {}
         self._built_for = gamma
 
     def valid_starts(self, chunk: int, gamma: float = 0.99) -> np.ndarray:
         """Rows from which a chunk of ``chunk`` steps has a known outcome."""
         self._build(gamma)
-        if self.num_steps == 0:
-            return np.zeros(0, np.int64)
-        rows = np.arange(self.num_steps)
-        end = self._arrays["end"]
-        finished = self._arrays["terminal"][end - 1]
-        return rows[(rows + chunk < end) | finished]
+        if chunk not in self._starts:
+            if self.num_steps == 0:
+                self._starts[chunk] = np.zeros(0, np.int64)
+            else:
+                rows = np.arange(self.num_steps)
+                end = self._arrays["end"]
+                finished = self._arrays["terminal"][end - 1]
+                self._starts[chunk] = rows[(rows + chunk < end) | finished]
+        return self._starts[chunk]
 
     def sample(
         self, size: int, rng: np.random.Generator, *, chunk: int = 1, gamma: float = 0.99

@@ -119,13 +119,12 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
     success = np.zeros(n, bool)
     queues: list[list[np.ndarray]] = [[] for _ in range(n)]
     metrics: dict[str, float] = {}
-    instructions = [task.instruction] * n
     while active.any():
         need = [i for i in range(n) if active[i] and not queues[i]]
         if need:
             chunks = agent.policy.act_chunks(
                 {k: v[need] for k, v in obs.items()},
-                instructions[: len(need)],
+                [task.instruction] * len(need),
                 deterministic=False,
                 std_scale=agent.config.exploration,
             )

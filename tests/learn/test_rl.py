@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from tests.conftest import record_demos
 from tests.test_cli import twinrl as run_cli
-from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode, EpisodeMeta
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent, RLConfig
@@ -17,7 +16,6 @@ from twinrl_learn.policy import Policy
 from twinrl_learn.replay import MixedSampler, ReplayBuffer, RewardSettings, discounted_returns
 from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
-from twinrl_robot.scripted import run_scripted_expert
 
 
 def synthetic_episode(length: int, success: bool, source: str = "twin_rl", offset: float = 0.0):
@@ -40,9 +38,7 @@ def synthetic_episode(length: int, success: bool, source: str = "twin_rl", offse
 def demos(tmp_path_factory):
     """Two recorded expert demos as a dataset and a tiny state policy trained on them."""
     folder = tmp_path_factory.mktemp("rl")
-    session = Session.create(folder / "session")
-    run_scripted_expert("pick_place", world="twin", episodes=1, session=session, seed=3)
-    export_dataset((read_episode(p) for p in session.episode_paths()), folder / "dataset")
+    record_demos(folder, seed=3)
     train_sft(
         SFTConfig(
             datasets=[str(folder / "dataset")],

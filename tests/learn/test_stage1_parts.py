@@ -6,24 +6,18 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import lerobot_train
-from twinrl_data.lerobot_io import export_dataset
+from tests.conftest import lerobot_train, record_demos
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.evaluate import evaluate, grid_cells
 from twinrl_learn.policy import Policy
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.sft import SFTConfig, train_sft
-from twinrl_robot.scripted import run_scripted_expert
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("demos")
-    session = Session.create(folder / "session")
-    run_scripted_expert("pick_place", world="twin", episodes=2, session=session, seed=1)
-    export_dataset((read_episode(p) for p in session.episode_paths()), folder / "dataset")
-    return folder / "dataset"
+    return record_demos(tmp_path_factory.mktemp("demos"), episodes=2, seed=1)
 
 
 @pytest.mark.parametrize("kind", ["state", "vla"])
