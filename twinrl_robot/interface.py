@@ -18,7 +18,9 @@ class Robot(Protocol):
 
     ``reset(config)`` brings the cell to a task configuration (programmatic in the
     plant, operator-guided on a real robot) and returns the first observation;
-    ``act(action)`` executes one control step; ``observe()`` reads the sensors.
+    ``act(action)`` executes one control step; ``observe()`` reads the sensors;
+    ``hold()`` stops the arm where it is and re-anchors the command there (called when
+    an operator takes the controls).
     """
 
     control_hz: float
@@ -28,5 +30,7 @@ class Robot(Protocol):
     def observe(self) -> dict[str, np.ndarray]: ...
 
     def act(self, action: np.ndarray) -> None: ...
+
+    def hold(self) -> None: ...
 
     def close(self) -> None: ...

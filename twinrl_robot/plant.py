@@ -20,7 +20,7 @@ from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
 from twinrl_sim.effects import load_effects, validate_effects
 from twinrl_sim.spec import SceneSpec
-from twinrl_sim.tasks import Task, TaskConfig, make_task
+from twinrl_sim.tasks import Progress, Task, TaskConfig, make_task
 
 DEFAULT_EFFECTS_FILE = Path(__file__).resolve().parent / "plants" / "default.yaml"
 
@@ -93,9 +93,9 @@ class Plant:
         self.settings = settings
         self.control_hz = scene.physics.control_hz
         self.images = tuple(images)
-        self._rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(seed)  # sensor noise; a run checkpoints its state
         self._tracker = None
-        self._success = False
+        self._progress = Progress(success=False)
         self._action_low, self._action_high = action_bounds()
         self.elapsed_steps = 0
         self.last_joint_target: np.ndarray | None = None
@@ -114,11 +114,17 @@ class Plant:
     @property
     def success(self) -> bool:
         """Ground-truth task success (stands in for a success classifier)."""
-        return self._success
+        return self._progress.success
+
+    @property
+    def progress(self) -> Progress:
+        """Ground-truth task progress after the last step (what an operator watching
+        the cell judges; the simulated operator reads it)."""
+        return self._progress
 
     def reset(self, config: TaskConfig | dict) -> dict[str, np.ndarray]:
         self._tracker = self.task.start(self._cell, TaskConfig.from_dict(config))
-        self._success = self._tracker.update().success
+        self._progress = self._tracker.update()
         self.last_joint_target = None
         return self.observe()
 
@@ -127,13 +133,13 @@ class Plant:
         n = len(self._cell.layout.arm_joints)
         state = self._cell.state_vector().astype(np.float64)
         noise = np.zeros_like(state)
-        noise[:n] = self._rng.normal(0, s.joint_noise, n)
-        noise[n : 2 * n] = self._rng.normal(0, s.velocity_noise, n)
-        noise[2 * n : 2 * n + 3] = self._rng.normal(0, s.tcp_noise, 3)
+        noise[:n] = self.rng.normal(0, s.joint_noise, n)
+        noise[n : 2 * n] = self.rng.normal(0, s.velocity_noise, n)
+        noise[2 * n : 2 * n + 3] = self.rng.normal(0, s.tcp_noise, 3)
         env = self._cell.environment_vector().astype(np.float64)
         env_noise = np.zeros_like(env)
         for i in range(0, len(env), 7):
-            env_noise[i : i + 3] = self._rng.normal(0, s.object_noise, 3)
+            env_noise[i : i + 3] = self.rng.normal(0, s.object_noise, 3)
         obs = {
             "observation.state": (state + noise).astype(np.float32),
             "observation.environment_state": (env + env_noise).astype(np.float32),
@@ -149,7 +155,12 @@ class Plant:
         self.last_joint_target = self._cell.step(action).joint_target
         self.elapsed_steps += 1
         # Track every step: some tasks accumulate progress (wiped marks).
-        self._success = self._tracker.update().success
+        self._progress = self._tracker.update()
+
+    def hold(self) -> None:
+        """Stop the arm where it is: the command is re-anchored at the measured pose
+        (what a teleop takeover does before the operator's first motion)."""
+        self._cell.hold()
 
     def close(self) -> None:
         self._cell.close()

@@ -106,6 +106,12 @@ class Cell:
             self.data.ctrl[self.gripper_act] = gripper
         self.controller.reset(q)
 
+    def hold(self) -> None:
+        """Re-anchor the end-effector command at the measured arm pose (the arm stops
+        where it is), as a teleop takeover does: the operator's deltas then start from
+        what they see, not from wherever the previous commands had wound up."""
+        self.controller.reset(self.arm_q)
+
     def place_object(self, name: str, pos: np.ndarray, quat: np.ndarray) -> None:
         """Put object ``name`` at ``pos`` (world, m) with orientation ``quat`` (wxyz)."""
         if name in self._free_qpos:

@@ -151,6 +151,22 @@ class ScriptedExpert:
         self._ref = (ref_pos + step, new_quat / np.linalg.norm(new_quat))
         return np.concatenate([step, rot, [phase.gripper]]).astype(np.float32)
 
+    def take_over(self, obs: dict[str, np.ndarray], holding: str | None = None) -> None:
+        """Start acting from the arm's measured state, as an operator taking the
+        controls in the middle of an episode: the reference restarts at the measured
+        pose; with ``holding`` (the object already lifted in the gripper) the plan
+        resumes at the lift, otherwise from its first phase."""
+        view = ObsView(self.scene, obs)
+        self.memory.clear()
+        self._goal, self._ref, self._last_opening = None, None, float("nan")
+        self.phase_index = 0
+        names = [phase.name for phase in self.phases]
+        if holding is not None and "lift" in names:
+            self.memory["object_name"] = holding
+            self.memory["grasp"] = (view.tcp_pos.copy(), view.tool_yaw)
+            remember_grasp(holding)(view, self.memory)
+            self.phase_index = names.index("lift")
+
     def perturb(self, translation: np.ndarray, rotation: np.ndarray) -> None:
         """Shift the reference by what was executed on top of the last action (an
         operator's unsteady hand), so the following actions correct it instead of
