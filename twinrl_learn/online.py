@@ -63,21 +63,29 @@ class OnlineRun:
         ratio = agent.config.demo_ratio
         self.sampler = MixedSampler([demo, online], [ratio, 1.0 - ratio])
         self._pending_updates = 0.0
+        self.extra: dict = {}  # a caller's own resumable state (JSON), saved in run.json
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
-    def start(cls, out: str | Path, agent: Agent, demo: ReplayBuffer) -> OnlineRun:
+    def start(
+        cls, out: str | Path, agent: Agent, demo: ReplayBuffer, online: ReplayBuffer | None = None
+    ) -> OnlineRun:
+        """A new run; ``online`` pre-fills the online buffer (Stage III's D_real <- D_twin)."""
         out = Path(out)
         if out.exists() and any(out.iterdir()):
             raise ValueError(f"{out} already holds a run; pass --resume or choose another --out")
         session = Session.create(out / "session")
-        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+        if online is None:
+            online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
         rng = np.random.default_rng(agent.config.seed)
         return cls(out, agent, demo, online, session, rng, [])
 
     @classmethod
-    def resume(cls, out: str | Path, demo: ReplayBuffer) -> OnlineRun:
-        """Continue the run in ``out`` from its last checkpoint (between two rounds)."""
+    def resume(
+        cls, out: str | Path, demo: ReplayBuffer, online: ReplayBuffer | None = None
+    ) -> OnlineRun:
+        """Continue the run in ``out`` from its last checkpoint (between two rounds);
+        ``online`` is the same pre-filled buffer the run started with, if any."""
         out = Path(out)
         if not (out / RUN_FILE).is_file():
             raise ValueError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
@@ -86,13 +94,15 @@ class OnlineRun:
         session = Session(out / "session")
         kept = state["episodes_logged"]
         session.truncate(kept)  # episodes of a round the interruption cut short
-        online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+        if online is None:
+            online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
         rng = np.random.default_rng()
         rng.bit_generator.state = state["rng"]
         history = [RoundRecord(**r) for r in state["history"]]
         run = cls(out, agent, demo, online, session, rng, history)
         run.add_episodes(session.episode_paths())
         run._pending_updates = state["pending_updates"]
+        run.extra = state.get("extra", {})
         return run
 
     def checkpoint(self) -> None:
@@ -103,6 +113,7 @@ class OnlineRun:
             "rng": self.rng.bit_generator.state,
             "pending_updates": self._pending_updates,
             "history": [r.__dict__ for r in self.history],
+            "extra": self.extra,
         }
         tmp = self.out / f".{RUN_FILE}"
         tmp.write_text(json.dumps(state, indent=1))

@@ -34,9 +34,16 @@ class Runner(Protocol):
 
 
 class TwinrlRunner:
-    def __init__(self, path: str | Path) -> None:
-        self.policy = Policy.from_pretrained(path)
-        self.name = f"twinrl:{Path(path).name}"
+    """A twinrl policy: a checkpoint folder, or a policy in memory (``name`` then
+    labels its episodes) such as the one an RL run is training."""
+
+    def __init__(self, policy: str | Path | Policy, name: str | None = None) -> None:
+        if isinstance(policy, Policy):
+            self.policy = policy
+            self.name = name or "twinrl:in-memory"
+        else:
+            self.policy = Policy.from_pretrained(policy)
+            self.name = name or f"twinrl:{Path(policy).name}"
         self.needs_images = self.policy.needs_images
         self.cameras = tuple(self.policy.config.cameras) if self.needs_images else ()
         self._instruction = ""

@@ -61,6 +61,34 @@ class Stage1Row:
     success: dict[str, float]
 
 
+def record_real_demos(
+    task: str, count: int, base: Path, *, seed: int = 0, effects: str | Path | None = None
+) -> tuple[int, int]:
+    """Record ``count`` successful teleop-like demos in the plant, region ID only, into
+    ``base/real_session`` and export them as the LeRobotDataset ``base/real``; a quarter
+    more are recorded to make up for failures. Returns (kept, recorded)."""
+    session = Session.create(base / "real_session")
+    report = run_scripted_expert(
+        task,
+        world="plant",
+        episodes=math.ceil(count * 1.25),
+        regions=("ID",),
+        effects=effects,
+        seed=seed,
+        session=session,
+        action_noise=TELEOP_NOISE,
+    )
+    kept = [
+        path
+        for path, episode in zip(session.episode_paths(), report.episodes, strict=True)
+        if episode.success
+    ][:count]
+    if not kept:
+        raise RuntimeError(f"{task}: no successful demo among {len(report.episodes)} recorded")
+    export_dataset((read_episode(p) for p in kept), base / "real")
+    return len(kept), len(report.episodes)
+
+
 def run_stage1(
     settings: Stage1Settings, out: str | Path, log: Callable[[str], None] = print
 ) -> list[Stage1Row]:
@@ -74,23 +102,8 @@ def run_stage1(
     for task in settings.tasks:
         base = out / task
         log(f"{task}: recording {n(settings.real)} noisy teleop demos in the plant (region ID)")
-        session = Session.create(base / "real_session")
-        report = run_scripted_expert(
-            task,
-            world="plant",
-            episodes=math.ceil(n(settings.real) * 1.25),
-            regions=("ID",),
-            seed=settings.seed,
-            session=session,
-            action_noise=TELEOP_NOISE,
-        )
-        kept = [
-            path
-            for path, episode in zip(session.episode_paths(), report.episodes, strict=True)
-            if episode.success
-        ][: n(settings.real)]
-        log(f"{task}: keeping {len(kept)} successful demos of {len(report.episodes)} recorded")
-        export_dataset((read_episode(p) for p in kept), base / "real")
+        kept, recorded = record_real_demos(task, n(settings.real), base, seed=settings.seed)
+        log(f"{task}: keeping {kept} successful demos of {recorded} recorded")
         most_id = max(m[0] for m in MIXES)
         most_ood = max(m[1] for m in MIXES)
         log(f"{task}: synthesizing {n(most_id)} ID + {n(most_ood)} OOD twin demos")

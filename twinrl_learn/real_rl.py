@@ -1,0 +1,438 @@
+"""Stage III: RL on the real robot (the plant here) with a human in the loop.
+
+One episode at a time on the robot, each reset drawn by a :class:`ResetPlanner`:
+with probability ``target_ratio`` from the current failure-mining targets (S_target,
+sampled in proportion to their mining score), otherwise uniformly over the regions.
+Every ``refresh_every`` episodes the targets are mined again in the twin with the
+latest weights (:func:`twinrl_learn.mining.mine`). Each reset configuration is
+rendered from the twin and logged to a Rerun recording, which shows an operator of a
+real cell where to put the object; the plant resets programmatically.
+
+While the policy acts (one sampled action chunk at a time), an :class:`Operator` may
+take the controls (the plant's :class:`~twinrl_robot.operator.SimulatedOperator`, a
+teleop device on a real cell); its steps are flagged ``intervention`` and the episode
+joins the demo buffer. The replay buffer starts as the twin buffer (D_real <- D_twin)
+and the demo buffer as the real demos. The agent takes ``utd`` updates per robot step.
+
+Plant time counts robot steps only (10 Hz: 600 steps = 1 min). Progress is measured
+every ``eval_every`` robot steps by evaluating the deterministic policy on a fixed
+grid of configurations in a separate plant (an evaluation session, not training
+time: it does not count as interaction and its episodes never enter a buffer).
+
+Outputs (besides :mod:`twinrl_learn.online`'s)::
+
+    out/evaluations/<steps>/   eval.json, heatmap.png, session/ (source eval)
+    out/mining/<episode>.json  the targets used from that episode on (and the evaluation)
+    out/resets-<episode>.rrd   each episode's reset configuration rendered from the twin
+    out/evaluations.json       [{"plant_steps", "plant_minutes", "success_rate"}, ...]
+    out/curve.png              evaluation success per region against plant minutes
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+
+from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.evaluate import evaluate
+from twinrl_learn.mining import Target, load_targets, mine
+from twinrl_learn.online import OnlineRun, RoundRecord
+from twinrl_learn.policy import Policy
+from twinrl_learn.replay import ReplayBuffer
+from twinrl_learn.runners import TwinrlRunner
+from twinrl_robot.operator import Operator, OperatorRule, SimulatedOperator
+from twinrl_robot.plant import Plant
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.tasks import REGION_NAMES, Progress, Task, TaskConfig, make_task
+
+ROBOTS = ("plant",)
+EVALUATIONS_FILE = "evaluations.json"
+
+
+@dataclass
+class RealRLSettings:
+    """What to run: ``plant_steps`` robot steps of human-in-the-loop RL."""
+
+    task: str
+    init: str  # policy checkpoint to start from (Stage I SFT or a Stage II agent)
+    out: str
+    robot: str = "plant"
+    effects: str | None = None  # the plant's hidden effects (None: the built-in plant)
+    demos: list[str] = field(default_factory=list)  # real demos: the demo buffer
+    twin_buffer: str | None = None  # Stage II's twin buffer: the replay buffer's start
+    targets: str | None = None  # targets.json from `twinrl mine` (None: uniform resets)
+    target_ratio: float = 0.7  # share of resets drawn from the targets
+    refresh_every: int = 10  # episodes between re-minings in the twin (0: never)
+    mining_grid: tuple[int, int] = (4, 4)
+    mining_episodes: int = 1
+    tau: float = 0.8
+    k: int = 20
+    plant_steps: int = 6000
+    eval_every: int = 600  # robot steps between evaluations (0: only at the start and end)
+    eval_grid: tuple[int, int] = (4, 4)
+    eval_episodes: int = 1  # per grid cell
+    operator: OperatorRule | None = field(default_factory=OperatorRule)  # None: no operator
+    show_resets: bool = True  # render each reset configuration to a Rerun recording
+    rl: RLConfig = field(default_factory=RLConfig)
+
+    def __post_init__(self) -> None:
+        if self.robot not in ROBOTS:
+            raise ValueError(
+                f"--robot {self.robot} is not available; use one of {', '.join(ROBOTS)} "
+                "(a real UR arm needs its driver behind twinrl_robot.Robot)"
+            )
+        if not 0 <= self.target_ratio <= 1:
+            raise ValueError(f"--target-ratio must be in [0, 1], got {self.target_ratio}")
+        if self.refresh_every < 0 or self.eval_every < 0:
+            raise ValueError("--refresh-every and --eval-every must be >= 0")
+        if self.plant_steps < 1:
+            raise ValueError(f"--plant-steps must be at least 1, got {self.plant_steps}")
+
+
+@dataclass
+class EvalPoint:
+    """One evaluation of the policy during real RL."""
+
+    plant_steps: int
+    plant_minutes: float
+    success_rate: dict[str, float]
+    episodes: int
+
+
+class ResetPlanner:
+    """Next episode's configuration: a mining target (probability ``ratio``, drawn in
+    proportion to score) or a uniform draw over the regions."""
+
+    def __init__(self, task: Task, targets: list[Target], ratio: float) -> None:
+        self.task, self.ratio = task, ratio
+        self.targets = targets
+
+    def next(self, rng: np.random.Generator) -> tuple[TaskConfig, str, str]:
+        """``(config, region, origin)`` with origin ``target`` or ``uniform``."""
+        if self.targets and rng.random() < self.ratio:
+            scores = np.array([max(t.score, 1e-6) for t in self.targets])
+            target = self.targets[int(rng.choice(len(self.targets), p=scores / scores.sum()))]
+            return TaskConfig.from_dict(target.config), target.region, "target"
+        region = REGION_NAMES[int(rng.integers(len(REGION_NAMES)))]
+        return self.task.sample_config(rng, region), region, "uniform"
+
+
+def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, ReplayBuffer]:
+    cameras = tuple(policy.config.cameras) if policy.needs_images else ()
+    rewards = settings.rl.rewards
+    demo = ReplayBuffer.from_datasets(settings.demos, cameras=cameras, rewards=rewards)
+    twin = [settings.twin_buffer] if settings.twin_buffer else []
+    return demo, ReplayBuffer.from_datasets(twin, cameras=cameras, rewards=rewards)
+
+
+class RealRL:
+    """A Stage III run; build with :meth:`start` or :meth:`resume`, then :meth:`run`."""
+
+    def __init__(self, settings: RealRLSettings, run: OnlineRun, operator: Operator | None):
+        self.settings, self.run_state = settings, run
+        self.task = make_task(settings.task)
+        self.out = Path(settings.out)
+        self.operator = operator
+        policy = run.agent.policy
+        cameras = tuple(policy.config.cameras) if policy.needs_images else ()
+        self.plant = Plant(
+            self.task, effects=settings.effects, seed=settings.rl.seed, images=cameras
+        )
+        extra = run.extra
+        if "plant_rng" in extra:
+            self.plant.rng.bit_generator.state = extra["plant_rng"]
+        if isinstance(operator, SimulatedOperator) and "operator_rng" in extra:
+            operator.rng.bit_generator.state = extra["operator_rng"]
+        targets = load_targets(extra["targets"]) if extra.get("targets") else []
+        self.resets = ResetPlanner(self.task, targets, settings.target_ratio)
+        self.evaluations = [EvalPoint(**p) for p in extra.get("evaluations", [])]
+        self._render_env: TwinEnv | None = None
+        self._recording: rr.RecordingStream | None = None
+
+    # ------------------------------------------------------------ lifecycle
+    @classmethod
+    def start(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+        policy = Policy.from_pretrained(settings.init)
+        demo, twin = _buffers(settings, policy)
+        run = OnlineRun.start(settings.out, Agent(policy, settings.rl), demo, twin)
+        if settings.targets:
+            load_targets(settings.targets)  # fail early on a bad file
+            kept = run.out / "mining" / "initial.json"
+            kept.parent.mkdir(parents=True)
+            shutil.copyfile(settings.targets, kept)
+            run.extra["targets"] = str(kept)
+        (run.out / "settings.json").write_text(json.dumps(describe(settings), indent=1))
+        return cls(settings, run, _operator(settings, operator))
+
+    @classmethod
+    def resume(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+        out = Path(settings.out)
+        policy = Policy.from_pretrained(out / "agent")
+        settings.rl = RLConfig.load(out / "agent")
+        demo, twin = _buffers(settings, policy)
+        run = OnlineRun.resume(out, demo, twin)
+        return cls(settings, run, _operator(settings, operator))
+
+    def checkpoint(self) -> None:
+        extra = self.run_state.extra
+        extra["plant_rng"] = self.plant.rng.bit_generator.state
+        if isinstance(self.operator, SimulatedOperator):
+            extra["operator_rng"] = self.operator.rng.bit_generator.state
+        extra["evaluations"] = [asdict(p) for p in self.evaluations]
+        self.run_state.checkpoint()
+        (self.out / EVALUATIONS_FILE).write_text(json.dumps(extra["evaluations"], indent=1))
+
+    # ------------------------------------------------------------------ run
+    def run(
+        self,
+        *,
+        on_episode: Callable[[RoundRecord, RealRL], None] | None = None,
+        on_update: Callable[[int], None] | None = None,
+    ) -> OnlineRun:
+        """Run until ``plant_steps`` robot steps; returns the :class:`OnlineRun`."""
+        run, settings = self.run_state, self.settings
+        try:
+            if run.agent.updates < run.agent.config.offline_steps and not run.history:
+                run.pretrain(on_update)
+                self.checkpoint()
+            if not self.evaluations:
+                self.evaluate()
+                self.checkpoint()
+            while run.agent.env_steps < settings.plant_steps:
+                episode_index = len(run.history)
+                if self._refresh_due(episode_index):
+                    self.refresh_targets(episode_index)
+                config, region, origin = self.resets.next(run.rng)
+                self._show_reset(episode_index, config, region, origin)
+                record = self.episode(config, region, origin)
+                if self._evaluation_due():
+                    self.evaluate()
+                self.checkpoint()
+                if on_episode is not None:
+                    on_episode(record, self)
+            if self.evaluations[-1].plant_steps != run.agent.env_steps:
+                self.evaluate()
+                self.checkpoint()
+        finally:
+            self.close()
+        plot_evaluations(
+            self.evaluations, self.out / "curve.png", title=f"real RL: {self.task.name}"
+        )
+        return run
+
+    def close(self) -> None:
+        self.plant.close()
+        if self._render_env is not None:
+            self._render_env.close()
+            self._render_env = None
+        if self._recording is not None:
+            self._recording.flush()
+            self._recording.disconnect()
+            self._recording = None
+
+    # -------------------------------------------------------------- episodes
+    def episode(self, config: TaskConfig, region: str, origin: str) -> RoundRecord:
+        """One robot episode from ``config``: policy chunks, operator takeovers, one
+        update batch per step; logged (source ``real_rl``) and added to the buffers."""
+        run, task, plant = self.run_state, self.task, self.plant
+        agent = run.agent
+        obs = plant.reset(config)
+        if self.operator is not None:
+            self.operator.reset(task, config)
+        meta = EpisodeMeta(
+            task=task.name,
+            instruction=task.instruction,
+            source="real_rl",
+            world="plant",
+            region=region,
+            config=config.to_dict(),
+            twin=task.scene.digest,
+            policy=f"rl:{agent.config.method}",
+            names=plant.contract_names(),
+            operator="simulated" if isinstance(self.operator, SimulatedOperator) else None,
+        )
+        queue: list[np.ndarray] = []
+        intervening = False
+        metrics: dict[str, float] = {}
+        with run.session.record(meta) as log:
+            for t in range(task.max_steps):
+                action = None
+                if self.operator is not None:
+                    action = self.operator.intervene(obs, plant.progress)
+                proposed = None
+                if action is not None:
+                    if not intervening:
+                        plant.hold()  # the operator starts from where the arm is
+                    queue = []  # the policy looks afresh once it has the controls back
+                else:
+                    if not queue:
+                        batch = {k: np.asarray(v)[None] for k, v in obs.items()}
+                        queue = list(
+                            agent.policy.act_chunks(
+                                batch,
+                                [task.instruction],
+                                deterministic=False,
+                                std_scale=agent.config.exploration,
+                            )[0]
+                        )
+                    action = proposed = queue.pop(0)
+                intervening = proposed is None
+                plant.act(action)
+                success = plant.success
+                done = success or t == task.max_steps - 1
+                reward = task.reward(Progress(success=success), "sparse")
+                log.append(
+                    step_record(
+                        obs,
+                        action,
+                        plant.last_joint_target,
+                        reward,
+                        done,
+                        success,
+                        action_policy=proposed,
+                        intervention=proposed is None,
+                    )
+                )
+                obs = plant.observe()
+                metrics = run.learn(1) or metrics
+                if success:
+                    break
+        episodes = run.add_episodes([log.path])
+        run.extra.setdefault("reset_origins", []).append(origin)
+        return run.record_round(episodes, metrics)
+
+    def _refresh_due(self, episode_index: int) -> bool:
+        every = self.settings.refresh_every
+        return every > 0 and episode_index > 0 and episode_index % every == 0
+
+    def refresh_targets(self, episode_index: int) -> None:
+        """Mine S_target again in the twin with the current weights."""
+        s = self.settings
+        path = self.out / "mining" / f"{episode_index:05d}.json"
+        if path.exists():  # an interrupted refresh: mine afresh
+            path.unlink()
+            shutil.rmtree(path.with_suffix(""), ignore_errors=True)
+        runner = TwinrlRunner(self.run_state.agent.policy, name=f"rl@{episode_index}")
+        mine(
+            runner,
+            s.task,
+            out=path,
+            grid=s.mining_grid,
+            episodes=s.mining_episodes,
+            tau=s.tau,
+            k=s.k,
+            seed=s.rl.seed + episode_index,
+        )
+        self.resets.targets = load_targets(path)
+        self.run_state.extra["targets"] = str(path)
+
+    def _evaluation_due(self) -> bool:
+        every = self.settings.eval_every
+        last = self.evaluations[-1].plant_steps if self.evaluations else 0
+        return every > 0 and self.run_state.agent.env_steps - last >= every
+
+    def evaluate(self) -> EvalPoint:
+        """Evaluate the deterministic policy on the fixed grid in a separate plant."""
+        s, steps = self.settings, self.run_state.agent.env_steps
+        folder = self.out / "evaluations" / f"{steps:06d}"
+        shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
+        runner = TwinrlRunner(self.run_state.agent.policy, name=f"rl@{steps}")
+        report = evaluate(
+            runner,
+            s.task,
+            world="plant",
+            effects=s.effects,
+            grid=s.eval_grid,
+            episodes=s.eval_episodes,
+            seed=10_000 + s.rl.seed,
+            out=folder,
+        )
+        point = EvalPoint(
+            plant_steps=steps,
+            plant_minutes=steps / self.plant.control_hz / 60,
+            success_rate=report.success_rate(),
+            episodes=report.episodes,
+        )
+        self.evaluations.append(point)
+        return point
+
+    def _show_reset(self, index: int, config: TaskConfig, region: str, origin: str) -> None:
+        """Render the reset configuration from the twin into the run's Rerun recording
+        (on a real cell the operator places the object to match it)."""
+        if not self.settings.show_resets:
+            return
+        if self._render_env is None:
+            self._render_env = TwinEnv(self.task, cameras=("front",))
+            self._recording = rr.RecordingStream("twinrl_resets")
+            self._recording.save(str(self.out / f"resets-{index:05d}.rrd"))
+        obs, _ = self._render_env.reset(options={"config": config})
+        rec = self._recording
+        rec.set_time("episode", sequence=index)
+        rec.log("reset/front", rr.Image(obs["observation.images.front"]))
+        target = np.asarray(config.target[:2])
+        rec.log(
+            "reset/config",
+            rr.TextLog(f"episode {index}: {origin} reset in {region}, target at {target.round(3)}"),
+        )
+
+
+def _operator(settings: RealRLSettings, operator: Operator | None) -> Operator | None:
+    if operator is not None or settings.operator is None:
+        return operator
+    return SimulatedOperator(settings.operator, seed=settings.rl.seed + 7)
+
+
+def minutes_to(evaluations: list[EvalPoint], region: str, level: float = 0.95) -> float | None:
+    """Plant minutes at the first evaluation with ``region`` success >= ``level``."""
+    for point in evaluations:
+        if point.success_rate.get(region, 0.0) >= level:
+            return point.plant_minutes
+    return None
+
+
+def load_evaluations(folder: str | Path) -> list[EvalPoint]:
+    path = Path(folder) / EVALUATIONS_FILE
+    if not path.is_file():
+        raise ValueError(f"{folder} holds no {EVALUATIONS_FILE}; it is not a real-RL run")
+    return [EvalPoint(**p) for p in json.loads(path.read_text())]
+
+
+def plot_evaluations(
+    evaluations: list[EvalPoint], path: Path, *, title: str = "", label: str = ""
+) -> None:
+    """Evaluation success per region against plant minutes."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=120)
+    for region in REGION_NAMES:
+        xs = [p.plant_minutes for p in evaluations if region in p.success_rate]
+        ys = [p.success_rate[region] for p in evaluations if region in p.success_rate]
+        ax.plot(xs, ys, marker="o", ms=3, lw=1.6, label=f"{label} {region}".strip())
+    ax.axhline(0.95, color="grey", lw=0.8, ls="--")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("plant minutes (10 Hz robot steps)")
+    ax.set_ylabel("evaluation success")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def describe(settings: RealRLSettings) -> dict[str, Any]:
+    """The settings as JSON (written beside the run for the record)."""
+    data = asdict(settings)
+    data["rl"] = asdict(settings.rl)
+    return data
