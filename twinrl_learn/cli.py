@@ -14,13 +14,16 @@ from rich.table import Table
 from twinrl_data import cli as data_cli
 from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
-from twinrl_learn.mining import mine
+from twinrl_learn.mining import load_targets, mine
+from twinrl_learn.pipeline import PRESETS, run_demo
 from twinrl_learn.policy import is_checkpoint
+from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.runners import load_runner
 from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
 from twinrl_learn.stage1 import Stage1Settings, run_stage1
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot import cli as robot_cli
+from twinrl_robot.operator import OperatorRule
 from twinrl_sim import cli as sim_cli
 from twinrl_sim.spec import SpecError
 from twinrl_sim.tasks import TASKS, make_task
@@ -37,7 +40,7 @@ app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)
 
-train_app = typer.Typer(help="Train policies: SFT, twin RL.", no_args_is_help=True)
+train_app = typer.Typer(help="Train policies: SFT, twin RL, real RL.", no_args_is_help=True)
 app.add_typer(train_app, name="train")
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
@@ -275,6 +278,208 @@ def train_twin_rl_command(
         f"policy {out / 'agent'}, curve {out / 'curve.png'}, "
         + (f"twin buffer {buffer}" if buffer.exists() else "no successful rollout to export")
     )
+
+
+@train_app.command("real-rl")
+def train_real_rl_command(
+    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")],
+    out: Annotated[Path, typer.Option(help="Run folder to create (or continue with --resume).")],
+    init: Annotated[
+        Path | None,
+        typer.Option(help="Policy to start from: SFT checkpoint or a twin-rl run's agent/."),
+    ] = None,
+    robot: Annotated[str, typer.Option(help="Robot to learn on: plant.")] = "plant",
+    effects: Annotated[
+        Path | None, typer.Option(help="The plant's hidden effects (YAML; default built in).")
+    ] = None,
+    demos: Annotated[
+        list[Path] | None,
+        typer.Option(help="Real demos (LeRobotDataset) for the demo buffer; repeatable."),
+    ] = None,
+    twin_buffer: Annotated[
+        Path | None, typer.Option(help="Twin buffer from `train twin-rl` (seeds the replay).")
+    ] = None,
+    targets: Annotated[
+        Path | None, typer.Option(help="targets.json from `twinrl mine` (else uniform resets).")
+    ] = None,
+    target_ratio: Annotated[
+        float, typer.Option(help="Share of resets drawn from the mined targets.")
+    ] = 0.7,
+    refresh_every: Annotated[
+        int, typer.Option(help="Episodes between re-minings in the twin (0: never).", min=0)
+    ] = 10,
+    plant_steps: Annotated[
+        int, typer.Option(help="Robot steps to learn for (10 Hz: 600 = 1 min).", min=1)
+    ] = 6000,
+    eval_every: Annotated[
+        int, typer.Option(help="Robot steps between evaluations on a fixed grid.", min=0)
+    ] = 600,
+    eval_grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "4x4",
+    method: Annotated[str, typer.Option(help=f"Objective: {', '.join(METHODS)}.")] = "twinrl",
+    beta: Annotated[float | None, typer.Option(help="Weight of the imitation term.")] = None,
+    eta: Annotated[float | None, typer.Option(help="Weight of the Q term.")] = None,
+    utd: Annotated[float | None, typer.Option(help="Updates per robot step.")] = None,
+    offline_steps: Annotated[
+        int | None, typer.Option(help="Offline (Cal-QL + BC) updates before the first episode.")
+    ] = None,
+    exploration: Annotated[
+        float | None,
+        typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
+    ] = None,
+    operator: Annotated[
+        bool, typer.Option(help="Simulated operator takes over when the policy strays.")
+    ] = True,
+    seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
+    resume: Annotated[
+        bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
+    ] = False,
+) -> None:
+    """Stage III: human-in-the-loop RL on the robot with twin-mined resets."""
+    make_task(task)
+    if not resume and init is None:
+        raise ValueError("--init CHECKPOINT is needed to start a run (or pass --resume)")
+    if init is not None and not is_checkpoint(init):
+        raise ValueError(f"--init {init} is not a twinrl policy checkpoint")
+    for flag, path in [("--demos", d) for d in demos or []] + [("--twin-buffer", twin_buffer)]:
+        if path is not None and not (path / "meta" / "info.json").is_file():
+            raise ValueError(f"{flag} {path} is not a LeRobotDataset (no meta/info.json)")
+    if targets is not None:
+        load_targets(targets)
+    rl = (
+        RLConfig.load(out / "agent")
+        if resume
+        else _rl_config(
+            method,
+            beta=beta,
+            eta=eta,
+            utd=utd,
+            offline_steps=offline_steps,
+            exploration=exploration,
+            seed=seed,
+        )
+    )
+    settings = RealRLSettings(
+        task=task,
+        init=str(init or ""),
+        out=str(out),
+        robot=robot,
+        effects=str(effects) if effects else None,
+        demos=[str(d) for d in demos or []],
+        twin_buffer=str(twin_buffer) if twin_buffer else None,
+        targets=str(targets) if targets else None,
+        target_ratio=target_ratio,
+        refresh_every=refresh_every,
+        plant_steps=plant_steps,
+        eval_every=eval_every,
+        eval_grid=_grid(eval_grid),
+        operator=OperatorRule() if operator else None,
+        rl=rl,
+    )
+    torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
+    data_cli.quiet_encoders()
+    if resume and not (out / "run.json").is_file():
+        raise ValueError(f"--resume: {out / 'run.json'} does not exist (nothing to continue)")
+    job_run = RealRL.resume(settings) if resume else RealRL.start(settings)
+    with data_cli.progress("ID", "OOD", "interventions") as bar:
+        offline = bar.add_task(
+            "offline updates", total=rl.offline_steps, ID="", OOD="", interventions=""
+        )
+        job = bar.add_task("robot steps", total=plant_steps, ID="-", OOD="-", interventions=0)
+
+        def on_episode(record, real) -> None:
+            rates = real.evaluations[-1].success_rate
+            bar.update(
+                job,
+                completed=min(record.env_steps, plant_steps),
+                **{r: f"{100 * v:.0f} %" for r, v in rates.items()},
+                interventions=sum(r.interventions for r in real.run_state.history),
+            )
+
+        run = job_run.run(
+            on_episode=on_episode, on_update=lambda n: bar.update(offline, completed=n)
+        )
+    final = job_run.evaluations[-1]
+    console.print(
+        f"{out}: {run.agent.env_steps} robot steps ({final.plant_minutes:.1f} plant min), "
+        f"{len(run.history)} episodes, "
+        f"{sum(r.interventions for r in run.history)} intervention steps; evaluation "
+        + ", ".join(f"{r} {100 * v:.0f} %" for r, v in final.success_rate.items())
+    )
+    console.print(f"policy {out / 'agent'}, curve {out / 'curve.png'}")
+
+
+@app.command("demo")
+def demo_command(
+    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")] = "pick_place",
+    preset: Annotated[
+        str,
+        typer.Option(
+            help="smoke (every stage, minutes), quick (state policy, ~20 min) or paper "
+            "(image policy, hours)."
+        ),
+    ] = "quick",
+    out: Annotated[Path, typer.Option(help="Folder for the report, logs and policies.")] = Path(
+        "out/twinrl_demo"
+    ),
+    seeds: Annotated[
+        str | None, typer.Option(help="Comma-separated seeds (default: the preset's three).")
+    ] = None,
+    resume: Annotated[
+        bool, typer.Option(help="Continue a stopped run in --out (finished stages are kept).")
+    ] = False,
+) -> None:
+    """The whole TwinRL pipeline in the plant, then HiL-SERL, ConRFT-style and TwinRL
+    without the twin buffer on the same seeds; writes report.md and report.json."""
+    make_task(task)
+    if preset not in PRESETS:
+        raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+    chosen = _int_list(seeds, "--seeds") if seeds else None
+    torch.set_num_threads(1)
+    data_cli.quiet_encoders()
+    with data_cli.progress("ID", "OOD") as bar:
+        jobs: dict[tuple[str, int], int] = {}
+        steps = PRESETS[preset].plant_steps
+
+        def on_episode(method: str, seed: int, real: RealRL) -> None:
+            key = (method, seed)
+            if key not in jobs:
+                jobs[key] = bar.add_task(f"{method}, seed {seed}", total=steps, ID="-", OOD="-")
+            rates = real.evaluations[-1].success_rate
+            bar.update(
+                jobs[key],
+                completed=min(real.run_state.agent.env_steps, steps),
+                **{r: f"{100 * v:.0f} %" for r, v in rates.items()},
+            )
+
+        report = run_demo(
+            task,
+            preset,
+            out,
+            seeds=chosen,
+            resume=resume,
+            log=lambda text: bar.console.print(text),
+            on_episode=on_episode,
+        )
+    table = Table("method", "min to 95 % ID", "min to 95 % OOD", "final ID", "final OOD", "interv.")
+    for name, m in report["methods"].items():
+        to95 = m["plant_minutes_to_95"]
+        table.add_row(
+            name,
+            *("-" if to95[r] is None else f"{to95[r]:.1f}" for r in ("ID", "OOD")),
+            *(f"{100 * m['final_success'][r]:.0f} %" for r in ("ID", "OOD")),
+            str(m["interventions"]),
+        )
+    console.print(table)
+    console.print(f"report: {out / 'report.md'}")
+
+
+def _int_list(text: str, flag: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(
+            f"{flag} takes comma-separated integers, e.g. 0,1,2; got '{text}'"
+        ) from None
 
 
 @app.command("mine")

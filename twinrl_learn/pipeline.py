@@ -1,0 +1,485 @@
+"""``twinrl demo``: the three TwinRL stages on a built-in cell with the plant as the
+real robot, then the baselines on the same plant and seeds, and a report.
+
+Stages (shared by every method and seed):
+
+1. real demos: teleop-like expert demos in the plant, region ID only; twin demos
+   (ID + OOD) synthesized by the planner; two SFT policies: real only (what the
+   baselines start from) and real + twin (TwinRL's Stage I);
+2. twin RL from the real + twin policy; its successful rollouts are the twin buffer;
+3. failure mining in the twin with the Stage II policy: the first reset targets.
+
+Then real RL in the plant for each method and seed (``RealRL``), all with the same
+simulated operator and evaluation grid:
+
+====================== ============== ============ =========== ==================
+method                 starts from    twin buffer  resets      objective
+====================== ============== ============ =========== ==================
+TwinRL                 Stage II       yes          mined+unif. beta L_IL + eta L_Q
+TwinRL w/o twin buffer Stage II       no           mined+unif. beta L_IL + eta L_Q
+ConRFT-style           real-only SFT  no           uniform     beta L_IL + eta L_Q
+HiL-SERL               real-only SFT  no           uniform     SAC (no IL term)
+====================== ============== ============ =========== ==================
+
+Outputs: ``report.md`` (curves, tables), ``report.json``, ``curves.png``, every
+episode log (each stage's ``session/`` folders), ``catalog.parquet`` over all of them
+and ``representative.rrd`` (a TwinRL episode with an intervention and its last one).
+With ``resume`` a stopped pipeline continues: finished stages are skipped and an
+interrupted real-RL run resumes from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.catalog import build_index
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_data.view import save_rrd
+from twinrl_learn.agent import RLConfig
+from twinrl_learn.evaluate import evaluate
+from twinrl_learn.mining import mine
+from twinrl_learn.real_rl import EvalPoint, RealRL, RealRLSettings, load_evaluations, minutes_to
+from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.stage1 import record_real_demos
+from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+from twinrl_robot.operator import OperatorRule
+from twinrl_sim.expand import expand
+from twinrl_sim.tasks import REGION_NAMES, make_task
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Preset:
+    """The scale of a pipeline run."""
+
+    policy: str  # state (privileged, fast) or vla (cameras + language)
+    real_demos: int
+    twin_id: int
+    twin_ood: int
+    twin_rl_steps: int
+    twin_envs: int
+    mining_grid: tuple[int, int]
+    mining_episodes: int
+    plant_steps: int  # per real-RL run (10 Hz: 600 = 1 plant minute)
+    eval_every: int
+    eval_grid: tuple[int, int]
+    eval_episodes: int
+    offline_steps: int
+    refresh_every: int
+    seeds: tuple[int, ...]
+    sft_steps: int | None = None  # None: the SFT defaults of the policy kind
+
+
+PRESETS = {
+    # A few minutes: checks that every stage runs (no learning to speak of).
+    "smoke": Preset(
+        policy="state",
+        real_demos=2,
+        twin_id=2,
+        twin_ood=2,
+        twin_rl_steps=40,
+        twin_envs=2,
+        mining_grid=(2, 2),
+        mining_episodes=1,
+        plant_steps=100,
+        eval_every=50,
+        eval_grid=(2, 2),
+        eval_episodes=1,
+        offline_steps=5,
+        refresh_every=1,
+        seeds=(0,),
+        sft_steps=30,
+    ),
+    "quick": Preset(
+        policy="state",
+        real_demos=30,
+        twin_id=30,
+        twin_ood=30,
+        twin_rl_steps=1600,
+        twin_envs=8,
+        mining_grid=(4, 4),
+        mining_episodes=2,
+        plant_steps=2400,
+        eval_every=600,
+        eval_grid=(4, 4),
+        eval_episodes=1,
+        offline_steps=200,
+        refresh_every=8,
+        seeds=(0, 1, 2),
+    ),
+    "paper": Preset(
+        policy="vla",
+        real_demos=30,
+        twin_id=60,
+        twin_ood=30,
+        twin_rl_steps=20000,
+        twin_envs=8,
+        mining_grid=(8, 8),
+        mining_episodes=2,
+        plant_steps=18000,
+        eval_every=1200,
+        eval_grid=(4, 4),
+        eval_episodes=2,
+        offline_steps=1000,
+        refresh_every=10,
+        seeds=(0, 1, 2),
+    ),
+}
+
+
+@dataclass(frozen=True)
+class Method:
+    """How one compared method runs real RL."""
+
+    name: str
+    slug: str
+    rl_method: str
+    from_twin: bool  # start from Stage II (else from the real-only SFT policy)
+    twin_buffer: bool
+    mined_resets: bool
+
+
+METHOD_TABLE = (
+    Method("TwinRL", "twinrl", "twinrl", True, True, True),
+    Method("TwinRL w/o twin buffer", "twinrl_no_buffer", "twinrl", True, False, True),
+    Method("ConRFT-style", "conrft", "conrft", False, False, False),
+    Method("HiL-SERL", "hil_serl", "hil-serl", False, False, False),
+)
+
+
+def run_demo(
+    task: str = "pick_place",
+    preset: str = "quick",
+    out: str | Path = "out/twinrl_demo",
+    *,
+    seeds: tuple[int, ...] | None = None,
+    resume: bool = False,
+    log: Log = print,
+    on_episode: Callable[[str, int, RealRL], None] | None = None,
+) -> dict[str, Any]:
+    """Run the pipeline and write the report; returns ``report.json``'s content."""
+    make_task(task)
+    if preset not in PRESETS:
+        raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+    p = PRESETS[preset]
+    seeds = tuple(seeds) if seeds else p.seeds
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not resume:
+        raise ValueError(f"{out} exists and is not empty; pass --resume or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    stage1 = _stage1(task, p, out / "stage1", log)
+    stage2 = _stage2(task, p, out, stage1, log)
+    targets = _mining(task, p, out, stage2, log)
+    runs: dict[str, dict[int, Path]] = {}
+    for method in METHOD_TABLE:
+        for seed in seeds:
+            folder = out / "real_rl" / method.slug / f"seed{seed}"
+            runs.setdefault(method.name, {})[seed] = folder
+            _real_rl(task, p, method, seed, folder, stage1, stage2, targets, log, on_episode)
+    log("writing the report")
+    return write_report(task, preset, p, out, stage1, runs, seeds)
+
+
+# ------------------------------------------------------------------ stages
+def _done(folder: Path) -> bool:
+    return (folder / ".done").is_file()
+
+
+def _mark_done(folder: Path) -> None:
+    (folder / ".done").write_text("")
+
+
+def _fresh(folder: Path) -> Path:
+    """A stage folder to (re)start: whatever an interrupted attempt left is removed."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    return folder
+
+
+def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
+    paths = {
+        "real": folder / "real",
+        "sft_real": folder / f"{p.policy}_real",
+        "sft_twin": folder / f"{p.policy}_real_twin",
+    }
+    if _done(folder):
+        return paths
+    _fresh(folder).mkdir(parents=True)
+    log(f"Stage I: recording {p.real_demos} teleop-like demos in the plant (ID)")
+    kept, recorded = record_real_demos(task, p.real_demos, folder)
+    log(f"Stage I: kept {kept} of {recorded}; synthesizing {p.twin_id} ID + {p.twin_ood} OOD")
+    expand(task, id_count=p.twin_id, ood_count=p.twin_ood, out=folder / "twin", seed=1)
+    twin = folder / "twin" / "dataset"
+    for name, datasets in (("sft_real", [paths["real"]]), ("sft_twin", [paths["real"], twin])):
+        log(f"Stage I: SFT {paths[name].name}")
+        train_sft(
+            SFTConfig(
+                datasets=[str(d) for d in datasets],
+                out=str(paths[name]),
+                policy=p.policy,
+                steps=p.sft_steps,
+            )
+        )
+        evaluate(
+            TwinrlRunner(paths[name]),
+            task,
+            world="plant",
+            grid=p.eval_grid,
+            episodes=p.eval_episodes,
+            seed=10_000,
+            out=folder / f"{paths[name].name}_eval",
+        )
+    _mark_done(folder)
+    return paths
+
+
+def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) -> Path:
+    folder = out / "stage2"
+    if not _done(folder):
+        log(f"Stage II: twin RL, {p.twin_envs} envs, {p.twin_rl_steps} steps")
+        run_twin_rl(
+            TwinRLSettings(
+                task=task,
+                init=str(stage1["sft_twin"]),
+                out=str(_fresh(folder)),
+                demos=[str(stage1["real"])],
+                envs=p.twin_envs,
+                steps=p.twin_rl_steps,
+                rl=RLConfig.for_method("twinrl", offline_steps=p.offline_steps),
+            )
+        )
+        _mark_done(folder)
+    return folder
+
+
+def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log) -> Path:
+    path = out / "targets.json"
+    if not path.is_file():
+        log("Stage III: mining failure-prone configurations in the twin")
+        _fresh(out / "targets")
+        mine(
+            TwinrlRunner(stage2 / "agent", name="stage2"),
+            task,
+            out=path,
+            grid=p.mining_grid,
+            episodes=p.mining_episodes,
+        )
+    return path
+
+
+def _real_rl(
+    task: str,
+    p: Preset,
+    method: Method,
+    seed: int,
+    folder: Path,
+    stage1: dict[str, Path],
+    stage2: Path,
+    targets: Path,
+    log: Log,
+    on_episode: Callable[[str, int, RealRL], None] | None,
+) -> None:
+    if _done(folder):
+        return
+    twin_buffer = stage2 / "twin_buffer"
+    settings = RealRLSettings(
+        task=task,
+        init=str(stage2 / "agent" if method.from_twin else stage1["sft_real"]),
+        out=str(folder),
+        demos=[str(stage1["real"])],
+        twin_buffer=str(twin_buffer) if method.twin_buffer and twin_buffer.exists() else None,
+        targets=str(targets) if method.mined_resets else None,
+        refresh_every=p.refresh_every if method.mined_resets else 0,
+        mining_grid=p.mining_grid,
+        mining_episodes=1,
+        plant_steps=p.plant_steps,
+        eval_every=p.eval_every,
+        eval_grid=p.eval_grid,
+        eval_episodes=p.eval_episodes,
+        operator=OperatorRule(),
+        rl=RLConfig.for_method(method.rl_method, offline_steps=p.offline_steps, seed=seed),
+    )
+    if (folder / "run.json").is_file():
+        log(f"real RL: {method.name}, seed {seed}: resuming")
+        real = RealRL.resume(settings)
+    else:
+        log(f"real RL: {method.name}, seed {seed}")
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        real = RealRL.start(settings) if not folder.exists() else _restart(settings)
+    callback = (lambda record, r: on_episode(method.name, seed, r)) if on_episode else None
+    real.run(on_episode=callback)
+    _mark_done(folder)
+
+
+def _restart(settings: RealRLSettings) -> RealRL:
+    _fresh(Path(settings.out))
+    return RealRL.start(settings)
+
+
+# ------------------------------------------------------------------ report
+def _median(values: list[float | None]) -> float | None:
+    """Median where a missing value (never reached) counts as infinitely late."""
+    finite = [math.inf if v is None else v for v in values]
+    middle = float(np.median(finite))
+    return None if math.isinf(middle) else middle
+
+
+def method_summary(folders: dict[int, Path]) -> dict[str, Any]:
+    """One method's ``M`` of report.json: medians over its seeds."""
+    per_seed = []
+    for folder in folders.values():
+        evaluations = load_evaluations(folder)
+        history = json.loads((folder / "run.json").read_text())["history"]
+        per_seed.append(
+            {
+                "to95": {r: minutes_to(evaluations, r) for r in REGION_NAMES},
+                "final": evaluations[-1].success_rate,
+                "interventions": sum(h["interventions"] for h in history),
+                "plant_steps": history[-1]["env_steps"] if history else 0,
+            }
+        )
+    return {
+        "plant_minutes_to_95": {r: _median([s["to95"][r] for s in per_seed]) for r in REGION_NAMES},
+        "final_success": {
+            r: float(np.median([s["final"].get(r, 0.0) for s in per_seed])) for r in REGION_NAMES
+        },
+        "interventions": int(np.median([s["interventions"] for s in per_seed])),
+        "plant_steps": int(np.median([s["plant_steps"] for s in per_seed])),
+    }
+
+
+def _curve(evaluations: list[EvalPoint], region: str, grid: np.ndarray) -> np.ndarray:
+    """Success held from each evaluation until the next, on ``grid`` (plant minutes)."""
+    xs = np.array([e.plant_minutes for e in evaluations])
+    ys = np.array([e.success_rate.get(region, 0.0) for e in evaluations])
+    index = np.searchsorted(xs, grid, side="right") - 1
+    return ys[np.clip(index, 0, len(ys) - 1)]
+
+
+def plot_methods(runs: dict[str, dict[int, Path]], path: Path, title: str) -> None:
+    """Evaluation success in ID and OOD against plant minutes: median over seeds (bold),
+    each seed (thin)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=120, sharey=True)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, region in zip(axes, REGION_NAMES, strict=True):
+        for color, (name, folders) in zip(colors, runs.items(), strict=False):
+            series = [load_evaluations(f) for f in folders.values()]
+            end = max(s[-1].plant_minutes for s in series)
+            grid = np.linspace(0, end, 200)
+            curves = np.array([_curve(s, region, grid) for s in series])
+            for curve in curves:
+                ax.plot(grid, curve, color=color, lw=0.6, alpha=0.35)
+            ax.plot(grid, np.median(curves, axis=0), color=color, lw=2, label=name)
+        ax.axhline(0.95, color="grey", lw=0.8, ls="--")
+        ax.set_title(f"{region}", fontsize=10)
+        ax.set_xlabel("plant minutes")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("evaluation success")
+    axes[0].set_ylim(-0.02, 1.02)
+    axes[1].legend(fontsize=8, loc="lower right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _fmt_minutes(value: float | None) -> str:
+    return "not reached" if value is None else f"{value:.1f}"
+
+
+def write_report(
+    task: str,
+    preset_name: str,
+    p: Preset,
+    out: Path,
+    stage1: dict[str, Path],
+    runs: dict[str, dict[int, Path]],
+    seeds: tuple[int, ...],
+) -> dict[str, Any]:
+    methods = {name: method_summary(folders) for name, folders in runs.items()}
+    report = {
+        "task": task,
+        "preset": preset_name,
+        "policy": p.policy,
+        "seeds": list(seeds),
+        "methods": methods,
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1))
+    plot_methods(runs, out / "curves.png", f"{task}: real RL in the plant ({preset_name})")
+    stage1_rows = []
+    for key, label in (("sft_real", "real demos only"), ("sft_twin", "real + twin demos")):
+        result = json.loads((out / "stage1" / f"{stage1[key].name}_eval" / "eval.json").read_text())
+        stage1_rows.append((label, result["success_rate"]))
+    lines = [
+        f"# TwinRL in the plant: {task}, preset `{preset_name}`",
+        "",
+        f"Policy: **{p.policy}**"
+        + (" (privileged object poses instead of images)" if p.policy == "state" else "")
+        + f". Seeds: {', '.join(map(str, seeds))}. Real RL: {p.plant_steps} robot steps "
+        f"({p.plant_steps / 600:.1f} plant minutes) per run; evaluation every {p.eval_every} "
+        f"steps on a {p.eval_grid[0]}x{p.eval_grid[1]} grid in a separate plant "
+        "(not counted as interaction). Values are medians over seeds.",
+        "",
+        "## Stage I: SFT coverage (plant evaluation)",
+        "",
+        "| data | ID | OOD |",
+        "|---|---|---|",
+        *[
+            f"| {label} ({p.real_demos} real"
+            + (f" + {p.twin_id} ID / {p.twin_ood} OOD twin" if "twin" in label else "")
+            + f") | {100 * r.get('ID', 0):.0f} % | {100 * r.get('OOD', 0):.0f} % |"
+            for label, r in stage1_rows
+        ],
+        "",
+        "## Real RL",
+        "",
+        "![success against plant minutes](curves.png)",
+        "",
+        "| method | minutes to 95 % ID | minutes to 95 % OOD | final ID | final OOD "
+        "| intervention steps | robot steps |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, m in methods.items():
+        lines.append(
+            f"| {name} | {_fmt_minutes(m['plant_minutes_to_95']['ID'])} "
+            f"| {_fmt_minutes(m['plant_minutes_to_95']['OOD'])} "
+            f"| {100 * m['final_success']['ID']:.0f} % | {100 * m['final_success']['OOD']:.0f} % "
+            f"| {m['interventions']} | {m['plant_steps']} |"
+        )
+    lines += [
+        "",
+        "Per run: `real_rl/<method>/seed<k>/` (curve.png, evaluations/, session/, "
+        "resets-*.rrd). All episodes are indexed in `catalog.parquet`; "
+        "`representative.rrd` shows a TwinRL episode with an operator takeover and its "
+        "last training episode.",
+        "",
+        "Settings: " + json.dumps(asdict(p)),
+    ]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    build_index([out], out / "catalog.parquet")
+    _representative(runs[METHOD_TABLE[0].name], out / "representative.rrd")
+    return report
+
+
+def _representative(folders: dict[int, Path], path: Path) -> None:
+    session = Session(next(iter(folders.values())) / "session")
+    entries, paths = session.entries, session.episode_paths()
+    helped = [p for p, e in zip(paths, entries, strict=True) if e.get("num_interventions")]
+    chosen = ([helped[-1]] if helped else []) + [paths[-1]]
+    save_rrd([read_episode(p) for p in dict.fromkeys(chosen)], path, force=True)
