@@ -1,0 +1,177 @@
+"""Stage III: target-driven resets, the simulated operator and intervention flagging,
+real-RL resume, and the whole pipeline at smoke scale."""
+
+import json
+
+import numpy as np
+import pytest
+
+from tests.conftest import record_demos
+from tests.test_cli import twinrl as run_cli
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_learn.agent import RLConfig
+from twinrl_learn.mining import Target
+from twinrl_learn.pipeline import METHOD_TABLE, run_demo
+from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
+from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_robot.operator import OperatorRule, SimulatedOperator
+from twinrl_robot.plant import Plant
+from twinrl_sim.tasks import make_task
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("real_rl")
+    record_demos(folder, seed=5)
+    train_sft(
+        SFTConfig(
+            datasets=[str(folder / "dataset")],
+            out=str(folder / "sft"),
+            policy="state",
+            steps=20,
+            batch_size=16,
+            chunk=4,
+        )
+    )
+    return folder / "dataset", folder / "sft"
+
+
+def test_resets_follow_the_targets_by_score_and_mix_in_uniform_draws():
+    task = make_task("pick_place")
+    rng = np.random.default_rng(0)
+    configs = [task.sample_config(rng, "OOD") for _ in range(2)]
+    targets = [
+        Target(config=c.to_dict(), region="OOD", x=0, y=0, estimated_success=0.3, score=score)
+        for c, score in zip(configs, (3.0, 1.0), strict=True)
+    ]
+    draws = [ResetPlanner(task, targets, ratio=1.0).next(rng) for _ in range(400)]
+    assert {origin for _, _, origin in draws} == {"target"}
+    first = np.mean([config == configs[0] for config, _, _ in draws])
+    assert first == pytest.approx(0.75, abs=0.07)  # in proportion to the score
+
+    mixed = [ResetPlanner(task, targets, ratio=0.3).next(rng) for _ in range(400)]
+    share = np.mean([origin == "target" for _, _, origin in mixed])
+    assert share == pytest.approx(0.3, abs=0.07)
+    uniform = [(c, r) for c, r, origin in mixed if origin == "uniform"]
+    assert {r for _, r in uniform} == {"ID", "OOD"}
+    assert all(c not in configs for c, _ in uniform)
+    assert {o for _, _, o in (ResetPlanner(task, [], 1.0).next(rng) for _ in range(20))} == {
+        "uniform"
+    }
+
+
+def test_the_operator_takes_over_a_stalled_arm_after_its_delay_and_hands_back():
+    task = make_task("pick_place")
+    plant = Plant(task, seed=0)
+    rule = OperatorRule(patience=5, delay=2, noise=0.0)
+    operator = SimulatedOperator(rule, seed=0)
+    config = task.sample_config(np.random.default_rng(1), "ID")
+    obs = plant.reset(config)
+    operator.reset(task, config)
+    acting = []
+    for _ in range(task.max_steps):
+        was = operator.in_control
+        action = operator.intervene(obs, plant.progress)
+        acting.append(action is not None)
+        if action is not None and not was:
+            plant.hold()
+        plant.act(np.zeros(7, np.float32) if action is None else action)
+        obs = plant.observe()
+        if plant.success:
+            break
+    first = acting.index(True)
+    assert first == rule.patience + rule.delay  # noticed after patience, acted after delay
+    assert not any(acting[:first])
+    handed_back = first + acting[first:].index(False)
+    assert handed_back > first + rule.min_control
+    assert operator.takeovers >= 1
+    plant.close()
+
+
+def real_settings(demos, out, **overrides):
+    dataset, sft = demos
+    options = {
+        "task": "pick_place",
+        "init": str(sft),
+        "out": str(out),
+        "demos": [str(dataset)],
+        "plant_steps": 60,
+        "eval_every": 0,
+        "eval_grid": (2, 2),
+        "refresh_every": 0,
+        "operator": OperatorRule(patience=3, delay=1),
+        "rl": RLConfig.for_method("twinrl", offline_steps=2, batch_size=16, seed=1),
+    }
+    return RealRLSettings(**(options | overrides))
+
+
+def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tmp_path):
+    real = RealRL.start(real_settings(demos, tmp_path / "run"))
+    recorded_demos = len(real.run_state.demo.episodes)
+    run = real.run()
+    session = Session(tmp_path / "run" / "session")
+    episodes = [read_episode(p) for p in session.episode_paths()]
+    assert sum(len(e) for e in episodes) == run.agent.env_steps >= 60
+    helped = [e for e in episodes if e.meta.num_interventions]
+    assert helped, "the operator never took over an untrained policy"
+    for episode in episodes:
+        assert (episode.meta.source, episode.meta.world) == ("real_rl", "plant")
+        flags = episode.data["intervention"]
+        assert int(flags.sum()) == episode.meta.num_interventions
+        own = ~flags  # the policy's steps execute what it proposed
+        np.testing.assert_array_equal(
+            episode.data["action"][own], episode.data["action.policy"][own]
+        )
+    assert len(run.demo.episodes) == recorded_demos + len(helped)
+    assert len(run.online.episodes) == len(episodes) - len(helped)
+    points = load_evaluations(tmp_path / "run")
+    assert [p.plant_steps for p in points] == [0, run.agent.env_steps]
+    assert list((tmp_path / "run").glob("resets-*.rrd"))
+
+    # Resume with a longer budget: counters, history and evaluations carry on.
+    more = real_settings(demos, tmp_path / "run", plant_steps=120)
+    resumed = RealRL.resume(more)
+    assert resumed.run_state.agent.env_steps == run.agent.env_steps
+    assert len(resumed.run_state.history) == len(run.history)
+    resumed.run()
+    assert resumed.run_state.agent.env_steps >= 120
+    assert len(load_evaluations(tmp_path / "run")) == 3
+
+
+def test_real_rl_refuses_bad_input(demos, tmp_path):
+    with pytest.raises(ValueError, match="--robot ur5e is not available"):
+        real_settings(demos, tmp_path / "a", robot="ur5e")
+    with pytest.raises(ValueError, match="--target-ratio"):
+        real_settings(demos, tmp_path / "a", target_ratio=2.0)
+    result = run_cli(
+        "train", "real-rl", "--task", "pick_place", "--out", str(tmp_path / "b"),
+        "--init", str(demos[1]), "--targets", str(tmp_path / "missing.json"),
+    )  # fmt: skip
+    assert result.returncode != 0
+    assert "does not exist" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "b").exists()
+
+
+def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
+    out = tmp_path / "demo"
+    report = run_demo("pick_place", "smoke", out, log=lambda _: None)
+    on_disk = json.loads((out / "report.json").read_text())
+    assert on_disk == report
+    assert (report["task"], report["preset"], report["policy"]) == ("pick_place", "smoke", "state")
+    assert set(report["methods"]) == {m.name for m in METHOD_TABLE}
+    for summary in report["methods"].values():
+        assert set(summary) == {
+            "plant_minutes_to_95",
+            "final_success",
+            "interventions",
+            "plant_steps",
+        }
+        assert set(summary["final_success"]) == {"ID", "OOD"}
+        assert summary["plant_steps"] >= 100
+    for name in ("report.md", "curves.png", "catalog.parquet", "representative.rrd"):
+        assert (out / name).is_file(), name
+    assert "![success against plant minutes](curves.png)" in (out / "report.md").read_text()
+    # A finished pipeline is never overwritten by accident.
+    with pytest.raises(ValueError, match="not empty"):
+        run_demo("pick_place", "smoke", out)
