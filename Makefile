@@ -14,7 +14,9 @@ export MUJOCO_GL ?= egl
 
 help:
 	@echo "make demo   set up, run every task's scripted expert in the twin and the plant, record,"
-	@echo "            index, query, curate a LeRobot dataset and save a Rerun recording under out/demo"
+	@echo "            index, query, curate a LeRobot dataset and save a Rerun recording under out/demo;"
+	@echo "            then the whole TwinRL pipeline against its baselines (twinrl demo --preset quick,"
+	@echo "            about 20 min) with its report in out/twinrl_demo/report.md"
 	@echo "make test   set up, then lint and run the test suite"
 	@echo "make bench  set up, then run the benchmarks"
 
@@ -55,6 +57,8 @@ demo: setup
 	$(BIN)/twinrl data curate --catalog $(DEMO)/catalog.parquet --task pick_place --to $(DEMO)/datasets/pick_place
 	$(BIN)/twinrl view $(DEMO)/session#0 $(DEMO)/session#2 --save $(DEMO)/pick_place_twin_vs_plant.rrd
 	@echo "open the recording with: $(BIN)/rerun $(DEMO)/pick_place_twin_vs_plant.rrd"
+	@rm -rf out/twinrl_demo   # the pipeline's own output from a previous run
+	$(BIN)/twinrl demo --task pick_place --preset quick --out out/twinrl_demo
 
 bench: setup
 	$(BIN)/python bench/bench_batch.py --episodes 32 --steps 60

@@ -293,6 +293,8 @@ def _real_rl(
     if _done(folder):
         return
     twin_buffer = stage2 / "twin_buffer"
+    # HiL-SERL has no offline phase (RLConfig.for_method); the others get the preset's.
+    offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}
     settings = RealRLSettings(
         task=task,
         init=str(stage2 / "agent" if method.from_twin else stage1["sft_real"]),
@@ -308,7 +310,7 @@ def _real_rl(
         eval_grid=p.eval_grid,
         eval_episodes=p.eval_episodes,
         operator=OperatorRule(),
-        rl=RLConfig.for_method(method.rl_method, offline_steps=p.offline_steps, seed=seed),
+        rl=RLConfig.for_method(method.rl_method, seed=seed, **offline),
     )
     if (folder / "run.json").is_file():
         log(f"real RL: {method.name}, seed {seed}: resuming")
