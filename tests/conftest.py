@@ -44,6 +44,25 @@ def record_demos(folder, task: str = "pick_place", episodes: int = 1, seed: int 
     return folder / "dataset"
 
 
+def tiny_state_policy(folder, *, seed: int, steps: int):
+    """Expert demos (``folder/dataset``) and a state policy briefly trained on them
+    (``folder/sft``, chunks of 4); returns both paths."""
+    from twinrl_learn.sft import SFTConfig, train_sft
+
+    dataset = record_demos(folder, seed=seed)
+    train_sft(
+        SFTConfig(
+            datasets=[str(dataset)],
+            out=str(folder / "sft"),
+            policy="state",
+            steps=steps,
+            batch_size=16,
+            chunk=4,
+        )
+    )
+    return dataset, folder / "sft"
+
+
 def lerobot_train(dataset, output_dir, *options: str):
     """Run lerobot's own trainer offline: a few ACT steps on ``dataset``."""
     import os

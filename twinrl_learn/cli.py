@@ -113,13 +113,13 @@ def train_sft_command(
     )
 
 
-def _grid(text: str) -> tuple[int, int]:
+def _grid(text: str, flag: str = "--grid") -> tuple[int, int]:
     try:
         rows, cols = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"--grid must look like 8x8, got '{text}'") from None
+        raise ValueError(f"{flag} must look like 8x8, got '{text}'") from None
     if rows < 1 or cols < 1:
-        raise ValueError(f"--grid needs positive sizes, got '{text}'")
+        raise ValueError(f"{flag} needs positive sizes, got '{text}'")
     return rows, cols
 
 
@@ -172,6 +172,23 @@ def eval_command(
     console.print(f"{out / 'eval.json'}, {out / 'heatmap.png'}, episodes in {out / 'session'}")
 
 
+# Options shared by the RL commands (twin-rl, real-rl).
+MethodOption = Annotated[str, typer.Option(help=f"Objective: {', '.join(METHODS)}.")]
+BetaOption = Annotated[float | None, typer.Option(help="Weight of the imitation term.")]
+EtaOption = Annotated[float | None, typer.Option(help="Weight of the Q term.")]
+UtdOption = Annotated[float | None, typer.Option(help="Updates per environment (robot) step.")]
+OfflineStepsOption = Annotated[
+    int | None, typer.Option(help="Offline (Cal-QL + BC) updates before the first rollout.")
+]
+ExplorationOption = Annotated[
+    float | None,
+    typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
+]
+ResumeOption = Annotated[
+    bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
+]
+
+
 def _rl_config(method: str, **options) -> RLConfig:
     if method not in METHODS:
         raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
@@ -191,27 +208,20 @@ def train_twin_rl_command(
     ] = None,
     envs: Annotated[int, typer.Option(help="Parallel twin environments.", min=1)] = 8,
     steps: Annotated[int, typer.Option(help="Twin environment steps in all.", min=1)] = 8000,
-    method: Annotated[str, typer.Option(help=f"Objective: {', '.join(METHODS)}.")] = "twinrl",
-    beta: Annotated[float | None, typer.Option(help="Weight of the imitation term.")] = None,
-    eta: Annotated[float | None, typer.Option(help="Weight of the Q term.")] = None,
-    utd: Annotated[float | None, typer.Option(help="Updates per environment step.")] = None,
-    offline_steps: Annotated[
-        int | None, typer.Option(help="Offline (Cal-QL + BC) updates before rollouts.")
-    ] = None,
+    method: MethodOption = "twinrl",
+    beta: BetaOption = None,
+    eta: EtaOption = None,
+    utd: UtdOption = None,
+    offline_steps: OfflineStepsOption = None,
     demo_ratio: Annotated[
         float | None, typer.Option(help="Share of each batch from demos/interventions.")
     ] = None,
-    exploration: Annotated[
-        float | None,
-        typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
-    ] = None,
+    exploration: ExplorationOption = None,
     failures: Annotated[
         int, typer.Option(help="Failed rollouts to add to the exported twin buffer (at most).")
     ] = 0,
     seed: Annotated[int, typer.Option(help="Seed (networks, configurations, sampling).")] = 0,
-    resume: Annotated[
-        bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
-    ] = False,
+    resume: ResumeOption = False,
 ) -> None:
     """Stage II: online RL in parallel twin envs; exports the twin buffer that seeds real RL."""
     make_task(task)
@@ -315,24 +325,17 @@ def train_real_rl_command(
         int, typer.Option(help="Robot steps between evaluations on a fixed grid.", min=0)
     ] = 600,
     eval_grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "4x4",
-    method: Annotated[str, typer.Option(help=f"Objective: {', '.join(METHODS)}.")] = "twinrl",
-    beta: Annotated[float | None, typer.Option(help="Weight of the imitation term.")] = None,
-    eta: Annotated[float | None, typer.Option(help="Weight of the Q term.")] = None,
-    utd: Annotated[float | None, typer.Option(help="Updates per robot step.")] = None,
-    offline_steps: Annotated[
-        int | None, typer.Option(help="Offline (Cal-QL + BC) updates before the first episode.")
-    ] = None,
-    exploration: Annotated[
-        float | None,
-        typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
-    ] = None,
+    method: MethodOption = "twinrl",
+    beta: BetaOption = None,
+    eta: EtaOption = None,
+    utd: UtdOption = None,
+    offline_steps: OfflineStepsOption = None,
+    exploration: ExplorationOption = None,
     operator: Annotated[
         bool, typer.Option(help="Simulated operator takes over when the policy strays.")
     ] = True,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
-    resume: Annotated[
-        bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
-    ] = False,
+    resume: ResumeOption = False,
 ) -> None:
     """Stage III: human-in-the-loop RL on the robot with twin-mined resets."""
     make_task(task)
@@ -345,8 +348,9 @@ def train_real_rl_command(
             raise ValueError(f"{flag} {path} is not a LeRobotDataset (no meta/info.json)")
     if targets is not None:
         load_targets(targets)
+    # A resumed run keeps the RL settings it started with (RealRL.resume loads them).
     rl = (
-        RLConfig.load(out / "agent")
+        RLConfig()
         if resume
         else _rl_config(
             method,
@@ -371,18 +375,20 @@ def train_real_rl_command(
         refresh_every=refresh_every,
         plant_steps=plant_steps,
         eval_every=eval_every,
-        eval_grid=_grid(eval_grid),
+        eval_grid=_grid(eval_grid, "--eval-grid"),
         operator=OperatorRule() if operator else None,
         rl=rl,
     )
     torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
     data_cli.quiet_encoders()
-    if resume and not (out / "run.json").is_file():
-        raise ValueError(f"--resume: {out / 'run.json'} does not exist (nothing to continue)")
     job_run = RealRL.resume(settings) if resume else RealRL.start(settings)
     with data_cli.progress("ID", "OOD", "interventions") as bar:
         offline = bar.add_task(
-            "offline updates", total=rl.offline_steps, ID="", OOD="", interventions=""
+            "offline updates",
+            total=job_run.run_state.agent.config.offline_steps,
+            ID="",
+            OOD="",
+            interventions="",
         )
         job = bar.add_task("robot steps", total=plant_steps, ID="-", OOD="-", interventions=0)
 

@@ -318,15 +318,11 @@ def _real_rl(
     else:
         log(f"real RL: {method.name}, seed {seed}")
         folder.parent.mkdir(parents=True, exist_ok=True)
-        real = RealRL.start(settings) if not folder.exists() else _restart(settings)
+        _fresh(folder)  # what an attempt stopped before its first checkpoint left
+        real = RealRL.start(settings)
     callback = (lambda record, r: on_episode(method.name, seed, r)) if on_episode else None
     real.run(on_episode=callback)
     _mark_done(folder)
-
-
-def _restart(settings: RealRLSettings) -> RealRL:
-    _fresh(Path(settings.out))
-    return RealRL.start(settings)
 
 
 # ------------------------------------------------------------------ report

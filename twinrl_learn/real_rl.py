@@ -35,7 +35,6 @@ import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import rerun as rr
@@ -44,7 +43,7 @@ from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import Target, load_targets, mine
-from twinrl_learn.online import OnlineRun, RoundRecord
+from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
@@ -169,12 +168,15 @@ class RealRL:
             kept.parent.mkdir(parents=True)
             shutil.copyfile(settings.targets, kept)
             run.extra["targets"] = str(kept)
-        (run.out / "settings.json").write_text(json.dumps(describe(settings), indent=1))
+        (run.out / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
         return cls(settings, run, _operator(settings, operator))
 
     @classmethod
     def resume(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+        """Continue the run in ``settings.out`` with the RL settings it started with."""
         out = Path(settings.out)
+        if not (out / RUN_FILE).is_file():
+            raise ValueError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
         policy = Policy.from_pretrained(out / "agent")
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)
@@ -188,7 +190,6 @@ class RealRL:
             extra["operator_rng"] = self.operator.rng.bit_generator.state
         extra["evaluations"] = [asdict(p) for p in self.evaluations]
         self.run_state.checkpoint()
-        (self.out / EVALUATIONS_FILE).write_text(json.dumps(extra["evaluations"], indent=1))
 
     # ------------------------------------------------------------------ run
     def run(
@@ -362,6 +363,8 @@ class RealRL:
             episodes=report.episodes,
         )
         self.evaluations.append(point)
+        evaluations = [asdict(p) for p in self.evaluations]
+        (self.out / EVALUATIONS_FILE).write_text(json.dumps(evaluations, indent=1))
         return point
 
     def _show_reset(self, index: int, config: TaskConfig, region: str, origin: str) -> None:
@@ -405,9 +408,7 @@ def load_evaluations(folder: str | Path) -> list[EvalPoint]:
     return [EvalPoint(**p) for p in json.loads(path.read_text())]
 
 
-def plot_evaluations(
-    evaluations: list[EvalPoint], path: Path, *, title: str = "", label: str = ""
-) -> None:
+def plot_evaluations(evaluations: list[EvalPoint], path: Path, *, title: str = "") -> None:
     """Evaluation success per region against plant minutes."""
     import matplotlib
 
@@ -418,7 +419,7 @@ def plot_evaluations(
     for region in REGION_NAMES:
         xs = [p.plant_minutes for p in evaluations if region in p.success_rate]
         ys = [p.success_rate[region] for p in evaluations if region in p.success_rate]
-        ax.plot(xs, ys, marker="o", ms=3, lw=1.6, label=f"{label} {region}".strip())
+        ax.plot(xs, ys, marker="o", ms=3, lw=1.6, label=region)
     ax.axhline(0.95, color="grey", lw=0.8, ls="--")
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("plant minutes (10 Hz robot steps)")
@@ -429,10 +430,3 @@ def plot_evaluations(
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
-
-
-def describe(settings: RealRLSettings) -> dict[str, Any]:
-    """The settings as JSON (written beside the run for the record)."""
-    data = asdict(settings)
-    data["rl"] = asdict(settings.rl)
-    return data

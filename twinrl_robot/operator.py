@@ -23,7 +23,7 @@ terms (reach, grasp, place/wipe: each in [0, 1]; their sum is the *progress*):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -58,12 +58,9 @@ class OperatorRule:
     noise: float = 0.002  # hand jitter, m per step (rotation: 5x in rad)
 
     def __post_init__(self) -> None:
-        for name in ("patience", "delay", "min_control"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"operator {name} must be >= 0, got {getattr(self, name)}")
-        for name in ("min_progress", "regression", "handback_gain", "noise"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"operator {name} must be >= 0, got {getattr(self, name)}")
+        for name, value in asdict(self).items():
+            if value < 0:
+                raise ValueError(f"operator {name} must be >= 0, got {value}")
 
 
 class SimulatedOperator:

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from tests.conftest import record_demos
+from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -14,7 +14,6 @@ from twinrl_learn.agent import RLConfig
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
-from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task
@@ -22,19 +21,7 @@ from twinrl_sim.tasks import make_task
 
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("real_rl")
-    record_demos(folder, seed=5)
-    train_sft(
-        SFTConfig(
-            datasets=[str(folder / "dataset")],
-            out=str(folder / "sft"),
-            policy="state",
-            steps=20,
-            batch_size=16,
-            chunk=4,
-        )
-    )
-    return folder / "dataset", folder / "sft"
+    return tiny_state_policy(tmp_path_factory.mktemp("real_rl"), seed=5, steps=20)
 
 
 def test_resets_follow_the_targets_by_score_and_mix_in_uniform_draws():

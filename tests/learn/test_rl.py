@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import record_demos
+from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.schema import Episode, EpisodeMeta
 from twinrl_data.session import Session
@@ -14,7 +14,6 @@ from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.mining import estimate_cell, load_targets, select_targets
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import MixedSampler, ReplayBuffer, RewardSettings, discounted_returns
-from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 
 
@@ -37,19 +36,7 @@ def synthetic_episode(length: int, success: bool, source: str = "twin_rl", offse
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
     """Two recorded expert demos as a dataset and a tiny state policy trained on them."""
-    folder = tmp_path_factory.mktemp("rl")
-    record_demos(folder, seed=3)
-    train_sft(
-        SFTConfig(
-            datasets=[str(folder / "dataset")],
-            out=str(folder / "sft"),
-            policy="state",
-            steps=30,
-            batch_size=16,
-            chunk=4,
-        )
-    )
-    return folder / "dataset", folder / "sft"
+    return tiny_state_policy(tmp_path_factory.mktemp("rl"), seed=3, steps=30)
 
 
 def test_chunked_transitions_sum_rewards_and_stop_at_success():
