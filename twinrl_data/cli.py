@@ -163,11 +163,7 @@ def import_command(
     with progress() as bar:
         job = bar.add_task(f"import {dataset.name}", total=total)
         for episode in iter_dataset_episodes(dataset, source=source, world=world):
-            with session.record(episode.meta) as log:
-                for t in range(len(episode)):
-                    step = {key: values[t] for key, values in episode.data.items()}
-                    step.update({contract.image_field(c): f[t] for c, f in episode.images.items()})
-                    log.append(step)
+            session.add(episode)
             bar.advance(job)
     console.print(f"{to}: {total} episodes imported")
     if missing:

@@ -51,6 +51,7 @@ from twinrl_data.messages import FloatVector, Transition
 TOPICS = {
     contract.STATE: "/observation/state",
     contract.ENVIRONMENT_STATE: "/observation/environment_state",
+    contract.EFFORT: "/observation/effort",
     contract.ACTION: "/action",
     contract.ACTION_POLICY: "/action/policy",
     contract.JOINT_TARGET: "/command/joint_target",

@@ -10,6 +10,7 @@ field                          type            meaning
 =============================  ==============  ==================================
 observation.state              float32[n]      proprio (names recorded)
 observation.environment_state  float32[m]      object poses (privileged; optional)
+observation.effort             float32[n]      joint torques, N m (optional)
 observation.images.<camera>    uint8 HxWx3     camera frames (optional)
 action                         float32[7]      executed end-effector delta
 action.policy                  float32[7]      what the policy proposed
@@ -35,6 +36,7 @@ from twinrl_data.errors import DataError
 
 STATE = "observation.state"
 ENVIRONMENT_STATE = "observation.environment_state"
+EFFORT = "observation.effort"
 IMAGES_PREFIX = "observation.images."
 ACTION = "action"
 ACTION_POLICY = "action.policy"
@@ -44,13 +46,22 @@ REWARD = "next.reward"
 DONE = "next.done"
 SUCCESS = "next.success"
 
-VECTOR_FIELDS = (STATE, ENVIRONMENT_STATE, ACTION, ACTION_POLICY, JOINT_TARGET)
+VECTOR_FIELDS = (STATE, ENVIRONMENT_STATE, EFFORT, ACTION, ACTION_POLICY, JOINT_TARGET)
 SCALAR_FIELDS = (INTERVENTION, REWARD, DONE, SUCCESS)
 # Every recorder of twinrl writes all fields; data imported from elsewhere may lack
 # all but these two, and a missing field stays missing (it is never invented).
 REQUIRED_FIELDS = (STATE, ACTION)
 
-SOURCES = ("teleop", "twin_demo", "twin_rl", "real_rl", "eval", "replay", "excitation")
+SOURCES = (
+    "teleop",
+    "twin_demo",
+    "twin_rl",
+    "real_rl",
+    "eval",
+    "replay",
+    "excitation",
+    "imported",  # logs recorded outside twinrl (CSV import)
+)
 WORLDS = ("real", "twin", "plant")
 REGIONS = ("ID", "OOD")
 

@@ -21,7 +21,7 @@ from typing import Any
 
 from twinrl_data.errors import DataError
 from twinrl_data.mcap_log import EpisodeWriter
-from twinrl_data.schema import EpisodeMeta, now_iso
+from twinrl_data.schema import Episode, EpisodeMeta, image_field, now_iso
 
 MANIFEST = "manifest.json"
 FORMAT = "twinrl-session"
@@ -95,6 +95,15 @@ class Session:
         self.manifest["episodes"].append(entry)
         self._save()
         return writer
+
+    def add(self, episode: Episode) -> Path:
+        """Write a whole in-memory episode into this session; returns its file."""
+        with self.record(episode.meta) as log:
+            for t in range(len(episode)):
+                step = {key: values[t] for key, values in episode.data.items()}
+                step.update({image_field(c): f[t] for c, f in episode.images.items()})
+                log.append(step)
+        return log.path
 
     def register(self, path: Path, meta: EpisodeMeta, length: int) -> None:
         """Add an episode file written elsewhere (e.g. by a worker process) to the manifest.

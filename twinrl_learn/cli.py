@@ -35,7 +35,9 @@ app = typer.Typer(
     add_completion=False,
 )
 sim_cli.app.command("expert")(robot_cli.expert)
+sim_cli.app.command("excite")(robot_cli.excite)
 app.add_typer(sim_cli.app, name="sim")
+data_cli.app.command("import-csv")(sim_cli.import_csv_command)  # needs the twin for FK
 app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)

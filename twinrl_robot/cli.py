@@ -12,9 +12,10 @@ from rich.table import Table
 
 from twinrl_data.cli import progress
 from twinrl_data.session import Session
+from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
-from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class
+from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
@@ -100,3 +101,43 @@ def success_table(reports: list[ExpertReport]) -> Table:
         cells = [f"{100 * rates[r]:.0f} %" if r in rates else "-" for r in regions]
         table.add_row(report.task, report.world, *cells, str(len(report.episodes)))
     return table
+
+
+def excite(
+    out: Annotated[Path, typer.Option(help="Session folder to create with the episodes.")],
+    task: Annotated[str, typer.Option(help=f"Cell to excite: {', '.join(TASKS)}.")] = "pick_place",
+    world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
+    episodes: Annotated[int, typer.Option(help="Episodes to record.", min=1)] = 4,
+    effects: Annotated[
+        Path | None,
+        typer.Option(
+            help=f"Hidden effects YAML for the plant (default: {DEFAULT_EFFECTS_FILE.name})."
+        ),
+    ] = None,
+    duration: Annotated[float, typer.Option(help="Seconds per episode.")] = 10.0,
+    amplitude: Annotated[
+        float, typer.Option(help="Scale of the joint amplitudes (halved until safe).")
+    ] = 1.0,
+    seed: Annotated[int, typer.Option(help="Seed for phases and object placement.")] = 0,
+) -> None:
+    """Record safe multi-sine joint motions (source ``excitation``) for identification."""
+    if effects is not None and not effects.is_file():
+        raise ValueError(f"--effects {effects} does not exist")
+    settings = ExcitationSettings(duration=duration, amplitude=amplitude)
+    make_task(task)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    session = Session.create(out)
+    with progress() as bar:
+        job = bar.add_task(f"excite {task} in the {world}", total=episodes)
+        run_excitation(
+            task,
+            world=world,
+            episodes=episodes,
+            effects=effects,
+            settings=settings,
+            seed=seed,
+            session=session,
+            on_episode=lambda _: bar.advance(job),
+        )
+    console.print(f"{out}: {episodes} excitation episodes of {duration:g} s ({world})")

@@ -20,7 +20,8 @@ class Robot(Protocol):
     plant, operator-guided on a real robot) and returns the first observation;
     ``act(action)`` executes one control step; ``observe()`` reads the sensors;
     ``hold()`` stops the arm where it is and re-anchors the command there (called when
-    an operator takes the controls).
+    an operator takes the controls); ``servo_joints(q, gripper)`` holds joint targets
+    (rad) for one control period, as UR's servoJ does (excitation, replay).
     """
 
     control_hz: float
@@ -32,5 +33,7 @@ class Robot(Protocol):
     def act(self, action: np.ndarray) -> None: ...
 
     def hold(self) -> None: ...
+
+    def servo_joints(self, joint_target: np.ndarray, gripper: float) -> None: ...
 
     def close(self) -> None: ...

@@ -33,11 +33,12 @@ class PlantSettings:
     velocity_noise: float = 2e-3  # rad/s, on joint velocities
     tcp_noise: float = 3e-4  # m, on the reported TCP position
     object_noise: float = 1e-3  # m, on tracked object positions
+    torque_noise: float = 0.05  # N m, on reported joint torques
     light_scale: float = 0.85  # light intensity relative to the twin
     table_tint: tuple[float, float, float] = (0.04, 0.02, -0.03)  # added to the table colour
 
     def __post_init__(self) -> None:
-        for name in ("joint_noise", "velocity_noise", "tcp_noise", "object_noise"):
+        for name in ("joint_noise", "velocity_noise", "tcp_noise", "object_noise", "torque_noise"):
             if getattr(self, name) < 0:
                 raise ValueError(f"PlantSettings.{name} must be >= 0, got {getattr(self, name)}")
         if not 0 < self.light_scale <= 3:
@@ -155,6 +156,23 @@ class Plant:
         self.last_joint_target = self._cell.step(action).joint_target
         self.elapsed_steps += 1
         # Track every step: some tasks accumulate progress (wiped marks).
+        self._progress = self._tracker.update()
+
+    def joint_torques(self) -> np.ndarray:
+        """Measured joint torques (N m), with sensor noise."""
+        torques = self._cell.joint_torques()
+        return torques + self.rng.normal(0, self.settings.torque_noise, len(torques))
+
+    def servo_joints(self, joint_target: np.ndarray, gripper: float) -> None:
+        """Hold joint targets (rad) and a gripper command for one control period; the
+        end-effector command then restarts from where the arm is."""
+        if self._tracker is None:
+            raise RuntimeError("reset the plant to a configuration before acting")
+        target = np.asarray(joint_target, float)
+        self._cell.send(target, float(np.clip(gripper, 0.0, 1.0)))
+        self._cell.hold()
+        self.last_joint_target = target
+        self.elapsed_steps += 1
         self._progress = self._tracker.update()
 
     def hold(self) -> None:

@@ -182,6 +182,10 @@ class Cell:
         body = self._object_body[name]
         return self.data.xpos[body].copy(), self.data.xquat[body].copy()
 
+    def joint_torques(self) -> np.ndarray:
+        """Torque (N m) the arm's servos apply at each joint: what a UR reports."""
+        return self.data.qfrc_actuator[self.arm_dof].copy()
+
     def state_vector(self) -> np.ndarray:
         pos, quat = self.tcp_pose()
         return np.concatenate(

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from twinrl_data.cli import progress, quiet_encoders
+from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
 from twinrl_data.lerobot_io import iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import STATE, Episode
@@ -22,8 +23,9 @@ from twinrl_sim.effects import describe_effects
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
+from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
-from twinrl_sim.tasks import TASKS, TaskConfig, make_task
+from twinrl_sim.tasks import TASKS, TaskConfig, make_task, twin_scene
 
 app = typer.Typer(
     help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
@@ -217,3 +219,51 @@ def expand_command(
         f"synthesis {report.seconds_synthesis:.1f} s, export {report.seconds_export:.1f} s; "
         f"episodes in {report.session}, dataset {report.dataset or '(none)'}"
     )
+
+
+def import_csv_command(
+    files: Annotated[list[Path], typer.Argument(help="CSV logs, one episode each.")],
+    out: Annotated[Path, typer.Option(help="Session folder to create with the episodes.")],
+    format: Annotated[
+        str, typer.Option("--format", help="rtde (UR's RTDE recorder columns) or generic.")
+    ] = "rtde",
+    column_map: Annotated[
+        Path | None,
+        typer.Option("--map", help="YAML column map (required with --format generic)."),
+    ] = None,
+    fps: Annotated[
+        float | None, typer.Option(help="Resample to this rate (default: the log's own).")
+    ] = None,
+    twin: Annotated[
+        str,
+        typer.Option(help="Built-in cell or scene spec whose robot computes missing TCP poses."),
+    ] = "pick_place",
+    world: Annotated[str, typer.Option(help="real or plant: where the log was measured.")] = "real",
+    task: Annotated[str, typer.Option(help="Task label of the episodes.")] = "arm",
+) -> None:
+    """Import joint logs recorded outside twinrl as episodes (source ``imported``).
+
+    A generic column map is YAML: ``time``, ``time_unit`` (s|ms|us|ns), ``angle_unit``
+    (rad|deg), ``layout`` (wide|long), ``commanded``/``measured`` (one column per joint),
+    optional ``velocity``, ``effort`` (N m), ``tcp`` (x y z rx ry rz), ``joints``.
+    """
+    if format not in ("rtde", "generic"):
+        raise ValueError(f"--format must be rtde or generic, got '{format}'")
+    if format == "generic" and column_map is None:
+        raise ValueError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
+    cmap = ColumnMap.load(column_map) if column_map else RTDE_MAP
+    kinematics = TcpKinematics(compile_scene(twin_scene(twin)))
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    episodes = [
+        import_csv(f, cmap, fps=fps, task=task, world=world, forward_kinematics=kinematics)
+        for f in files
+    ]  # every file is read before anything is written
+    session = Session.create(out)
+    for episode in episodes:
+        session.add(episode)
+        console.print(
+            f"{episode.meta.policy}: {len(episode)} steps at {episode.meta.fps:g} Hz, "
+            f"fields {', '.join(sorted(episode.data))}"
+        )
+    console.print(f"{out}: {len(episodes)} episodes imported")

@@ -40,3 +40,21 @@ class LinkFrames:
             name: (self.data.xpos[b].copy(), self.data.xquat[b].copy())
             for name, b in self._bodies.items()
         }
+
+
+class TcpKinematics:
+    """``fk(q) -> (tcp xyz (m), tcp quaternion wxyz)`` in the base frame for one row of
+    arm joint positions (rad): fills in the TCP pose of logs that hold only joints."""
+
+    def __init__(self, scene: CompiledScene) -> None:
+        self.model = scene.model
+        self.data = mujoco.MjData(self.model)
+        self._qpos = np.array([self.model.joint(j).qposadr[0] for j in scene.layout.arm_joints])
+        self._site = self.model.site(scene.layout.tcp_site).id
+
+    def __call__(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        self.data.qpos[self._qpos] = np.asarray(q, float)
+        mujoco.mj_kinematics(self.model, self.data)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[self._site])
+        return self.data.site_xpos[self._site].copy(), quat

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import difflib
+from pathlib import Path
 
-from twinrl_sim.spec import SceneSpec
+from twinrl_sim.spec import SceneSpec, load_spec
 from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
 from twinrl_sim.tasks.base import Progress as Progress
 from twinrl_sim.tasks.base import Region as Region
@@ -32,3 +33,18 @@ def task_class(name: str) -> type[Task]:
 def make_task(name: str, scene: SceneSpec | None = None) -> Task:
     """Instantiate task ``name`` on its built-in scene or on ``scene``."""
     return task_class(name)(scene)
+
+
+def twin_scene(twin: str) -> SceneSpec:
+    """The scene spec named by ``--twin``: a built-in task's cell (``pick_place``) or a
+    scene spec YAML file."""
+    if twin in TASKS:
+        return make_task(twin).scene
+    if Path(twin).suffix in (".yaml", ".yml") or Path(twin).exists():
+        return load_spec(twin)
+    close = difflib.get_close_matches(twin, list(TASKS), n=1)
+    hint = f" (did you mean '{close[0]}'?)" if close else ""
+    raise ValueError(
+        f"--twin '{twin}' is neither a built-in cell{hint} ({', '.join(TASKS)}) "
+        "nor a scene spec file"
+    )

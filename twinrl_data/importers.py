@@ -1,0 +1,301 @@
+"""Import joint logs recorded outside twinrl (CSV) as normal episodes.
+
+Two readers share one code path:
+
+- **Universal Robots RTDE** CSV, as UR's RTDE recorder (and ``ur_rtde``'s file
+  recording) write it: ``timestamp``, ``target_q_0..5``, ``actual_q_0..5``,
+  ``actual_qd_0..5``, ``target_moment_0..5``, ``actual_TCP_pose_0..5`` (x y z in m,
+  then an axis-angle rotation in rad), delimited by commas, spaces or semicolons.
+- **Generic** CSV with a small YAML column map (:class:`ColumnMap`): which column is
+  time (and its unit), which columns hold the commanded and measured joint positions
+  (rad or deg), optional velocities, torques and TCP pose; wide (one column per signal)
+  or long (one value per line: time, signal name, value).
+
+Rows are resampled onto a uniform clock (``fps``, default: the log's median rate) by
+linear interpolation, since an episode is a sequence of equally spaced steps. What the
+log does not hold stays missing: no gripper, no objects, no images, no rewards beyond
+zeros. The executed end-effector ``action`` is the TCP motion between steps (from the
+logged TCP pose or, when absent, from ``forward_kinematics`` of the measured joints).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.csv as pacsv
+import yaml
+
+from twinrl_data import schema as contract
+from twinrl_data.errors import DataError
+
+TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
+LAYOUTS = ("wide", "long")
+DEFAULT_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+
+ForwardKinematics = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""``fk(q) -> (tcp xyz (m), tcp quaternion wxyz)`` for one row of joint positions."""
+
+
+@dataclass(frozen=True)
+class ColumnMap:
+    """Where each signal lives in a CSV file (the YAML file of ``--map``)::
+
+    time: t_ms            # column with the time stamps
+    time_unit: ms         # s, ms, us or ns
+    angle_unit: deg       # rad or deg (positions and velocities)
+    layout: wide          # wide, or long: columns signal/value per line
+    commanded: [cmd0, cmd1, cmd2, cmd3, cmd4, cmd5]
+    measured: [q0, q1, q2, q3, q4, q5]
+    velocity: [qd0, qd1, qd2, qd3, qd4, qd5]   # optional
+    effort: [tau0, tau1, tau2, tau3, tau4, tau5]  # optional, N m
+    tcp: [x, y, z, rx, ry, rz]                    # optional, m + axis-angle rad
+    joints: [shoulder_pan, ...]                   # optional names (default UR)
+    signal_column: signal                         # long layout only
+    value_column: value                           # long layout only
+    """
+
+    time: str
+    commanded: list[str]
+    measured: list[str]
+    time_unit: str = "s"
+    angle_unit: str = "rad"
+    layout: str = "wide"
+    velocity: list[str] = field(default_factory=list)
+    effort: list[str] = field(default_factory=list)
+    tcp: list[str] = field(default_factory=list)
+    joints: list[str] = field(default_factory=lambda: list(DEFAULT_JOINTS))
+    signal_column: str = "signal"
+    value_column: str = "value"
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.time_unit not in TIME_UNITS:
+            problems.append(f"time_unit must be one of {', '.join(TIME_UNITS)}")
+        if self.angle_unit not in ANGLE_UNITS:
+            problems.append(f"angle_unit must be rad or deg, got '{self.angle_unit}'")
+        if self.layout not in LAYOUTS:
+            problems.append(f"layout must be wide or long, got '{self.layout}'")
+        n = len(self.joints)
+        for name in ("commanded", "measured", "velocity", "effort"):
+            columns = getattr(self, name)
+            if (columns or name in ("commanded", "measured")) and len(columns) != n:
+                problems.append(f"{name} needs {n} columns (one per joint), got {len(columns)}")
+        if self.tcp and len(self.tcp) != 6:
+            problems.append(f"tcp needs 6 columns (x y z rx ry rz), got {len(self.tcp)}")
+        if problems:
+            raise ValueError("column map: " + "; ".join(problems))
+
+    @classmethod
+    def load(cls, path: str | Path) -> ColumnMap:
+        """Read a column map YAML file; unknown keys are an error."""
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"column map {path} does not exist")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            raise ValueError(f"{path}: not valid YAML ({err})") from None
+        if not isinstance(data, dict):
+            raise ValueError(
+                f"{path}: a column map is a mapping (see `twinrl data import-csv --help`)"
+            )
+        unknown = sorted(set(data) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ValueError(
+                f"{path}: unknown key(s) {unknown}; known: {sorted(cls.__dataclass_fields__)}"
+            )
+        missing = [k for k in ("time", "commanded", "measured") if k not in data]
+        if missing:
+            raise ValueError(f"{path}: missing key(s) {missing}")
+        try:
+            return cls(**data)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+
+
+RTDE_MAP = ColumnMap(
+    time="timestamp",
+    commanded=[f"target_q_{i}" for i in range(6)],
+    measured=[f"actual_q_{i}" for i in range(6)],
+    velocity=[f"actual_qd_{i}" for i in range(6)],
+    effort=[f"target_moment_{i}" for i in range(6)],
+    tcp=[f"actual_TCP_pose_{i}" for i in range(6)],
+)
+"""UR's RTDE recorder columns. Torques are ``target_moment_*`` (N m); ``actual_current_*``
+(A) would need the drives' torque constants, which the log does not carry."""
+
+
+def _delimiter(path: Path) -> str:
+    with path.open(newline="") as f:
+        header = f.readline()
+    if not header.strip():
+        raise ValueError(f"{path} is empty")
+    try:
+        return csv.Sniffer().sniff(header, delimiters=",; \t").delimiter
+    except csv.Error:
+        return ","
+
+
+def read_table(path: str | Path) -> pa.Table:
+    """The CSV as an Arrow table (delimiter sniffed from the header line)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"CSV file {path} does not exist")
+    parse = pacsv.ParseOptions(delimiter=_delimiter(path))
+    try:
+        return pacsv.read_csv(path, parse_options=parse)
+    except pa.ArrowInvalid as err:
+        raise ValueError(f"{path}: not a readable CSV ({str(err).splitlines()[0]})") from None
+
+
+def _columns(table: pa.Table, columns: list[str], path: Path) -> dict[str, np.ndarray]:
+    missing = [c for c in columns if c not in table.column_names]
+    if missing:
+        shown = ", ".join(table.column_names[:12]) + (" ..." if table.num_columns > 12 else "")
+        raise ValueError(f"{path}: column(s) {missing} not found; the file has: {shown}")
+    out = {}
+    for c in columns:
+        try:
+            out[c] = table.column(c).to_numpy(zero_copy_only=False).astype(float)
+        except (pa.ArrowInvalid, ValueError):
+            raise ValueError(f"{path}: column '{c}' is not numeric") from None
+    return out
+
+
+def _signals(
+    table: pa.Table, cmap: ColumnMap, path: Path
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(time in s, column -> values on that time base), from a wide or long table."""
+    wanted = [*cmap.commanded, *cmap.measured, *cmap.velocity, *cmap.effort, *cmap.tcp]
+    if cmap.layout == "wide":
+        values = _columns(table, [cmap.time, *wanted], path)
+        return values.pop(cmap.time) * TIME_UNITS[cmap.time_unit], values
+    need = [cmap.time, cmap.signal_column, cmap.value_column]
+    missing = [c for c in need if c not in table.column_names]
+    if missing:
+        raise ValueError(f"{path}: long layout needs columns {need}; missing {missing}")
+    times = _columns(table, [cmap.time], path)[cmap.time]
+    values = _columns(table, [cmap.value_column], path)[cmap.value_column]
+    names = np.asarray(table.column(cmap.signal_column).to_pylist(), dtype=object).astype(str)
+    grid = np.unique(times)
+    out = {}
+    for signal in wanted:
+        rows = names == signal
+        if not rows.any():
+            raise ValueError(
+                f"{path}: signal '{signal}' has no rows in column '{cmap.signal_column}'"
+            )
+        t, v = times[rows], values[rows]
+        order = np.argsort(t)
+        out[signal] = np.interp(grid, t[order], v[order])
+    return grid * TIME_UNITS[cmap.time_unit], out
+
+
+def _rotvec_to_quat(rotvec: np.ndarray) -> np.ndarray:
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 1e-12)
+    return np.concatenate([np.cos(angle / 2), axis * np.sin(angle / 2)], axis=-1)
+
+
+def _relative_rotvec(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+    """Axis-angle of q1 * conj(q0) per row (wxyz quaternions), in the base frame."""
+    w0, v0 = q0[:, :1], -q0[:, 1:]
+    w1, v1 = q1[:, :1], q1[:, 1:]
+    w = w1 * w0 - np.sum(v1 * v0, axis=1, keepdims=True)
+    v = w1 * v0 + w0 * v1 + np.cross(v1, v0)
+    sign = np.where(w < 0, -1.0, 1.0)
+    w, v = w * sign, v * sign
+    s = np.linalg.norm(v, axis=1, keepdims=True)
+    angle = 2 * np.arctan2(s, w)
+    return np.divide(v * angle, s, out=np.zeros_like(v), where=s > 1e-12)
+
+
+def import_csv(
+    path: str | Path,
+    cmap: ColumnMap = RTDE_MAP,
+    *,
+    fps: float | None = None,
+    task: str = "arm",
+    robot: str = "ur5e",
+    world: str = "real",
+    config: dict[str, Any] | None = None,
+    forward_kinematics: ForwardKinematics | None = None,
+) -> contract.Episode:
+    """One CSV log as an episode of source ``imported`` on a uniform ``fps`` clock."""
+    path = Path(path)
+    times, values = _signals(read_table(path), cmap, path)
+    order = np.argsort(times, kind="stable")
+    times = times[order]
+    keep = np.concatenate([[True], np.diff(times) > 0])  # drop repeated stamps
+    times = times[keep] - times[0]  # relative: epoch stamps lose precision in arithmetic
+    if len(times) < 2:
+        raise ValueError(f"{path}: needs at least two time stamps, got {len(times)}")
+    rate = float(f"{1.0 / float(np.median(np.diff(times))):.4g}")  # 125 Hz, not 124.99998
+    fps = float(fps or rate)
+    if not fps > 0:
+        raise ValueError(f"--fps must be positive, got {fps}")
+    clock = np.arange(0.0, times[-1] + 1e-9, 1.0 / fps)
+    at = {c: np.interp(clock, times, v[order][keep]) for c, v in values.items()}
+    angle = ANGLE_UNITS[cmap.angle_unit]
+    stack = lambda cols, scale=1.0: np.stack([at[c] for c in cols], axis=1) * scale  # noqa: E731
+
+    q = stack(cmap.measured, angle)
+    names = {contract.JOINT_TARGET: [f"q.{j}" for j in cmap.joints]}
+    state_names = [f"q.{j}" for j in cmap.joints]
+    parts = [q]
+    if cmap.velocity:
+        parts.append(stack(cmap.velocity, angle))
+        state_names += [f"qd.{j}" for j in cmap.joints]
+    if cmap.tcp:
+        pose = stack(cmap.tcp)
+        tcp_pos, tcp_quat = pose[:, :3], _rotvec_to_quat(pose[:, 3:])
+    elif forward_kinematics is not None:
+        poses = [forward_kinematics(row) for row in q]
+        tcp_pos = np.array([p for p, _ in poses])
+        tcp_quat = np.array([r for _, r in poses])
+    else:
+        raise ValueError(
+            f"{path}: the TCP pose is neither logged nor computable; give tcp columns "
+            "in the column map or a robot model for forward kinematics"
+        )
+    parts += [tcp_pos, tcp_quat]
+    state_names += ["tcp.x", "tcp.y", "tcp.z", "tcp.qw", "tcp.qx", "tcp.qy", "tcp.qz"]
+    moves = np.diff(tcp_pos, axis=0, append=tcp_pos[-1:])
+    turns = _relative_rotvec(tcp_quat, np.concatenate([tcp_quat[1:], tcp_quat[-1:]]))
+    action = np.concatenate([moves, turns, np.zeros((len(clock), 1))], axis=1)
+    names[contract.STATE] = state_names
+    names[contract.ACTION] = ["dx", "dy", "dz", "drx", "dry", "drz", "gripper"]
+    n = len(clock)
+    data = {
+        contract.STATE: np.concatenate(parts, axis=1).astype(np.float32),
+        contract.ACTION: action.astype(np.float32),
+        contract.JOINT_TARGET: stack(cmap.commanded, angle).astype(np.float32),
+        contract.INTERVENTION: np.zeros(n, bool),
+        contract.REWARD: np.zeros(n, np.float32),
+        contract.DONE: np.arange(n) == n - 1,
+        contract.SUCCESS: np.zeros(n, bool),
+    }
+    if cmap.effort:
+        data[contract.EFFORT] = stack(cmap.effort).astype(np.float32)
+        names[contract.EFFORT] = [f"tau.{j}" for j in cmap.joints]
+    meta = contract.EpisodeMeta(
+        task=task,
+        source="imported",
+        world=world,
+        config=config or {"initial_q": q[0].tolist()},
+        fps=fps,
+        robot=robot,
+        names=names,
+        policy=f"csv:{path.name}",
+    )
+    if not np.isfinite(data[contract.STATE]).all():
+        raise DataError(f"{path}: non-numeric or missing values in the joint columns")
+    return contract.Episode(meta, data)

@@ -1,0 +1,203 @@
+"""Excitation: safe joint motions that make a cell's dynamics identifiable.
+
+Each episode moves every arm joint along a multi-sine about the home pose (harmonics of
+``1 / duration`` with random phases, amplitudes falling as ``1 / k`` so that speed
+stays bounded), faded in and out so that it starts and ends at rest. Before anything
+moves, the whole trajectory is checked against the joint speed limit and, through the
+twin's forward kinematics, against the workspace box (with a margin above the table);
+amplitudes are halved until it fits. Episodes are logged with source ``excitation``:
+measured joints, velocities, TCP pose, joint torques (``observation.effort``) and the
+joint targets sent, at the control rate. This is the data ``twinrl gap diagnose``
+identifies effects from.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.schema import EFFORT, EpisodeMeta, step_record
+from twinrl_data.session import Session
+from twinrl_robot.plant import Plant
+from twinrl_sim.build import CompiledScene, compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec
+from twinrl_sim.kinematics import TcpKinematics
+from twinrl_sim.robots.ur5e import JOINT_SPEED_LIMIT
+from twinrl_sim.tasks import Task, TaskConfig, make_task
+
+WORLDS = ("twin", "plant")
+# Peak amplitude (rad) of each UR joint's multi-sine before scaling: the wrists move
+# most, the shoulder lift least (it carries the whole arm over the table).
+BASE_AMPLITUDE = (0.5, 0.25, 0.35, 0.6, 0.6, 0.9)
+
+
+@dataclass(frozen=True)
+class ExcitationSettings:
+    """Shape and safety limits of the excitation trajectories."""
+
+    duration: float = 10.0  # s per episode
+    harmonics: int = 4  # sines per joint (frequencies k / duration)
+    amplitude: float = 1.0  # scales BASE_AMPLITUDE
+    fade: float = 1.0  # s of fade-in and fade-out
+    speed_fraction: float = 0.5  # of the joint speed limit
+    margin: float = 0.05  # m inside the workspace box (and above the table)
+
+    def __post_init__(self) -> None:
+        if self.duration <= 2 * self.fade:
+            raise ValueError(f"--duration must exceed twice the fade ({2 * self.fade} s)")
+        if self.harmonics < 1:
+            raise ValueError(f"harmonics must be at least 1, got {self.harmonics}")
+        if not 0 < self.amplitude <= 2:
+            raise ValueError(f"--amplitude must be in (0, 2], got {self.amplitude}")
+
+
+def multisine(
+    home: np.ndarray, settings: ExcitationSettings, rate: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Joint targets (T, n) at ``rate`` Hz: home plus faded multi-sines, random phases."""
+    t = np.arange(round(settings.duration * rate) + 1) / rate
+    k = np.arange(1, settings.harmonics + 1)
+    freqs = k / settings.duration
+    phases = rng.uniform(0, 2 * math.pi, (len(home), len(k)))
+    weights = (1.0 / k) / np.sum(1.0 / k)
+    amplitude = np.asarray(BASE_AMPLITUDE[: len(home)]) * settings.amplitude
+    waves = np.sin(2 * math.pi * freqs[None, None] * t[:, None, None] + phases[None])
+    offsets = (waves * weights).sum(-1) * amplitude
+    ramp = np.clip(np.minimum(t, settings.duration - t) / settings.fade, 0, 1)
+    fade = 0.5 - 0.5 * np.cos(math.pi * ramp)  # smooth 0 -> 1 -> 0
+    return home + offsets * fade[:, None]
+
+
+def safe_trajectory(
+    task: Task, settings: ExcitationSettings, rng: np.random.Generator, scene: CompiledScene
+) -> np.ndarray:
+    """A multi-sine that keeps the TCP inside the workspace box and joint speeds below
+    ``speed_fraction`` of the limit (amplitude halved until it does)."""
+    fk = TcpKinematics(scene)
+    ws = task.scene.workspace
+    low = np.array(ws.low) + settings.margin
+    high = np.array(ws.high) - settings.margin
+    low[2] = max(low[2], settings.margin)
+    rate = task.scene.physics.control_hz
+    home = np.asarray(scene.layout.home_qpos, float)
+    seed = rng.integers(2**31)
+    for halvings in range(8):
+        shaped = ExcitationSettings(
+            **{**settings.__dict__, "amplitude": settings.amplitude / 2**halvings}
+        )
+        targets = multisine(home, shaped, rate, np.random.default_rng(seed))
+        speed = np.abs(np.diff(targets, axis=0)).max() * rate
+        tcp = np.array([fk(q)[0] for q in targets])
+        if speed <= settings.speed_fraction * JOINT_SPEED_LIMIT and (
+            (tcp >= low).all() and (tcp <= high).all()
+        ):
+            return targets
+    raise ValueError("no safe excitation found; lower --amplitude or enlarge the workspace box")
+
+
+class _TwinArm:
+    """The twin cell driven by joint targets (noise-free measurements)."""
+
+    def __init__(self, task: Task) -> None:
+        self.task = task
+        self.cell = Cell(compile_scene(task.scene))
+
+    def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
+        self.task.start(self.cell, config)
+        return self.observe()
+
+    def observe(self) -> dict[str, np.ndarray]:
+        return {
+            "observation.state": self.cell.state_vector().astype(np.float32),
+            "observation.environment_state": self.cell.environment_vector().astype(np.float32),
+        }
+
+    def joint_torques(self) -> np.ndarray:
+        return self.cell.joint_torques()
+
+    def servo_joints(self, joint_target: np.ndarray, gripper: float) -> None:
+        self.cell.send(joint_target, gripper)
+
+    def contract_names(self) -> dict[str, list[str]]:
+        return self.cell.contract_names()
+
+    def close(self) -> None:
+        self.cell.close()
+
+
+def _tcp_actions(targets: np.ndarray, fk: Callable) -> np.ndarray:
+    """Commanded end-effector motion per step (the contract's action), from the targets."""
+    poses = [fk(q) for q in targets]
+    actions = []
+    for (p0, q0), (p1, q1) in itertools.pairwise(poses):
+        turn = quat_to_rotvec(quat_mul(q1, quat_conj(q0)))
+        actions.append(np.concatenate([p1 - p0, turn, [0.0]]))
+    return np.asarray(actions, np.float32)
+
+
+def run_excitation(
+    task: str,
+    *,
+    world: str = "twin",
+    episodes: int = 4,
+    effects: dict | str | Path | None = None,
+    settings: ExcitationSettings = ExcitationSettings(),
+    seed: int = 0,
+    session: Session,
+    on_episode: Callable[[int], None] | None = None,
+) -> list[Path]:
+    """Record ``episodes`` excitation episodes of ``task``'s cell into ``session``."""
+    if world not in WORLDS:
+        raise ValueError(f"--world must be twin or plant, got '{world}'")
+    if world == "twin" and effects is not None:
+        raise ValueError("--effects applies to --world plant only")
+    if episodes < 1:
+        raise ValueError(f"--episodes must be at least 1, got {episodes}")
+    spec_task = make_task(task)
+    arm: Any = (
+        Plant(spec_task, effects=effects, seed=seed) if world == "plant" else _TwinArm(spec_task)
+    )
+    scene = compile_scene(spec_task.scene)
+    fk = TcpKinematics(scene)
+    torque_names = [f"tau.{j}" for j in scene.layout.arm_joints]
+    rng = np.random.default_rng(seed)
+    paths = []
+    try:
+        for index in range(episodes):
+            config = spec_task.sample_config(rng, "ID")
+            targets = safe_trajectory(spec_task, settings, rng, scene)
+            actions = _tcp_actions(targets, fk)
+            meta = EpisodeMeta(
+                task=spec_task.name,
+                instruction="excitation",
+                source="excitation",
+                world=world,
+                config=config.to_dict(),
+                twin=spec_task.scene.digest,
+                policy=f"multisine:{settings.harmonics}x{settings.duration:g}s",
+                fps=spec_task.scene.physics.control_hz,
+                names={**arm.contract_names(), EFFORT: torque_names},
+            )
+            obs = arm.reset(config)
+            with session.record(meta) as log:
+                for t, (target, action) in enumerate(zip(targets[1:], actions, strict=True)):
+                    obs[EFFORT] = arm.joint_torques().astype(np.float32)
+                    arm.servo_joints(target, 0.0)
+                    last = t == len(actions) - 1
+                    log.append(
+                        step_record(obs, action, target.astype(np.float32), 0.0, last, False)
+                    )
+                    obs = arm.observe()
+            paths.append(log.path)
+            if on_episode is not None:
+                on_episode(index)
+    finally:
+        arm.close()
+    return paths
