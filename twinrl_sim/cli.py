@@ -22,6 +22,7 @@ from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import describe_effects
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
+from twinrl_sim.gap import localize, replay_windows
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
@@ -267,3 +268,114 @@ def import_csv_command(
             f"fields {', '.join(sorted(episode.data))}"
         )
     console.print(f"{out}: {len(episodes)} episodes imported")
+
+
+gap_app = typer.Typer(
+    help="The sim-to-real gap: where measured episodes and the twin disagree.",
+    no_args_is_help=True,
+)
+
+
+def load_episodes(paths: list[Path]) -> list[Episode]:
+    """Every episode of .mcap files, sessions and LeRobotDatasets (without images)."""
+    episodes: list[Episode] = []
+    for path in paths:
+        if path.suffix == ".mcap":
+            episodes.append(read_episode(path, images=False))
+        elif is_session(path):
+            episodes += [read_episode(p, images=False) for p in Session(path).episode_paths()]
+        elif (path / "meta" / "info.json").is_file():
+            episodes += list(iter_dataset_episodes(path))
+        else:
+            raise ValueError(f"{path} is not an .mcap episode, a session or a LeRobotDataset")
+    if not episodes:
+        raise ValueError("no episodes found in the given paths")
+    return episodes
+
+
+@gap_app.command("localize")
+def localize_command(
+    measured: Annotated[
+        list[Path], typer.Argument(help="Measured episodes: sessions, .mcap files, datasets.")
+    ],
+    out: Annotated[Path, typer.Option(help="Folder for localization.json and .png.")],
+    twin: Annotated[
+        str, typer.Option(help=f"Built-in cell ({', '.join(TASKS)}) or a scene spec file.")
+    ] = "pick_place",
+    window: Annotated[int, typer.Option(help="Steps per shooting window.", min=2)] = 20,
+) -> None:
+    """Replay measured episodes in the twin (restarting from the measurement every
+    --window steps) and show where they disagree: RMS, bias, gain and lag per signal,
+    split by motion regime."""
+    scene = twin_scene(twin)
+    episodes = load_episodes(measured)
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    replays = []
+    with progress() as bar:
+        job = bar.add_task("replay in the twin", total=len(episodes))
+        for episode in episodes:
+            replays.append(replay_windows(episode, scene, window=window))
+            bar.advance(job)
+    rows = localize(replays)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "localization.json").write_text(
+        json.dumps(
+            {"episodes": len(episodes), "window": window, "rows": [r.to_dict() for r in rows]},
+            indent=1,
+        )
+    )
+    plot_localization(rows, out / "localization.png")
+    table = Table(title=f"{len(episodes)} episodes against the twin '{twin}'")
+    for column in ("signal", "RMS", "bias", "gain", "lag (ms)", "worst regime"):
+        table.add_column(column)
+    for r in rows:
+        worst = max(r.regimes, key=r.regimes.get) if r.regimes else "-"
+        table.add_row(
+            r.signal,
+            f"{r.rms:.2e} {r.unit}",
+            f"{r.bias:+.2e}",
+            f"{r.gain:.3f}",
+            f"{1000 * r.lag_s:+.0f}",
+            worst,
+        )
+    console.print(table)
+    console.print(f"{out}/localization.json, localization.png")
+
+
+def plot_localization(rows: list, path: Path) -> None:
+    """RMS per signal by regime (one panel per unit) and the lag per signal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    units = sorted({r.unit for r in rows})
+    fig, axes = plt.subplots(1, len(units) + 1, figsize=(5 * (len(units) + 1), 4))
+    for ax, unit in zip(axes, units, strict=False):
+        group = [r for r in rows if r.unit == unit]
+        regimes = sorted({k for r in group for k in r.regimes})
+        width = 0.8 / max(len(regimes), 1)
+        for k, regime in enumerate(regimes):
+            ax.bar(
+                np.arange(len(group)) + k * width,
+                [r.regimes.get(regime, 0) for r in group],
+                width,
+                label=regime,
+            )
+        ax.set_xticks(
+            np.arange(len(group)) + 0.4 - width / 2,
+            [r.signal for r in group],
+            rotation=60,
+            ha="right",
+        )
+        ax.set_ylabel(f"RMS ({unit})")
+        ax.set_title(f"disagreement ({unit})")
+        ax.legend(fontsize=7)
+    joints = [r for r in rows if r.signal.startswith("q.")]
+    axes[-1].bar([r.signal for r in joints], [1000 * r.lag_s for r in joints])
+    axes[-1].set_ylabel("lag (ms): measurement behind twin")
+    axes[-1].tick_params(axis="x", rotation=60)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

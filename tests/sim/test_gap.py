@@ -1,0 +1,86 @@
+"""The gap workflow's replay and localisation on plant data with hidden effects."""
+
+import numpy as np
+import pytest
+
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_robot.excitation import run_excitation
+from twinrl_sim.gap import localize, replay_windows
+from twinrl_sim.tasks import make_task
+
+SCENE = make_task("pick_place").scene
+
+
+def _table(tmp_path, effects):
+    session = Session.create(tmp_path / "s")
+    paths = run_excitation(
+        "pick_place", world="plant", effects=effects, episodes=2, session=session, seed=1
+    )
+    replays = [replay_windows(read_episode(p), SCENE, window=20) for p in paths]
+    return {row.signal: row for row in localize(replays)}
+
+
+def test_no_effect_leaves_only_sensor_noise(tmp_path):
+    rows = _table(tmp_path, {})
+    assert max(rows[f"tcp.{a}"].rms for a in "xyz") < 6e-4  # plant TCP noise is 3e-4 m
+    assert max(r.rms for n, r in rows.items() if n.startswith("q.")) < 5e-4
+    assert all(abs(r.lag_s) < 0.005 for r in rows.values())
+
+
+def test_delay_shows_as_lag(tmp_path):
+    rows = _table(tmp_path, {"actuator_delay": {"seconds": 0.05}})
+    joints = [r for n, r in rows.items() if n.startswith("q.")]
+    assert np.median([r.lag_s for r in joints]) > 0.01
+    assert max(r.rms for r in joints) > 0.005
+
+
+def test_payload_shows_as_sag_and_joint_offset_as_tcp_bias(tmp_path):
+    payload = _table(tmp_path / "p", {"payload": {"mass": 2.0}})
+    assert payload["tcp.z"].bias < -0.001  # the arm sags under the unmodelled load
+    assert (
+        set(payload["tcp.z"].regimes)
+        <= {
+            "near_zero_velocity",
+            "reversal",
+            "high_acceleration",
+            "static_hold",
+            "free_motion",
+            "grasp_transport",
+        }
+        and payload["tcp.z"].regimes["free_motion"] > 0.001
+    )
+    offset = _table(tmp_path / "o", {"joint_offset": {"radians": [0, 0.02, 0, 0, 0, 0]}})
+    assert abs(offset["tcp.z"].bias) > 0.005  # the TCP is elsewhere ...
+    assert offset["q.shoulder_lift"].rms < 5e-4  # ... while the encoders agree
+
+
+def test_replay_refuses_a_rate_the_twin_cannot_step(tmp_path):
+    session = Session.create(tmp_path / "s")
+    path = run_excitation("pick_place", world="twin", episodes=1, session=session)[0]
+    episode = read_episode(path)
+    episode.meta = episode.meta.replace(fps=7.0)
+    with pytest.raises(ValueError, match="not a whole number"):
+        replay_windows(episode, SCENE)
+
+
+def test_localize_cli_writes_table_and_plot(tmp_path):
+    import json
+
+    from tests.test_cli import twinrl
+
+    session = Session.create(tmp_path / "s")
+    run_excitation("pick_place", world="plant", episodes=1, session=session, seed=2)
+    out = tmp_path / "loc"
+    result = twinrl(
+        "gap", "localize", str(tmp_path / "s"), "--twin", "pick_place", "--out", str(out)
+    )
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "localization.json").read_text())
+    assert report["episodes"] == 1 and {r["signal"] for r in report["rows"]} >= {"tcp.z", "q.elbow"}
+    assert (out / "localization.png").stat().st_size > 10_000
+    bad = twinrl(
+        "gap", "localize", str(tmp_path / "s"), "--twin", "pick_plac", "--out", str(tmp_path / "x")
+    )
+    assert bad.returncode == 2 and "did you mean 'pick_place'" in bad.stderr
+    assert not (tmp_path / "x").exists()

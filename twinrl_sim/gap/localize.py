@@ -1,0 +1,138 @@
+"""Where measured and replayed signals disagree: per signal and joint, per phase and
+motion regime, with time lag, bias and gain.
+
+- **lag**: the shift (s, sub-step by parabolic interpolation) that best aligns the
+  measured joint motion with the replayed one (cross-correlation of the per-step
+  increments); positive when the measurement trails the twin (a delay the twin lacks);
+- **bias**: mean of measured minus replayed (an offset, a sag under gravity);
+- **gain**: least-squares slope of the measured excursion against the replayed one
+  about their means (1 when the twin moves as much as the robot);
+- **regimes**: near-zero velocity, velocity reversals, high acceleration, static holds
+  and the rest (free motion), and phases by the gripper command (open: free motion,
+  closed: grasp/transport).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from twinrl_sim.gap.shooting import ShootingReplay
+
+SIGNALS = {"q.": ("rad", 1.0), "qd.": ("rad/s", 1.0), "tcp.": ("m", 1.0)}
+TCP_POSITION = ("tcp.x", "tcp.y", "tcp.z")
+SLOW = 0.02  # rad/s: "near-zero velocity"
+MAX_LAG = 5  # steps searched either side
+
+
+@dataclass
+class Disagreement:
+    """One row of the localisation table."""
+
+    signal: str  # e.g. q.elbow, tcp.z
+    unit: str
+    rms: float
+    bias: float
+    gain: float
+    lag_s: float
+    regimes: dict[str, float]  # RMS per regime/phase (rows in it > 0)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _lag(measured: np.ndarray, predicted: np.ndarray, valid: np.ndarray, fps: float) -> float:
+    """Lag (s) maximising the correlation of measured and predicted increments."""
+    dm = np.where(valid, np.diff(measured, prepend=measured[0]), 0.0)
+    dp = np.where(valid, np.diff(predicted, prepend=predicted[0]), 0.0)
+    if not dm.any() or not dp.any():
+        return 0.0
+    scores = np.array(
+        [
+            np.dot(dm[max(k, 0) : len(dm) + min(k, 0)], dp[max(-k, 0) : len(dp) - max(k, 0)])
+            for k in range(-MAX_LAG, MAX_LAG + 1)
+        ]
+    )
+    best = int(np.argmax(scores))
+    shift = float(best - MAX_LAG)
+    if 0 < best < len(scores) - 1:  # parabolic refinement
+        a, b, c = scores[best - 1 : best + 2]
+        denom = a - 2 * b + c
+        if denom < 0:
+            shift += 0.5 * (a - c) / denom
+    return shift / fps
+
+
+def _regimes(replay: ShootingReplay, joint: str | None) -> dict[str, np.ndarray]:
+    """Boolean row masks of each regime (for a joint's own velocity when it has one)."""
+    names = replay.names
+    qd_cols = replay.columns("qd.")
+    if joint is not None and f"qd.{joint}" in names:
+        speed = replay.measured[:, names.index(f"qd.{joint}")]
+    elif qd_cols:
+        speed = np.abs(replay.measured[:, qd_cols]).max(1)
+    else:
+        q = replay.measured[:, replay.columns("q.")]
+        speed = np.abs(np.gradient(q, axis=0) * replay.fps).max(1)
+    accel = np.abs(np.gradient(speed) * replay.fps)
+    reversal = np.zeros(len(speed), bool)
+    flips = np.flatnonzero(np.sign(speed[1:]) * np.sign(speed[:-1]) < 0)
+    for i in flips:
+        reversal[max(i - 1, 0) : i + 3] = True
+    moving_target = (
+        np.abs(np.diff(replay.targets, axis=0, prepend=replay.targets[:1])).max(1) > 1e-4
+    )
+    slow = np.abs(speed) < SLOW
+    high_accel = accel > np.quantile(accel, 0.9) if len(accel) > 10 else np.zeros_like(slow)
+    static = slow & ~moving_target
+    closed = replay.gripper > 0.5
+    return {
+        "near_zero_velocity": slow & ~static,
+        "reversal": reversal,
+        "high_acceleration": high_accel,
+        "static_hold": static,
+        "free_motion": ~closed & ~slow & ~reversal & ~high_accel,
+        "grasp_transport": closed,
+    }
+
+
+def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
+    """The localisation table over several episodes, largest RMS (in each unit) first."""
+    if not replays:
+        raise ValueError("no episodes to compare")
+    rows = []
+    names = replays[0].names
+    for i, name in enumerate(names):
+        prefix = next((p for p in SIGNALS if name.startswith(p)), None)
+        if prefix is None or (prefix == "tcp." and name not in TCP_POSITION):
+            continue
+        joint = name.split(".", 1)[1] if prefix != "tcp." else None
+        measured = np.concatenate([r.measured[:, i] for r in replays])
+        predicted = np.concatenate([r.predicted[:, i] for r in replays])
+        inside = np.concatenate([r.step_in_window > 0 for r in replays])  # predicted rows
+        regimes = [_regimes(r, joint) for r in replays]
+        error = (measured - predicted)[inside]
+        dm = measured[inside] - measured[inside].mean()
+        dp = predicted[inside] - predicted[inside].mean()
+        gain = float(np.dot(dm, dp) / np.dot(dp, dp)) if np.dot(dp, dp) > 0 else 1.0
+        lags = [
+            _lag(r.measured[:, i], r.predicted[:, i], r.step_in_window > 0, r.fps) for r in replays
+        ]
+        per_regime = {}
+        for regime in regimes[0]:
+            mask = np.concatenate([m[regime] for m in regimes])[inside]
+            if mask.any():
+                per_regime[regime] = float(np.sqrt(np.mean(error[mask] ** 2)))
+        rows.append(
+            Disagreement(
+                signal=name,
+                unit=SIGNALS[prefix][0],
+                rms=float(np.sqrt(np.mean(error**2))),
+                bias=float(error.mean()),
+                gain=gain,
+                lag_s=float(np.median(lags)),
+                regimes=per_regime,
+            )
+        )
+    return sorted(rows, key=lambda r: (r.unit, -r.rms))
