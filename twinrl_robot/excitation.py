@@ -16,7 +16,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -89,9 +89,7 @@ def safe_trajectory(
     home = np.asarray(scene.layout.home_qpos, float)
     seed = rng.integers(2**31)
     for halvings in range(8):
-        shaped = ExcitationSettings(
-            **{**settings.__dict__, "amplitude": settings.amplitude / 2**halvings}
-        )
+        shaped = replace(settings, amplitude=settings.amplitude / 2**halvings)
         targets = multisine(home, shaped, rate, np.random.default_rng(seed))
         speed = np.abs(np.diff(targets, axis=0)).max() * rate
         tcp = np.array([fk(q)[0] for q in targets])

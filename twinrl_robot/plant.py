@@ -150,10 +150,17 @@ class Plant:
         return obs
 
     def act(self, action: np.ndarray) -> None:
+        self._check_reset()
+        action = np.clip(np.asarray(action, float), self._action_low, self._action_high)
+        self._stepped(self._cell.step(action).joint_target)
+
+    def _check_reset(self) -> None:
         if self._tracker is None:
             raise RuntimeError("reset the plant to a configuration before acting")
-        action = np.clip(np.asarray(action, float), self._action_low, self._action_high)
-        self.last_joint_target = self._cell.step(action).joint_target
+
+    def _stepped(self, joint_target: np.ndarray) -> None:
+        """Bookkeeping after one control step."""
+        self.last_joint_target = joint_target
         self.elapsed_steps += 1
         # Track every step: some tasks accumulate progress (wiped marks).
         self._progress = self._tracker.update()
@@ -166,14 +173,11 @@ class Plant:
     def servo_joints(self, joint_target: np.ndarray, gripper: float) -> None:
         """Hold joint targets (rad) and a gripper command for one control period; the
         end-effector command then restarts from where the arm is."""
-        if self._tracker is None:
-            raise RuntimeError("reset the plant to a configuration before acting")
+        self._check_reset()
         target = np.asarray(joint_target, float)
         self._cell.send(target, float(np.clip(gripper, 0.0, 1.0)))
         self._cell.hold()
-        self.last_joint_target = target
-        self.elapsed_steps += 1
-        self._progress = self._tracker.update()
+        self._stepped(target)
 
     def hold(self) -> None:
         """Stop the arm where it is: the command is re-anchored at the measured pose

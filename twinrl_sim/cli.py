@@ -11,6 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from twinrl_data.catalog import discover
 from twinrl_data.cli import progress, quiet_encoders
 from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
 from twinrl_data.lerobot_io import iter_dataset_episodes
@@ -277,17 +278,12 @@ gap_app = typer.Typer(
 
 
 def load_episodes(paths: list[Path]) -> list[Episode]:
-    """Every episode of .mcap files, sessions and LeRobotDatasets (without images)."""
-    episodes: list[Episode] = []
-    for path in paths:
-        if path.suffix == ".mcap":
-            episodes.append(read_episode(path, images=False))
-        elif is_session(path):
-            episodes += [read_episode(p, images=False) for p in Session(path).episode_paths()]
-        elif (path / "meta" / "info.json").is_file():
-            episodes += list(iter_dataset_episodes(path))
-        else:
-            raise ValueError(f"{path} is not an .mcap episode, a session or a LeRobotDataset")
+    """Every episode (without images) of the sessions, .mcap files and LeRobotDatasets
+    found under ``paths`` (the catalog's discovery)."""
+    mcaps, datasets = discover(paths)
+    episodes = [read_episode(p, images=False) for p in mcaps]
+    for root in datasets:
+        episodes += list(iter_dataset_episodes(root))
     if not episodes:
         raise ValueError("no episodes found in the given paths")
     return episodes

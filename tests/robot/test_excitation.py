@@ -120,6 +120,22 @@ def test_rtde_csv_round_trip(tmp_path, plant_excitation):
     assert len(half) == 50 and half.meta.fps == 5.0
 
 
+def _import_generic(folder, out, *options: str):
+    """``twinrl data import-csv`` of ``folder/log.csv`` with the map ``folder/map.yaml``."""
+    return twinrl(
+        "data",
+        "import-csv",
+        str(folder / "log.csv"),
+        "--format",
+        "generic",
+        "--map",
+        str(folder / "map.yaml"),
+        *options,
+        "--out",
+        str(out),
+    )
+
+
 def test_generic_long_csv_in_degrees_and_ms(tmp_path, plant_excitation):
     episode = plant_excitation[1]
     q = episode.data[contract.STATE][:, :6].astype(float)
@@ -136,19 +152,7 @@ def test_generic_long_csv_in_degrees_and_ms(tmp_path, plant_excitation):
         "measured: [pos0, pos1, pos2, pos3, pos4, pos5]\n"
     )
     out = tmp_path / "imported"
-    result = twinrl(
-        "data",
-        "import-csv",
-        str(tmp_path / "log.csv"),
-        "--format",
-        "generic",
-        "--map",
-        str(tmp_path / "map.yaml"),
-        "--fps",
-        "10",
-        "--out",
-        str(out),
-    )
+    result = _import_generic(tmp_path, out, "--fps", "10")
     assert result.returncode == 0, result.stderr
     imported = read_episode(Session(out).episode_paths()[0])
     names = imported.meta.names[contract.STATE]
@@ -180,17 +184,7 @@ def test_bad_column_maps_give_one_line(tmp_path, map_text, message):
     (tmp_path / "log.csv").write_text("t,a,b,c,d,e,f\n0,0,0,0,0,0,0\n0.1,0,0,0,0,0,0\n")
     (tmp_path / "map.yaml").write_text(map_text)
     out = tmp_path / "out"
-    result = twinrl(
-        "data",
-        "import-csv",
-        str(tmp_path / "log.csv"),
-        "--format",
-        "generic",
-        "--map",
-        str(tmp_path / "map.yaml"),
-        "--out",
-        str(out),
-    )
+    result = _import_generic(tmp_path, out)
     assert result.returncode == 2 and message in result.stderr, result.stderr
     assert "Traceback" not in result.stderr and not out.exists()
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from twinrl_sim.gap.shooting import ShootingReplay
 
-SIGNALS = {"q.": ("rad", 1.0), "qd.": ("rad/s", 1.0), "tcp.": ("m", 1.0)}
+UNITS = {"q.": "rad", "qd.": "rad/s", "tcp.": "m"}  # signal prefixes compared, and units
 TCP_POSITION = ("tcp.x", "tcp.y", "tcp.z")
 SLOW = 0.02  # rad/s: "near-zero velocity"
 MAX_LAG = 5  # steps searched either side
@@ -104,7 +104,7 @@ def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
     rows = []
     names = replays[0].names
     for i, name in enumerate(names):
-        prefix = next((p for p in SIGNALS if name.startswith(p)), None)
+        prefix = next((p for p in UNITS if name.startswith(p)), None)
         if prefix is None or (prefix == "tcp." and name not in TCP_POSITION):
             continue
         joint = name.split(".", 1)[1] if prefix != "tcp." else None
@@ -127,7 +127,7 @@ def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
         rows.append(
             Disagreement(
                 signal=name,
-                unit=SIGNALS[prefix][0],
+                unit=UNITS[prefix],
                 rms=float(np.sqrt(np.mean(error**2))),
                 bias=float(error.mean()),
                 gain=gain,
