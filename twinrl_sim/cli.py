@@ -23,7 +23,15 @@ from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import describe_effects
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
-from twinrl_sim.gap import localize, replay_windows
+from twinrl_sim.gap import (
+    CANDIDATES,
+    NoiseFloor,
+    diagnose,
+    localize,
+    plot_localization,
+    replay_windows,
+    write_report,
+)
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
@@ -322,7 +330,12 @@ def localize_command(
         )
     )
     plot_localization(rows, out / "localization.png")
-    table = Table(title=f"{len(episodes)} episodes against the twin '{twin}'")
+    console.print(localization_table(rows, f"{len(episodes)} episodes against the twin '{twin}'"))
+    console.print(f"{out}/localization.json, localization.png")
+
+
+def localization_table(rows: list, title: str) -> Table:
+    table = Table(title=title)
     for column in ("signal", "RMS", "bias", "gain", "lag (ms)", "worst regime"):
         table.add_column(column)
     for r in rows:
@@ -335,43 +348,89 @@ def localize_command(
             f"{1000 * r.lag_s:+.0f}",
             worst,
         )
-    console.print(table)
-    console.print(f"{out}/localization.json, localization.png")
+    return table
 
 
-def plot_localization(rows: list, path: Path) -> None:
-    """RMS per signal by regime (one panel per unit) and the lag per signal."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    units = sorted({r.unit for r in rows})
-    fig, axes = plt.subplots(1, len(units) + 1, figsize=(5 * (len(units) + 1), 4))
-    for ax, unit in zip(axes, units, strict=False):
-        group = [r for r in rows if r.unit == unit]
-        regimes = sorted({k for r in group for k in r.regimes})
-        width = 0.8 / max(len(regimes), 1)
-        for k, regime in enumerate(regimes):
-            ax.bar(
-                np.arange(len(group)) + k * width,
-                [r.regimes.get(regime, 0) for r in group],
-                width,
-                label=regime,
-            )
-        ax.set_xticks(
-            np.arange(len(group)) + 0.4 - width / 2,
-            [r.signal for r in group],
-            rotation=60,
-            ha="right",
+@gap_app.command("diagnose")
+def diagnose_command(
+    measured: Annotated[
+        list[Path], typer.Argument(help="Measured episodes: sessions, .mcap files, datasets.")
+    ],
+    out: Annotated[
+        Path,
+        typer.Option(
+            help="Folder for gap_report.json, twin_fitted.yaml, report.md (+ PNGs), overlay.rrd."
+        ),
+    ],
+    twin: Annotated[
+        str, typer.Option(help=f"Built-in cell ({', '.join(TASKS)}) or a scene spec file.")
+    ] = "pick_place",
+    heldout: Annotated[
+        float, typer.Option(help="Fraction of the episodes held out to judge the fits.")
+    ] = 0.3,
+    effects_allowed: Annotated[
+        str | None,
+        typer.Option(
+            help=f"Comma-separated candidates to try (default: all of {', '.join(CANDIDATES)})."
+        ),
+    ] = None,
+    window: Annotated[int, typer.Option(help="Control steps per shooting window.", min=2)] = 20,
+    noise: Annotated[
+        str,
+        typer.Option(
+            help="Sensor noise per signal family, the residuals' unit, e.g. 'q=2e-4,tau=0.1' "
+            "(families: q rad, qd rad/s, tcp m, tau N m, object m)."
+        ),
+    ] = "",
+    seed: Annotated[int, typer.Option(help="Seeds the held-out split and window choice.")] = 0,
+) -> None:
+    """Name the physical effects the twin lacks: fit every candidate effect to the
+    measured episodes (mujoco.sysid over shooting windows), keep the one that held-out
+    episodes and BIC support, repeat until none is significant, and write the fitted
+    twin with a report of the gap before and after."""
+    scene = twin_scene(twin)
+    noise_floor = NoiseFloor.parse(noise)
+    allowed = (
+        [e.strip() for e in effects_allowed.split(",") if e.strip()] if effects_allowed else None
+    )
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    episodes = load_episodes(measured)
+    with progress() as bar:
+        job = bar.add_task("diagnose", total=None)
+        diagnosis = diagnose(
+            episodes,
+            scene,
+            heldout=heldout,
+            allowed=allowed,
+            window=window,
+            noise=noise_floor,
+            seed=seed,
+            log=lambda message: bar.update(job, description=message),
         )
-        ax.set_ylabel(f"RMS ({unit})")
-        ax.set_title(f"disagreement ({unit})")
-        ax.legend(fontsize=7)
-    joints = [r for r in rows if r.signal.startswith("q.")]
-    axes[-1].bar([r.signal for r in joints], [1000 * r.lag_s for r in joints])
-    axes[-1].set_ylabel("lag (ms): measurement behind twin")
-    axes[-1].tick_params(axis="x", rotation=60)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+        bar.update(job, description="localise and write the report")
+        replays = [replay_windows(e, scene, window=window) for e in episodes]
+        rows = localize(replays)
+        write_report(diagnosis, rows, scene, out)
+    table = Table(title=f"candidates against the twin '{twin}' (round 1, best first)")
+    for column in ("effect", "parameters", "held-out error", "ΔBIC", "significant"):
+        table.add_column(column)
+    for r in diagnosis.candidates:
+        params = ", ".join(
+            f"{k}={[round(v, 4) for v in value] if isinstance(value, list) else round(value, 4)}"
+            for k, value in r.params.items()
+        )
+        table.add_row(
+            r.effect,
+            params,
+            f"{r.heldout_error:.3g}",
+            f"{r.delta_bic:+.0f}",
+            "yes" if r.significant else "no",
+        )
+    console.print(table)
+    named = ", ".join(s["effect"] for s in diagnosis.selected) or "nothing"
+    console.print(
+        f"named: {named}; held-out error {diagnosis.gap_before:.3g} -> {diagnosis.gap_after:.3g} "
+        f"({100 * diagnosis.heldout_reduction:.1f} % smaller, noise floor 1)"
+    )
+    console.print(f"{out}/gap_report.json, twin_fitted.yaml, report.md, overlay.rrd")

@@ -64,15 +64,20 @@ def _arm_joints(spec: mujoco.MjSpec, layout: CellLayout, values: list[float], wh
 
 
 def apply_actuator_delay(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
-    """Command-to-motion latency: each arm servo acts on the target sent ``seconds`` ago."""
+    """Command-to-motion latency: each arm servo acts on the target sent ``seconds`` ago.
+
+    The servo's command history is interpolated linearly, so that the delay is exactly
+    ``seconds`` at every step (a zero-order hold would round it to whole physics steps,
+    differently as floating-point time accumulates).
+    """
     if seconds <= 0:
         return
-    nsample = math.ceil(seconds / spec.option.timestep) + 1
+    nsample = math.ceil(seconds / spec.option.timestep) + 2
     for name in layout.arm_actuators:
         act = spec.actuator(name)
         act.delay = seconds
         act.nsample = nsample
-        act.interp = 0
+        act.interp = 1
 
 
 def apply_joint_friction(spec: mujoco.MjSpec, layout: CellLayout, coulomb: list[float]) -> None:

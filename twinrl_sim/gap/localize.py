@@ -15,6 +15,7 @@ motion regime, with time lag, bias and gain.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -136,3 +137,41 @@ def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
             )
         )
     return sorted(rows, key=lambda r: (r.unit, -r.rms))
+
+
+def plot_localization(rows: list[Disagreement], path: Path) -> None:
+    """RMS per signal by regime (one panel per unit) and the lag per signal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    units = sorted({r.unit for r in rows})
+    fig, axes = plt.subplots(1, len(units) + 1, figsize=(5 * (len(units) + 1), 4))
+    for ax, unit in zip(axes, units, strict=False):
+        group = [r for r in rows if r.unit == unit]
+        regimes = sorted({k for r in group for k in r.regimes})
+        width = 0.8 / max(len(regimes), 1)
+        for k, regime in enumerate(regimes):
+            ax.bar(
+                np.arange(len(group)) + k * width,
+                [r.regimes.get(regime, 0) for r in group],
+                width,
+                label=regime,
+            )
+        ax.set_xticks(
+            np.arange(len(group)) + 0.4 - width / 2,
+            [r.signal for r in group],
+            rotation=60,
+            ha="right",
+        )
+        ax.set_ylabel(f"RMS ({unit})")
+        ax.set_title(f"disagreement ({unit})")
+        ax.legend(fontsize=7)
+    joints = [r for r in rows if r.signal.startswith("q.")]
+    axes[-1].bar([r.signal for r in joints], [1000 * r.lag_s for r in joints])
+    axes[-1].set_ylabel("lag (ms): measurement behind twin")
+    axes[-1].tick_params(axis="x", rotation=60)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,325 @@
+"""Name the effects the twin lacks: fit every candidate, keep what held-out data supports.
+
+1. The measured episodes are split into training and held-out episodes (``heldout``).
+2. Every candidate effect (:data:`CANDIDATES`) is fitted on the training windows with
+   the effects already named held fixed, then scored on the held-out windows
+   (``heldout_error``: RMS residual in sensor-noise units, 1 at the noise floor) and by
+   AIC/BIC on the training windows.
+3. The candidate with the lowest held-out error is named when it is *significant*: its
+   BIC beats the twin without it by more than :data:`BIC_MARGIN` (very strong evidence)
+   **and** it cuts the held-out error by at least :data:`MIN_HELDOUT_GAIN`. Time-
+   correlated residuals make information criteria over-confident; the held-out test
+   keeps a candidate that only fits noise from being named.
+4. Repeat with the named effects added, among the candidates that were significant on
+   their own, until none is; then refit all named effects together.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from mujoco.rollout import Rollout
+
+from twinrl_data import schema as contract
+from twinrl_sim.build import compile_scene
+from twinrl_sim.effects import EFFECTS
+from twinrl_sim.gap.identify import (
+    CANDIDATES,
+    NoiseFloor,
+    WindowReplay,
+    Windows,
+    cut_windows,
+)
+from twinrl_sim.spec import SceneSpec
+
+BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
+MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must bring
+FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
+MAX_EFFECTS = 3  # rounds of naming
+
+
+@dataclass
+class CandidateResult:
+    """One candidate effect fitted in one round."""
+
+    effect: str
+    params: dict[str, float | list[float]]
+    ci: dict[str, float | list[float]]  # 95 % half-widths, same units as params
+    heldout_error: float
+    aic: float
+    bic: float
+    delta_bic: float  # against the twin without this candidate (negative: better)
+    significant: bool
+    iterations: int
+    seconds: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class Diagnosis:
+    """What ``twinrl gap diagnose`` found (see :func:`diagnose`)."""
+
+    rounds: list[list[CandidateResult]]  # each round's candidates, best first
+    selected: list[dict]  # [{"effect", "params", "ci"}] in the order named
+    effects: dict[str, dict]  # the named effects as an effects file
+    baseline: dict[str, float]  # the twin as it is: heldout_error, aic, bic
+    gap_before: float
+    gap_after: float
+    signals: list[str]
+    units: list[str]
+    heldout_rms_before: list[float]  # per signal, physical units
+    heldout_rms_after: list[float]
+    train_episodes: list[str]
+    heldout_episodes: list[str]
+    windows: dict[str, int]
+    skipped: dict[str, str]  # candidate -> why it was not fitted
+    seconds: float
+    heldout: Windows = field(repr=False)
+    predicted_before: np.ndarray = field(repr=False)  # (n, W, n_signals) held-out
+    predicted_after: np.ndarray = field(repr=False)
+
+    @property
+    def heldout_reduction(self) -> float:
+        return 1.0 - self.gap_after / self.gap_before if self.gap_before > 0 else 0.0
+
+    @property
+    def candidates(self) -> list[CandidateResult]:
+        """The first round's ranking: every candidate against the twin as it is."""
+        return self.rounds[0] if self.rounds else []
+
+
+UNITS = {"q": "rad", "qd": "rad/s", "tcp": "m", "tau": "N m", "object": "m"}
+
+
+def split_episodes(
+    episodes: Sequence[contract.Episode], heldout: float, seed: int
+) -> tuple[list[int], list[int]]:
+    """Indices of training and held-out episodes (at least one each), drawn by seed."""
+    if not 0 < heldout < 1:
+        raise ValueError(f"--heldout must be a fraction between 0 and 1, got {heldout}")
+    if len(episodes) < 2:
+        raise ValueError(
+            f"the gap workflow needs at least 2 episodes (one to fit, one held out), got "
+            f"{len(episodes)}; record more with twinrl sim excite"
+        )
+    order = np.random.default_rng(seed).permutation(len(episodes))
+    held = min(max(1, round(heldout * len(episodes))), len(episodes) - 1)
+    return sorted(order[held:].tolist()), sorted(order[:held].tolist())
+
+
+def candidate_pool(
+    windows: Windows, allowed: Sequence[str] | None
+) -> tuple[list[str], dict[str, str]]:
+    """The candidates to fit on these windows, and why others are left out."""
+    names = list(CANDIDATES)
+    if allowed:
+        unknown = [a for a in allowed if a not in CANDIDATES]
+        if "camera_pose" in unknown:
+            raise ValueError(
+                "camera_pose cannot be fitted: the gap workflow compares joint, TCP, torque "
+                "and object signals, not images"
+            )
+        if unknown:
+            known = ", ".join(CANDIDATES)
+            effect = "an effect" if unknown[0] in EFFECTS else "not an effect"
+            raise ValueError(
+                f"--effects-allowed: '{unknown[0]}' is {effect} the workflow fits; "
+                f"choose among {known}"
+            )
+        names = [n for n in names if n in allowed]
+    skipped = {}
+    pool = []
+    for name in names:
+        needs = CANDIDATES[name].needs
+        if needs in ("objects", "grasp") and not windows.objects:
+            skipped[name] = "no object poses in the episodes"
+        elif needs == "grasp" and not windows.grasping:
+            skipped[name] = "the gripper never closes in the episodes"
+        else:
+            pool.append(name)
+    return pool, skipped
+
+
+def _spread(windows: Windows, count: int, seed: int) -> Windows:
+    """At most ``count`` windows, spread evenly over episodes and time."""
+    if len(windows) <= count:
+        return windows
+    rng = np.random.default_rng(seed)
+    order = np.lexsort((rng.random(len(windows)), windows.start, windows.episode))
+    pick = order[np.linspace(0, len(order) - 1, count).round().astype(int)]
+    return windows.subset(np.sort(pick))
+
+
+def diagnose(
+    episodes: Sequence[contract.Episode],
+    scene: SceneSpec,
+    *,
+    heldout: float = 0.3,
+    allowed: Sequence[str] | None = None,
+    window: int = 20,
+    noise: NoiseFloor | None = None,
+    seed: int = 0,
+    fit_windows: int = FIT_WINDOWS,
+    log: Callable[[str], None] = lambda _: None,
+) -> Diagnosis:
+    """Find, fit and name the effects that ``scene`` lacks to explain ``episodes``."""
+    started = time.perf_counter()
+    noise = noise or NoiseFloor()
+    train_idx, held_idx = split_episodes(episodes, heldout, seed)
+    layout = compile_scene(scene).layout
+    objects = [o.name for o in scene.objects]
+    windows = cut_windows(
+        episodes, layout, objects, window=window, control_hz=scene.physics.control_hz
+    )
+    train = windows.subset(np.isin(windows.episode, train_idx))
+    held = windows.subset(np.isin(windows.episode, held_idx))
+    if not len(train) or not len(held):
+        raise ValueError(
+            "the training or held-out episodes are all shorter than one window; record "
+            "longer episodes or pass a smaller --window"
+        )
+    fit_on = _spread(train, fit_windows, seed)
+    pool, skipped = candidate_pool(windows, allowed)
+    log(
+        f"{len(train_idx)} training episodes ({len(fit_on)} of {len(train)} windows fitted), "
+        f"{len(held_idx)} held out ({len(held)} windows); candidates: {', '.join(pool)}"
+    )
+    rollout = Rollout(nthread=2)
+    try:
+        fixed: dict[str, dict] = {}
+        baseline = _score(scene, fit_on, held, noise, fixed, rollout)
+        first_baseline = baseline
+        rounds: list[list[CandidateResult]] = []
+        selected: list[dict] = []
+        while pool and len(selected) < MAX_EFFECTS:
+            results = []
+            for name in pool:
+                log(f"round {len(rounds) + 1}: fitting {name}")
+                results.append(
+                    _fit_candidate(scene, fit_on, held, noise, fixed, name, baseline, rollout)
+                )
+            results.sort(key=lambda r: r.heldout_error)
+            rounds.append(results)
+            best = results[0]
+            if not best.significant:
+                break
+            selected.append({"effect": best.effect, "params": best.params, "ci": best.ci})
+            fixed = {**fixed, best.effect: best.params}
+            baseline = _score(scene, fit_on, held, noise, fixed, rollout)
+            pool = [r.effect for r in results[1:] if r.significant]
+            log(f"named {best.effect} {best.params}")
+        if len(selected) > 1:
+            log(f"refitting {', '.join(s['effect'] for s in selected)} together")
+            fixed, selected = _refit(scene, fit_on, noise, selected, rollout)
+        before = WindowReplay(scene, held, noise, pool=rollout)
+        after = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout)
+        predicted_before = before.predict([before.sequences.gt_model])[0][0]
+        predicted_after = after.predict([after.sequences.gt_model])[0][0]
+    finally:
+        rollout.close()
+    scale = np.array([getattr(noise, f) for f in windows.families])
+    rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
+    gap_before = float(np.sqrt(np.mean(((held.measured - predicted_before) / scale) ** 2)))
+    gap_after = float(np.sqrt(np.mean(((held.measured - predicted_after) / scale) ** 2)))
+    return Diagnosis(
+        rounds=rounds,
+        selected=selected,
+        effects=fixed,
+        baseline={
+            "heldout_error": first_baseline.heldout_error,
+            "aic": first_baseline.aic,
+            "bic": first_baseline.bic,
+        },
+        gap_before=gap_before,
+        gap_after=gap_after,
+        signals=list(windows.names),
+        units=[UNITS[f] for f in windows.families],
+        heldout_rms_before=rms(predicted_before).tolist(),
+        heldout_rms_after=rms(predicted_after).tolist(),
+        train_episodes=[episodes[i].meta.episode_id for i in train_idx],
+        heldout_episodes=[episodes[i].meta.episode_id for i in held_idx],
+        windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},
+        skipped=skipped,
+        seconds=time.perf_counter() - started,
+        heldout=held,
+        predicted_before=predicted_before,
+        predicted_after=predicted_after,
+    )
+
+
+@dataclass
+class _Score:
+    heldout_error: float
+    aic: float
+    bic: float
+
+
+def _information(residuals: np.ndarray, k: int) -> tuple[float, float]:
+    """(AIC, BIC) of residuals (n, W, n_signals) with a Gaussian likelihood whose
+    variance is fitted per signal, for ``k`` fitted parameters."""
+    rows = residuals.shape[0] * residuals.shape[1]
+    rss = np.sum(residuals**2, axis=(0, 1))
+    neg2_loglik = float(np.sum(rows * np.log(rss / rows)))
+    return neg2_loglik + 2 * k, neg2_loglik + k * math.log(rss.size * rows)
+
+
+def _rms(residuals: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(residuals**2)))
+
+
+def _score(scene, fit_on, held, noise, fixed, rollout) -> _Score:
+    train = WindowReplay(scene, fit_on, noise, fixed=fixed, pool=rollout).residuals()
+    heldout = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout).residuals()
+    aic, bic = _information(train, 0)
+    return _Score(_rms(heldout), aic, bic)
+
+
+def _fit_candidate(
+    scene, fit_on, held, noise, fixed, name, baseline: _Score, rollout
+) -> CandidateResult:
+    started = time.perf_counter()
+    replay = WindowReplay(scene, fit_on, noise, fixed=fixed, free=[name], pool=rollout)
+    x, half_width, iterations = replay.fit()
+    aic, bic = _information(replay.residuals(x), len(x))
+    effects = replay.effects_at(x)
+    heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
+    error = _rms(heldout)
+    candidate = CANDIDATES[name]
+    significant = (
+        bic < baseline.bic - BIC_MARGIN and error <= (1 - MIN_HELDOUT_GAIN) * baseline.heldout_error
+    )
+    return CandidateResult(
+        effect=name,
+        params=effects[name],
+        ci={candidate.param: replay.physical(candidate, half_width)},
+        heldout_error=error,
+        aic=aic,
+        bic=bic,
+        delta_bic=bic - baseline.bic,
+        significant=bool(significant),
+        iterations=iterations,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def _refit(scene, fit_on, noise, selected, rollout) -> tuple[dict, list[dict]]:
+    """Fit all named effects together, starting where they were named."""
+    names = [s["effect"] for s in selected]
+    start = {s["effect"]: s["params"] for s in selected}
+    replay = WindowReplay(scene, fit_on, noise, free=names, start=start, pool=rollout)
+    x, half_width, _ = replay.fit()
+    effects = replay.effects_at(x)
+    refitted, offset = [], 0
+    for name in names:
+        candidate = CANDIDATES[name]
+        size = len(replay.layout.arm_joints) if candidate.per_joint else 1
+        ci = {candidate.param: replay.physical(candidate, half_width[offset : offset + size])}
+        refitted.append({"effect": name, "params": effects[name], "ci": ci})
+        offset += size
+    return effects, refitted

@@ -1,0 +1,323 @@
+"""What ``twinrl gap diagnose`` writes: gap_report.json, twin_fitted.yaml, report.md with
+its plots, and overlay.rrd (measured, twin before and twin after, one held-out episode)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from twinrl_sim.gap.diagnose import BIC_MARGIN, MIN_HELDOUT_GAIN, Diagnosis
+from twinrl_sim.gap.localize import Disagreement, plot_localization
+from twinrl_sim.spec import SceneSpec, save_spec
+
+PLOTTED_SIGNALS = 4  # signals of the held-out overlay plot (largest gap first)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def report_json(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
+    d = diagnosis
+    return {
+        "candidates": [
+            {k: v for k, v in r.to_dict().items() if k != "seconds"} for r in d.candidates
+        ],
+        "selected": d.selected,
+        "gap_before": d.gap_before,
+        "gap_after": d.gap_after,
+        "heldout_reduction": d.heldout_reduction,
+        "baseline": d.baseline,
+        "rounds": [[r.to_dict() for r in rnd] for rnd in d.rounds],
+        "signals": [
+            {"signal": s, "unit": u, "heldout_rms_before": b, "heldout_rms_after": a}
+            for s, u, b, a in zip(
+                d.signals, d.units, d.heldout_rms_before, d.heldout_rms_after, strict=True
+            )
+        ],
+        "skipped": d.skipped,
+        "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
+        "windows": d.windows,
+        "seconds": d.seconds,
+        "localization": [r.to_dict() for r in localization],
+    }
+
+
+def write_fitted_spec(scene: SceneSpec, diagnosis: Diagnosis, path: Path) -> Path:
+    """The twin with the named effects added, and where they came from."""
+    fitted = scene.with_effects(diagnosis.effects)
+    provenance = {
+        **scene.provenance,
+        "gap_diagnose": {
+            "training_episodes": diagnosis.train_episodes,
+            "heldout_episodes": diagnosis.heldout_episodes,
+            "named": [
+                {"effect": s["effect"], "params": s["params"], "ci95": s["ci"]}
+                for s in diagnosis.selected
+            ],
+            "heldout_error_before": diagnosis.gap_before,
+            "heldout_error_after": diagnosis.gap_after,
+            "heldout_reduction": diagnosis.heldout_reduction,
+            "error_unit": "RMS residual in sensor-noise units (1 = noise floor)",
+        },
+    }
+    return save_spec(fitted.model_copy(update={"provenance": provenance}), path)
+
+
+def plot_candidates(diagnosis: Diagnosis, path: Path) -> None:
+    """Held-out error of each candidate, per round, against the twin without it."""
+    plt = _pyplot()
+    rounds = diagnosis.rounds
+    fig, axes = plt.subplots(1, max(len(rounds), 1), figsize=(5 * max(len(rounds), 1), 4))
+    axes = np.atleast_1d(axes)
+    for i, (ax, results) in enumerate(zip(axes, rounds, strict=False)):
+        names = [r.effect for r in results]
+        errors = [r.heldout_error for r in results]
+        colors = ["tab:green" if r.significant else "tab:gray" for r in results]
+        ax.barh(names[::-1], errors[::-1], color=colors[::-1])
+        ax.set_xscale("log")
+        ax.set_xlabel("held-out error (noise units, log)")
+        ax.set_title(f"round {i + 1}: green = significant")
+        ax.axvline(1.0, color="k", lw=0.8, ls=":")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_signals(diagnosis: Diagnosis, path: Path) -> None:
+    """Held-out RMS per signal before and after, one panel per unit."""
+    plt = _pyplot()
+    d = diagnosis
+    units = list(dict.fromkeys(d.units))
+    fig, axes = plt.subplots(1, len(units), figsize=(4.5 * len(units), 4))
+    axes = np.atleast_1d(axes)
+    for ax, unit in zip(axes, units, strict=True):
+        idx = [i for i, u in enumerate(d.units) if u == unit]
+        x = np.arange(len(idx))
+        ax.bar(x - 0.2, [d.heldout_rms_before[i] for i in idx], 0.4, label="twin before")
+        ax.bar(x + 0.2, [d.heldout_rms_after[i] for i in idx], 0.4, label="twin after")
+        ax.set_xticks(x, [d.signals[i] for i in idx], rotation=60, ha="right")
+        ax.set_yscale("log")
+        ax.set_ylabel(f"held-out RMS ({unit})")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _overlay_rows(diagnosis: Diagnosis) -> tuple[np.ndarray, np.ndarray]:
+    """Windows of the first held-out episode, in time order, and their row times (s)."""
+    held = diagnosis.heldout
+    first = held.episode.min()
+    windows = np.flatnonzero(held.episode == first)
+    windows = windows[np.argsort(held.start[windows])]
+    return windows, (held.start[windows, None] + np.arange(1, held.rows + 1)) / held.fps
+
+
+def _largest_gaps(diagnosis: Diagnosis, count: int) -> list[int]:
+    d = diagnosis
+    families = {u: [i for i, x in enumerate(d.units) if x == u] for u in set(d.units)}
+    score = np.zeros(len(d.signals))
+    for idx in families.values():
+        before = np.array([d.heldout_rms_before[i] for i in idx])
+        score[idx] = before / max(before.max(), 1e-12)
+    return list(np.argsort(-score)[:count])
+
+
+def plot_overlay(diagnosis: Diagnosis, path: Path) -> None:
+    """Measured, twin before and twin after over one held-out episode (each window
+    restarts from the measurement)."""
+    plt = _pyplot()
+    d = diagnosis
+    windows, times = _overlay_rows(d)
+    picks = _largest_gaps(d, PLOTTED_SIGNALS)
+    fig, axes = plt.subplots(len(picks), 1, figsize=(10, 2.2 * len(picks)), sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, s in zip(axes, picks, strict=True):
+        for k, w in enumerate(windows):
+            label = k == 0
+            ax.plot(times[k], d.heldout.measured[w, :, s], "k.", ms=3, label="measured" * label)
+            ax.plot(times[k], d.predicted_before[w, :, s], "r-", lw=1, label="twin before" * label)
+            ax.plot(times[k], d.predicted_after[w, :, s], "g-", lw=1, label="twin after" * label)
+        ax.set_ylabel(f"{d.signals[s]} ({d.units[s]})", fontsize=8)
+    axes[0].legend(fontsize=7, ncol=3)
+    axes[-1].set_xlabel("time (s); the twin restarts from the measurement every window")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_overlay_rrd(diagnosis: Diagnosis, path: Path) -> None:
+    """A Rerun recording of one held-out episode: every compared signal as measured,
+    twin before and twin after, plus the three TCP paths."""
+    d = diagnosis
+    windows, times = _overlay_rows(d)
+    recording = rr.RecordingStream("twinrl_gap_overlay")
+    recording.save(str(path))
+    tcp = [d.signals.index(n) for n in ("tcp.x", "tcp.y", "tcp.z")]
+    series = {
+        "measured": d.heldout.measured,
+        "twin_before": d.predicted_before,
+        "twin_after": d.predicted_after,
+    }
+    colors = {"measured": [20, 20, 20], "twin_before": [220, 50, 47], "twin_after": [40, 160, 60]}
+    for name in d.signals:
+        for label in series:
+            rr.log(
+                f"signals/{name}/{label}",
+                rr.SeriesLines(colors=[colors[label]], names=f"{name} {label}"),
+                static=True,
+                recording=recording,
+            )
+    paths: dict[str, list] = {label: [] for label in series}
+    for k, w in enumerate(windows):
+        for r, t in enumerate(times[k]):
+            recording.set_time("time", duration=float(t))
+            for label, values in series.items():
+                for s, name in enumerate(d.signals):
+                    rr.log(
+                        f"signals/{name}/{label}",
+                        rr.Scalars(float(values[w, r, s])),
+                        recording=recording,
+                    )
+                paths[label].append(values[w, r, tcp].tolist())
+                rr.log(
+                    f"world/{label}/tcp_path",
+                    rr.LineStrips3D([paths[label]], colors=[colors[label]]),
+                    recording=recording,
+                )
+    views = [
+        rrb.TimeSeriesView(origin=f"signals/{d.signals[s]}", name=d.signals[s])
+        for s in _largest_gaps(d, PLOTTED_SIGNALS)
+    ]
+    recording.send_blueprint(
+        rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world"), rrb.Vertical(*views)))
+    )
+    recording.flush()
+    recording.disconnect()
+
+
+def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path: Path) -> None:
+    d = diagnosis
+    lines = [
+        "# Sim-to-real gap diagnosis",
+        "",
+        f"{len(d.train_episodes)} training episodes ({d.windows['fitted']} of "
+        f"{d.windows['train']} windows fitted), {len(d.heldout_episodes)} held-out episodes "
+        f"({d.windows['heldout']} windows); {d.seconds:.0f} s.",
+        "",
+        "## Named effects",
+        "",
+    ]
+    if d.selected:
+        lines += ["| order | effect | parameters | 95 % interval (±) |", "|---|---|---|---|"]
+        for i, s in enumerate(d.selected, 1):
+            lines.append(f"| {i} | {s['effect']} | {_fmt(s['params'])} | {_fmt(s['ci'])} |")
+    else:
+        lines.append("None: no candidate beats the twin as it is on held-out data.")
+    lines += [
+        "",
+        f"**Held-out error** (RMS residual in sensor-noise units, 1 = noise floor): "
+        f"{d.gap_before:.3g} before, {d.gap_after:.3g} after "
+        f"({100 * d.heldout_reduction:.1f} % smaller). The fitted twin is `twin_fitted.yaml`; "
+        "`overlay.rrd` overlays measured, twin before and twin after (open it with "
+        "`rerun overlay.rrd`).",
+        "",
+        "![held-out signals](overlay.png)",
+        "",
+        "## Candidates",
+        "",
+        f"A candidate is significant when its BIC beats the twin without it by more than "
+        f"{BIC_MARGIN:g} and it cuts the held-out error by at least "
+        f"{100 * MIN_HELDOUT_GAIN:.0f} %. Intervals assume independent residuals and are "
+        "therefore optimistic.",
+        "",
+    ]
+    baseline = d.baseline
+    for i, results in enumerate(d.rounds, 1):
+        lines += [
+            f"### Round {i}",
+            "",
+            "| effect | parameters | 95 % (±) | held-out error | AIC | BIC | ΔBIC | significant |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        if i == 1:
+            lines.append(
+                f"| (twin as it is) | | | {baseline['heldout_error']:.3g} | "
+                f"{baseline['aic']:.0f} | {baseline['bic']:.0f} | | |"
+            )
+        for r in results:
+            lines.append(
+                f"| {r.effect} | {_fmt(r.params)} | {_fmt(r.ci)} | {r.heldout_error:.3g} | "
+                f"{r.aic:.0f} | {r.bic:.0f} | {r.delta_bic:+.0f} | "
+                f"{'yes' if r.significant else 'no'} |"
+            )
+        lines.append("")
+    if d.skipped:
+        lines += ["Not fitted: " + "; ".join(f"{k} ({v})" for k, v in d.skipped.items()), ""]
+    lines += [
+        "![candidates](candidates.png)",
+        "",
+        "## Held-out error per signal",
+        "",
+        "| signal | before | after | unit |",
+        "|---|---|---|---|",
+    ]
+    for s, u, b, a in zip(
+        d.signals, d.units, d.heldout_rms_before, d.heldout_rms_after, strict=True
+    ):
+        lines.append(f"| {s} | {b:.3g} | {a:.3g} | {u} |")
+    lines += [
+        "",
+        "![signals](signals.png)",
+        "",
+        "## Where the twin disagreed (before)",
+        "",
+        "| signal | RMS | bias | gain | lag (ms) | worst regime |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in localization:
+        worst = max(r.regimes, key=r.regimes.get) if r.regimes else "-"
+        lines.append(
+            f"| {r.signal} | {r.rms:.2e} {r.unit} | {r.bias:+.2e} | {r.gain:.3f} | "
+            f"{1000 * r.lag_s:+.0f} | {worst} |"
+        )
+    lines += ["", "![localization](localization.png)", ""]
+    path.write_text("\n".join(lines))
+
+
+def _fmt(params: dict) -> str:
+    parts = []
+    for key, value in params.items():
+        if isinstance(value, list):
+            parts.append(f"{key} [{', '.join(f'{v:.3g}' for v in value)}]")
+        else:
+            parts.append(f"{key} {value:.3g}")
+    return "; ".join(parts)
+
+
+def write_report(
+    diagnosis: Diagnosis,
+    localization: list[Disagreement],
+    scene: SceneSpec,
+    out: Path,
+) -> None:
+    """Every output of ``twinrl gap diagnose`` into ``out`` (which must be new or empty)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "gap_report.json").write_text(json.dumps(report_json(diagnosis, localization), indent=1))
+    write_fitted_spec(scene, diagnosis, out / "twin_fitted.yaml")
+    plot_candidates(diagnosis, out / "candidates.png")
+    plot_signals(diagnosis, out / "signals.png")
+    plot_overlay(diagnosis, out / "overlay.png")
+    plot_localization(localization, out / "localization.png")
+    write_overlay_rrd(diagnosis, out / "overlay.rrd")
+    write_markdown(diagnosis, localization, out / "report.md")
