@@ -38,7 +38,7 @@ from twinrl_sim.effects import EFFECTS, apply_effects
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec
 
-FD_STEP = 1e-5  # finite-difference step in optimiser units (see Candidate.scale)
+FD_STEP = 1e-3  # finite-difference step in optimiser units (see Candidate.scale)
 MAX_ITERS = 12  # Levenberg-Marquardt iterations per fit; these fits converge in 3-8
 XTOL = 1e-4  # relative step below which a fit has converged (far below any interval)
 
@@ -576,8 +576,11 @@ class WindowReplay:
             output=trace,
         )
         x = params.as_vector()
-        res, _, _ = self.residual_fn(x, params.copy())
-        _, half_width = sysid.calculate_intervals(res, result.jac)
+        if not np.any(result.jac):  # the data say nothing about these parameters
+            half_width = np.full(len(x), np.inf)
+        else:
+            res, _, _ = self.residual_fn(x, params.copy())
+            _, half_width = sysid.calculate_intervals(res, result.jac)
         iterations = len(result.extras.get("objective", [])) or max_iters
         return x, np.asarray(half_width, float), iterations
 
