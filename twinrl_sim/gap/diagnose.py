@@ -297,7 +297,7 @@ def _fit_candidate(
     return CandidateResult(
         effect=name,
         params=effects[name],
-        ci={candidate.param: replay.physical(candidate, half_width)},
+        ci={candidate.param: replay.interval(candidate, half_width)},
         heldout_error=error,
         aic=aic,
         bic=bic,
@@ -319,7 +319,7 @@ def _refit(scene, fit_on, noise, selected, rollout) -> tuple[dict, list[dict]]:
     for name in names:
         candidate = CANDIDATES[name]
         size = len(replay.layout.arm_joints) if candidate.per_joint else 1
-        ci = {candidate.param: replay.physical(candidate, half_width[offset : offset + size])}
+        ci = {candidate.param: replay.interval(candidate, half_width[offset : offset + size])}
         refitted.append({"effect": name, "params": effects[name], "ci": ci})
         offset += size
     return effects, refitted

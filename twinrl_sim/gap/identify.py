@@ -374,6 +374,11 @@ class WindowReplay:
         values = np.clip(np.asarray(value, float) * candidate.scale, *candidate.bounds())
         return [float(v) for v in values] if candidate.per_joint else float(values[0])
 
+    def interval(self, candidate: Candidate, half_width: np.ndarray) -> float | list[float]:
+        """Interval half-widths in the effect's units (``inf``: not identifiable)."""
+        values = np.asarray(half_width, float) * candidate.scale
+        return [float(v) for v in values] if candidate.per_joint else float(values[0])
+
     def _apply(self, spec: mujoco.MjSpec, candidate: Candidate, value: np.ndarray) -> None:
         physical = self.physical(candidate, value)
         if candidate.effect == "actuator_delay":
@@ -581,8 +586,26 @@ class WindowReplay:
         else:
             res, _, _ = self.residual_fn(x, params.copy())
             _, half_width = sysid.calculate_intervals(res, result.jac)
+        # A component the data cannot pin down (e.g. the offset of a wrist turning about
+        # the TCP axis) wanders freely; report it at "no effect", interval unbounded.
+        low, high = self.params.get_bounds()
+        loose = ~(np.asarray(half_width) < (high - low) / 2)
+        x = np.where(loose, self._null_vector(), x)
         iterations = len(result.extras.get("objective", [])) or max_iters
-        return x, np.asarray(half_width, float), iterations
+        return x, np.where(loose, np.inf, half_width), iterations
+
+    def _null_vector(self) -> np.ndarray:
+        """The free parameters' "no effect" values, in optimiser units."""
+        parts = []
+        for candidate in self.free:
+            size = len(self.layout.arm_joints) if candidate.per_joint else 1
+            null = (
+                self._nominal_friction()
+                if candidate.effect == "object_friction"
+                else candidate.null
+            )
+            parts.append(np.full(size, null / candidate.scale))
+        return np.concatenate(parts)
 
     def effects_at(self, x: np.ndarray) -> dict[str, dict]:
         """The fixed effects plus the free ones at ``x``, in effects-file form."""

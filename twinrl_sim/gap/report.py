@@ -26,7 +26,22 @@ def _pyplot():
     return plt
 
 
+def _finite(value):
+    """JSON has no infinity: an unbounded interval is written as null."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
 def report_json(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
+    return _finite(_report(diagnosis, localization))
+
+
+def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
     d = diagnosis
     return {
         "candidates": [
@@ -61,7 +76,7 @@ def write_fitted_spec(scene: SceneSpec, diagnosis: Diagnosis, path: Path) -> Pat
             "training_episodes": diagnosis.train_episodes,
             "heldout_episodes": diagnosis.heldout_episodes,
             "named": [
-                {"effect": s["effect"], "params": s["params"], "ci95": s["ci"]}
+                {"effect": s["effect"], "params": s["params"], "ci95": _finite(s["ci"])}
                 for s in diagnosis.selected
             ],
             "heldout_error_before": diagnosis.gap_before,
