@@ -32,6 +32,7 @@ from twinrl_sim.gap import (
     replay_windows,
     write_report,
 )
+from twinrl_sim.gap.report import format_params
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
@@ -416,13 +417,9 @@ def diagnose_command(
     for column in ("effect", "parameters", "held-out error", "ΔBIC", "significant"):
         table.add_column(column)
     for r in diagnosis.candidates:
-        params = ", ".join(
-            f"{k}={[round(v, 4) for v in value] if isinstance(value, list) else round(value, 4)}"
-            for k, value in r.params.items()
-        )
         table.add_row(
             r.effect,
-            params,
+            format_params(r.params),
             f"{r.heldout_error:.3g}",
             f"{r.delta_bic:+.0f}",
             "yes" if r.significant else "no",

@@ -225,8 +225,8 @@ def diagnose(
         rollout.close()
     scale = np.array([getattr(noise, f) for f in windows.families])
     rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
-    gap_before = float(np.sqrt(np.mean(((held.measured - predicted_before) / scale) ** 2)))
-    gap_after = float(np.sqrt(np.mean(((held.measured - predicted_after) / scale) ** 2)))
+    gap_before = _rms((held.measured - predicted_before) / scale)
+    gap_after = _rms((held.measured - predicted_after) / scale)
     return Diagnosis(
         rounds=rounds,
         selected=selected,
@@ -290,14 +290,13 @@ def _fit_candidate(
     effects = replay.effects_at(x)
     heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
     error = _rms(heldout)
-    candidate = CANDIDATES[name]
     significant = (
         bic < baseline.bic - BIC_MARGIN and error <= (1 - MIN_HELDOUT_GAIN) * baseline.heldout_error
     )
     return CandidateResult(
         effect=name,
         params=effects[name],
-        ci={candidate.param: replay.interval(candidate, half_width)},
+        ci=replay.intervals_at(half_width)[name],
         heldout_error=error,
         aic=aic,
         bic=bic,
@@ -314,12 +313,6 @@ def _refit(scene, fit_on, noise, selected, rollout) -> tuple[dict, list[dict]]:
     start = {s["effect"]: s["params"] for s in selected}
     replay = WindowReplay(scene, fit_on, noise, free=names, start=start, pool=rollout)
     x, half_width, _ = replay.fit()
-    effects = replay.effects_at(x)
-    refitted, offset = [], 0
-    for name in names:
-        candidate = CANDIDATES[name]
-        size = len(replay.layout.arm_joints) if candidate.per_joint else 1
-        ci = {candidate.param: replay.interval(candidate, half_width[offset : offset + size])}
-        refitted.append({"effect": name, "params": effects[name], "ci": ci})
-        offset += size
+    effects, intervals = replay.effects_at(x), replay.intervals_at(half_width)
+    refitted = [{"effect": n, "params": effects[n], "ci": intervals[n]} for n in names]
     return effects, refitted

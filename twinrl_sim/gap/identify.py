@@ -83,13 +83,13 @@ class Candidate:
 
     ``scale`` is the physical size of one optimiser unit (so that every parameter is
     of order one for the optimiser), ``start`` where the fit starts and ``null`` the
-    value that means "no effect" (what a significance test compares against).
+    value that means "no effect"; ``None`` for either is the scene's nominal value.
     """
 
     effect: str
     scale: float
-    start: float
-    null: float
+    start: float | None
+    null: float | None
     needs: str  # "arm": any motion; "objects": object poses logged; "grasp": a closed gripper
 
     @property
@@ -115,7 +115,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("payload", 1.0, 0.1, 0.0, "arm"),
         Candidate("joint_offset", 0.01, 0.0, 0.0, "arm"),
         Candidate("object_mass", 1.0, 1.0, 1.0, "grasp"),
-        Candidate("object_friction", 0.5, 1.0, 1.0, "grasp"),
+        Candidate("object_friction", 0.5, None, None, "grasp"),
         Candidate("table_height", 0.01, 0.0, 0.0, "objects"),
         Candidate("gripper_force", 1.0, 1.0, 1.0, "grasp"),
     )
@@ -344,15 +344,13 @@ class WindowReplay:
         """The effect's parameter in optimiser units, starting at ``start`` (its
         effects-file form) or at the candidate's default start."""
         low, high = candidate.bounds()
-        size = len(self.layout.arm_joints) if candidate.per_joint else 1
+        size = self._size(candidate)
         if candidate.effect == "actuator_delay":
             high = min(high, DELAY_HISTORY)
         if start is not None:
             value = np.asarray(start[candidate.param], float)
-        elif candidate.effect == "object_friction":
-            value = np.array(self._nominal_friction())
         else:
-            value = np.array(candidate.start)
+            value = np.array(self._resolve(candidate.start))
         return sysid.Parameter(
             candidate.effect,
             nominal=np.broadcast_to(value / candidate.scale, (size,)).copy(),
@@ -360,6 +358,21 @@ class WindowReplay:
             max_value=np.full(size, high / candidate.scale),
             modifier=lambda spec, p, c=candidate: self._apply(spec, c, p.value),
         )
+
+    def _size(self, candidate: Candidate) -> int:
+        return len(self.layout.arm_joints) if candidate.per_joint else 1
+
+    def _slices(self):
+        """(candidate, slice of the parameter vector) of every free effect, in order."""
+        offset = 0
+        for candidate in self.free:
+            yield candidate, slice(offset, offset + self._size(candidate))
+            offset += self._size(candidate)
+
+    def _resolve(self, value: float | None) -> float:
+        """A candidate's start or null value; ``None``: the object's nominal friction
+        (the only candidate whose neutral value is the scene's own)."""
+        return self._nominal_friction() if value is None else value
 
     def _nominal_friction(self) -> float:
         geoms = [
@@ -403,8 +416,7 @@ class WindowReplay:
     def _initial_states(self, model: mujoco.MjModel) -> np.ndarray:
         w = self.windows
         data = mujoco.MjData(model)
-        arm_qpos = [model.joint(j).qposadr[0] for j in self.layout.arm_joints]
-        arm_dof = [model.joint(j).dofadr[0] for j in self.layout.arm_joints]
+        arm_qpos, arm_dof = self._arm_addresses(model)
         arm_act = [model.actuator(a).id for a in self.layout.arm_actuators]
         fingers = (
             [model.joint(j).qposadr[0] for j in (gripper_lib.JOINT, gripper_lib.MIRROR_JOINT)]
@@ -446,6 +458,11 @@ class WindowReplay:
             mujoco.mj_forward(model, data)
             mujoco.mj_getState(model, data, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
         return states
+
+    def _arm_addresses(self, model: mujoco.MjModel) -> tuple[list[int], list[int]]:
+        """qpos and dof addresses of the arm joints."""
+        joints = [model.joint(j) for j in self.layout.arm_joints]
+        return [j.qposadr[0] for j in joints], [j.dofadr[0] for j in joints]
 
     def _controls(self, model: mujoco.MjModel) -> np.ndarray:
         """(n, W * substeps, nu): each target held for its control period."""
@@ -502,8 +519,7 @@ class WindowReplay:
     def _signals(self, model: mujoco.MjModel, ticks: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
         w = self.windows
         data = mujoco.MjData(model)
-        arm_qpos = [model.joint(j).qposadr[0] for j in self.layout.arm_joints]
-        arm_dof = [model.joint(j).dofadr[0] for j in self.layout.arm_joints]
+        arm_qpos, arm_dof = self._arm_addresses(model)
         tcp = model.site(self.layout.tcp_site).id
         tau = "tau" in w.families
         bodies = [
@@ -596,25 +612,20 @@ class WindowReplay:
 
     def _null_vector(self) -> np.ndarray:
         """The free parameters' "no effect" values, in optimiser units."""
-        parts = []
-        for candidate in self.free:
-            size = len(self.layout.arm_joints) if candidate.per_joint else 1
-            null = (
-                self._nominal_friction()
-                if candidate.effect == "object_friction"
-                else candidate.null
-            )
-            parts.append(np.full(size, null / candidate.scale))
-        return np.concatenate(parts)
+        null = np.empty(self.params.size)
+        for candidate, part in self._slices():
+            null[part] = self._resolve(candidate.null) / candidate.scale
+        return null
 
     def effects_at(self, x: np.ndarray) -> dict[str, dict]:
         """The fixed effects plus the free ones at ``x``, in effects-file form."""
         effects = dict(self.fixed)
-        offset = 0
-        for candidate in self.free:
-            size = len(self.layout.arm_joints) if candidate.per_joint else 1
-            effects[candidate.effect] = {
-                candidate.param: self.physical(candidate, x[offset : offset + size])
-            }
-            offset += size
+        for candidate, part in self._slices():
+            effects[candidate.effect] = {candidate.param: self.physical(candidate, x[part])}
         return effects
+
+    def intervals_at(self, half_width: np.ndarray) -> dict[str, dict]:
+        """Interval half-widths of the free effects, in effects-file form."""
+        return {
+            c.effect: {c.param: self.interval(c, half_width[part])} for c, part in self._slices()
+        }

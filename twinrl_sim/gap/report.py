@@ -236,7 +236,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
     if d.selected:
         lines += ["| order | effect | parameters | 95 % interval (±) |", "|---|---|---|---|"]
         for i, s in enumerate(d.selected, 1):
-            lines.append(f"| {i} | {s['effect']} | {_fmt(s['params'])} | {_fmt(s['ci'])} |")
+            params, ci = format_params(s["params"]), format_params(s["ci"])
+            lines.append(f"| {i} | {s['effect']} | {params} | {ci} |")
     else:
         lines.append("None: no candidate beats the twin as it is on held-out data.")
     lines += [
@@ -272,7 +273,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
             )
         for r in results:
             lines.append(
-                f"| {r.effect} | {_fmt(r.params)} | {_fmt(r.ci)} | {r.heldout_error:.3g} | "
+                f"| {r.effect} | {format_params(r.params)} | {format_params(r.ci)} | "
+                f"{r.heldout_error:.3g} | "
                 f"{r.aic:.0f} | {r.bic:.0f} | {r.delta_bic:+.0f} | "
                 f"{'yes' if r.significant else 'no'} |"
             )
@@ -310,7 +312,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
     path.write_text("\n".join(lines))
 
 
-def _fmt(params: dict) -> str:
+def format_params(params: dict) -> str:
+    """``mass 2; scale [0.6, 0.6, ...]`` for tables (3 significant digits)."""
     parts = []
     for key, value in params.items():
         if isinstance(value, list):
