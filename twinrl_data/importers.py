@@ -285,7 +285,7 @@ def import_csv(
     }
     if cmap.effort:
         data[contract.EFFORT] = stack(cmap.effort).astype(np.float32)
-        names[contract.EFFORT] = [f"tau.{j}" for j in cmap.joints]
+        names[contract.EFFORT] = contract.effort_names(cmap.joints)
     meta = contract.EpisodeMeta(
         task=task,
         source="imported",

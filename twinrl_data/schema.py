@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import datetime as dt
 import uuid
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -171,6 +171,11 @@ class Episode:
     @property
     def cameras(self) -> list[str]:
         return list(self.images)
+
+
+def effort_names(joints: Sequence[str]) -> list[str]:
+    """Names of ``observation.effort``'s entries: the torque (N m) of each named joint."""
+    return [f"tau.{j}" for j in joints]
 
 
 def step_record(

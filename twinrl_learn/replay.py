@@ -21,7 +21,7 @@ those only.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -130,10 +130,21 @@ class ReplayBuffer:
         return buffer
 
     def save(self, root: str | Path) -> Path:
-        """Write the buffer's episodes as a LeRobotDataset at ``root``."""
+        """Write the buffer's episodes as a LeRobotDataset at ``root``.
+
+        A buffer may mix recorders (a twin buffer and plant episodes); an optional field
+        that only some of its episodes log (``observation.effort``) is left out.
+        """
         if not self.episodes:
             raise ValueError("the replay buffer is empty; nothing to save")
-        export_dataset(iter(self.episodes), root)
+        shared = set.intersection(*(set(e.data) for e in self.episodes))
+        export_dataset(
+            (
+                replace(e, data={k: v for k, v in e.data.items() if k in shared})
+                for e in self.episodes
+            ),
+            root,
+        )
         return Path(root)
 
     # ----------------------------------------------------------------- indexing

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import EFFORT, EpisodeMeta, step_record
+from twinrl_data.schema import EFFORT, EpisodeMeta, effort_names, step_record
 from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.build import CompiledScene, compile_scene
@@ -164,7 +164,6 @@ def run_excitation(
     )
     scene = compile_scene(spec_task.scene)
     fk = TcpKinematics(scene)
-    torque_names = [f"tau.{j}" for j in scene.layout.arm_joints]
     rng = np.random.default_rng(seed)
     paths = []
     try:
@@ -181,7 +180,7 @@ def run_excitation(
                 twin=spec_task.scene.digest,
                 policy=f"multisine:{settings.harmonics}x{settings.duration:g}s",
                 fps=spec_task.scene.physics.control_hz,
-                names={**arm.contract_names(), EFFORT: torque_names},
+                names={**arm.contract_names(), EFFORT: effort_names(scene.layout.arm_joints)},
             )
             obs = arm.reset(config)
             with session.record(meta) as log:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.schema import effort_names
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
@@ -102,6 +103,7 @@ class Plant:
         self.last_joint_target: np.ndarray | None = None
         self.state_names = self._cell.state_names
         self.environment_names = self._cell.environment_names
+        self.effort_names = effort_names(self._cell.layout.arm_joints)
 
     def contract_names(self) -> dict[str, list[str]]:
         """Names of the vector entries of this cell's episodes (see ``Cell.contract_names``)."""

@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_data.schema import EFFORT, EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
@@ -90,7 +90,8 @@ class _TwinWorld:
 
 
 class _PlantWorld:
-    # The scripted expert stands in for a human teleoperating the (stand-in) real cell.
+    # The scripted expert stands in for a human teleoperating the (stand-in) real cell,
+    # whose controller reports joint torques as a UR's does (the gap workflow uses them).
     source, world = "teleop", "plant"
 
     def __init__(
@@ -100,15 +101,18 @@ class _PlantWorld:
             task, effects=effects, seed=seed, images=("front", "wrist") if images else ()
         )
         self.task = self.plant.task
-        self.names = self.plant.contract_names()
+        self.names = {**self.plant.contract_names(), EFFORT: self.plant.effort_names}
+
+    def _with_effort(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        return {**obs, EFFORT: self.plant.joint_torques().astype(np.float32)}
 
     def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
-        return self.plant.reset(config)
+        return self._with_effort(self.plant.reset(config))
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
         self.plant.act(action)
         assert self.plant.last_joint_target is not None
-        return self.plant.observe(), self.plant.last_joint_target
+        return self._with_effort(self.plant.observe()), self.plant.last_joint_target
 
     @property
     def success(self) -> bool:

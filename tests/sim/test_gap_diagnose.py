@@ -8,11 +8,15 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.cli import app
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
+from twinrl_robot.scripted import run_scripted_expert
+from twinrl_sim.build import compile_scene
 from twinrl_sim.gap import NoiseFloor, diagnose
+from twinrl_sim.gap.identify import WindowReplay, cut_windows
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task
 
@@ -37,6 +41,21 @@ def _record(path, effects, episodes=4, seed=1):
         settings=ExcitationSettings(duration=6.0),
         session=session,
         seed=seed,
+    )
+    return [read_episode(p, images=False) for p in session.episode_paths()]
+
+
+def _record_teleop(path, effects, episodes=4, seed=3):
+    """Pick-and-place teleop in the plant (the expert with operator-like jitter)."""
+    session = Session.create(path)
+    run_scripted_expert(
+        "pick_place",
+        world="plant",
+        effects=effects,
+        episodes=episodes,
+        seed=seed,
+        session=session,
+        action_noise=0.002,
     )
     return [read_episode(p, images=False) for p in session.episode_paths()]
 
@@ -74,6 +93,29 @@ def test_names_nothing_when_the_twin_is_right(tmp_path):
     assert diagnosis.selected == [] and diagnosis.effects == {}
     assert not any(c.significant for c in diagnosis.candidates)
     assert diagnosis.gap_before < 1.3 and abs(diagnosis.heldout_reduction) < 0.05
+
+
+def test_task_windows_start_with_fixtures_in_place_and_resting_objects_averaged(tmp_path):
+    episode = _record_teleop(tmp_path / "s", {}, episodes=1)[0]
+    assert episode.data[schema.EFFORT].shape == (len(episode), 6)  # the plant reports torques
+    layout = compile_scene(SCENE).layout
+    objects = [o.name for o in SCENE.objects]
+    windows = cut_windows([episode], layout, objects, window=10, control_hz=10.0)
+    replay = WindowReplay(SCENE, windows, NoiseFloor())
+    model = replay.edited_spec(replay.params).compile()
+    env = episode.data[schema.ENVIRONMENT_STATE]
+    plate = env[:, 7 * objects.index("plate") :][:, :3]
+    # The fixture (a mocap body: an input, not physics state) sits at its measured
+    # pose, averaged over the episode.
+    mocap = replay.initial_inputs[:, model.nu : model.nu + 3]
+    assert np.allclose(mocap, plate.mean(axis=0), atol=1e-6)
+    assert np.abs(plate - mocap[0]).max() > 1e-4  # while each measurement is noisy
+    # Before the grasp the banana rests: every window starts it at one averaged pose.
+    resting = windows.gripper[:, 0] < 0.5
+    banana = windows.objects0[resting, objects.index("banana"), :3]
+    assert len(banana) >= 2 and np.ptp(banana, axis=0).max() < 1e-9
+    # A window that starts at rest replays at the noise floor.
+    assert np.sqrt(np.mean(replay.residuals()[0] ** 2)) < 2.0
 
 
 def test_noise_floor_parses_and_rejects_bad_entries():
@@ -168,3 +210,11 @@ def test_names_two_hidden_effects(tmp_path):
     assert _within(diagnosis.effects["payload"]["mass"], 2.0)
     assert diagnosis.heldout_reduction >= 0.7
     assert yaml.safe_dump(diagnosis.effects)  # an effects file as written to twin_fitted.yaml
+
+
+@pytest.mark.slow
+def test_names_a_hidden_object_mass_from_task_episodes(tmp_path):
+    episodes = _record_teleop(tmp_path / "s", {"object_mass": {"scale": 4.0}})
+    diagnosis = diagnose(episodes, SCENE)  # the whole library
+    _assert_named(diagnosis, "object_mass", "scale", 4.0)
+    assert [s["effect"] for s in diagnosis.selected] == ["object_mass"]

@@ -2,7 +2,9 @@
 
 The measured episodes are cut into shooting windows (``window`` control steps each).
 Every window restarts the twin from what was measured at its first row (arm joints and
-velocities, gripper opening, object poses), re-sends the logged joint targets and
+velocities, gripper opening, object poses; a resting object's position is the mean
+over its rest, since a tracker's millimetre of noise would otherwise start it inside
+the table or the fingers), re-sends the logged joint targets and
 gripper commands at the physics rate (held for a control period, as the robot holds
 them) and is compared with the measurement at every later row. All windows of all
 parameter points of a finite-difference Jacobian run as one batched
@@ -124,6 +126,13 @@ CANDIDATES: dict[str, Candidate] = {
 image residuals and is not among them)."""
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
+# What a window's rollout sets at every step: the servo and gripper commands, and the
+# poses of mocap bodies (targets and fixtures; they are inputs, not physics state).
+INPUTS = int(
+    mujoco.mjtState.mjSTATE_CTRL
+    | mujoco.mjtState.mjSTATE_MOCAP_POS
+    | mujoco.mjtState.mjSTATE_MOCAP_QUAT
+)
 
 
 @dataclass
@@ -214,7 +223,7 @@ def cut_windows(
     names = [f"q.{j}" for j in arm] + [f"qd.{j}" for j in arm] + ["tcp.x", "tcp.y", "tcp.z"]
     families = ["q"] * len(arm) + ["qd"] * len(arm) + ["tcp"] * 3
     if with_tau:
-        names += [f"tau.{j}" for j in arm]
+        names += contract.effort_names(arm)
         families += ["tau"] * len(arm)
     manipulated = [o for o in objects if o in layout.manipulated] if with_objects else []
     for o in manipulated:
@@ -234,6 +243,8 @@ def cut_windows(
             if "gripper.opening" in col
             else np.full(len(state), 2 * gripper_lib.STROKE)
         )
+        actions = episode.data.get(contract.ACTION)
+        gripper = np.zeros(len(state)) if actions is None else np.clip(actions[:, 6], 0, 1)
         signals = [q, qd, tcp]
         if with_tau:
             signals.append(_effort(episode, arm))
@@ -242,12 +253,12 @@ def cut_windows(
             poses = env.reshape(len(env), len(objects), 7)
             for o in manipulated:
                 signals.append(poses[:, list(objects).index(o), :3])
+            movable = [o in layout.manipulated for o in objects]
+            start_poses = _rest_averaged(poses, gripper, movable)
         else:
-            poses = np.zeros((len(state), 0, 7))
+            start_poses = np.zeros((len(state), 0, 7))
         measured = np.hstack(signals)
         targets = episode.data[contract.JOINT_TARGET].astype(float)
-        actions = episode.data.get(contract.ACTION)
-        gripper = np.zeros(len(state)) if actions is None else np.clip(actions[:, 6], 0, 1)
         # Before the first row the robot held where it stood.
         padded = np.vstack([np.repeat(q[:1], history_steps, axis=0), targets])
         for start in range(0, len(state) - window, window):
@@ -255,7 +266,7 @@ def cut_windows(
             parts["q0"].append(q[start])
             parts["qd0"].append(qd[start])
             parts["opening0"].append(opening[start])
-            parts["objects0"].append(poses[start])
+            parts["objects0"].append(start_poses[start])
             parts["targets"].append(targets[start : start + window])
             parts["gripper"].append(gripper[start : start + window])
             parts["history"].append(padded[start : start + history_steps])
@@ -271,8 +282,38 @@ def cut_windows(
     return Windows(names, families, objects_logged, **arrays, fps=control_hz)
 
 
+REST_SPREAD = 5.0  # robust deviations (per axis) within which a row counts as at rest
+
+
+def _rest_averaged(poses: np.ndarray, gripper: np.ndarray, movable: list[bool]) -> np.ndarray:
+    """Object poses (T, n, 7) with the position of every row at which an object rests
+    replaced by its mean over that rest.
+
+    A fixture (not ``movable``) rests all episode; a movable object rests in runs of
+    rows with the gripper open. Rows further than :data:`REST_SPREAD` robust
+    deviations from their rest's median (a bump, the settling after a release) keep
+    their own measurement.
+    """
+    averaged = poses.copy()
+    closed = gripper > 0.5
+    edges = np.flatnonzero(np.diff(closed.astype(int))) + 1
+    everything = np.arange(len(poses))
+    for k, moves in enumerate(movable):
+        rests = (
+            [r for r in np.split(everything, edges) if not closed[r[0]]] if moves else [everything]
+        )
+        for run in rests:
+            xyz = poses[run, k, :3]
+            middle = np.median(xyz, axis=0)
+            spread = 1.4826 * np.median(np.abs(xyz - middle), axis=0)
+            still = np.all(np.abs(xyz - middle) <= REST_SPREAD * spread, axis=1)
+            if still.sum() > 1:
+                averaged[run[still], k, :3] = xyz[still].mean(axis=0)
+    return averaged
+
+
 def _effort(episode: contract.Episode, arm: Sequence[str]) -> np.ndarray:
-    names = episode.meta.names.get(contract.EFFORT) or [f"tau.{j}" for j in arm]
+    names = episode.meta.names.get(contract.EFFORT) or contract.effort_names(arm)
     col = {n: i for i, n in enumerate(names)}
     missing = [j for j in arm if f"tau.{j}" not in col]
     if missing:
@@ -329,7 +370,7 @@ class WindowReplay:
         structure = self.edited_spec(self.params)
         model = structure.compile()
         self.substeps = round(1.0 / (windows.fps * model.opt.timestep))
-        self.initial_states = self._initial_states(model)
+        self.initial_states, self.initial_inputs = self._initial_states(model)
         self.sequences = self._sequences(structure, model)
         self.residual_fn = sysid.build_residual_fn(
             models_sequences=[self.sequences],
@@ -413,7 +454,9 @@ class WindowReplay:
         return sysid.apply_param_modifiers_spec(params, edited)
 
     # ------------------------------------------------------------- windows
-    def _initial_states(self, model: mujoco.MjModel) -> np.ndarray:
+    def _initial_states(self, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+        """Physics state (mjSTATE_FULLPHYSICS) and inputs (:data:`INPUTS`) at the start
+        of every window."""
         w = self.windows
         data = mujoco.MjData(model)
         arm_qpos, arm_dof = self._arm_addresses(model)
@@ -425,6 +468,7 @@ class WindowReplay:
         )
         size = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         states = np.empty((len(w), size))
+        inputs = np.empty((len(w), mujoco.mj_stateSize(model, INPUTS)))
         control_dt = 1.0 / w.fps
         for i in range(len(w)):
             mujoco.mj_resetData(model, data)
@@ -457,7 +501,8 @@ class WindowReplay:
                     mujoco.mj_initCtrlHistory(model, data, act, times[:, None].copy(), values)
             mujoco.mj_forward(model, data)
             mujoco.mj_getState(model, data, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        return states
+            mujoco.mj_getState(model, data, inputs[i], INPUTS)
+        return states, inputs
 
     def _arm_addresses(self, model: mujoco.MjModel) -> tuple[list[int], list[int]]:
         """qpos and dof addresses of the arm joints."""
@@ -465,13 +510,15 @@ class WindowReplay:
         return [j.qposadr[0] for j in joints], [j.dofadr[0] for j in joints]
 
     def _controls(self, model: mujoco.MjModel) -> np.ndarray:
-        """(n, W * substeps, nu): each target held for its control period."""
+        """(n, W * substeps, :data:`INPUTS` size): each target held for its control
+        period, mocap bodies where they were at the window's start. ``ctrl`` comes
+        first in the inputs (mjtState order)."""
         w = self.windows
-        ctrl = np.zeros((len(w), w.targets.shape[1], model.nu))
-        ctrl[:, :, [model.actuator(a).id for a in self.layout.arm_actuators]] = w.targets
+        inputs = np.repeat(self.initial_inputs[:, None], w.targets.shape[1], axis=1)
+        inputs[:, :, [model.actuator(a).id for a in self.layout.arm_actuators]] = w.targets
         if self.layout.gripper_actuator:
-            ctrl[:, :, model.actuator(self.layout.gripper_actuator).id] = w.gripper
-        return np.repeat(ctrl, self.substeps, axis=1)
+            inputs[:, :, model.actuator(self.layout.gripper_actuator).id] = w.gripper
+        return np.repeat(inputs, self.substeps, axis=1)
 
     def _sequences(self, structure: mujoco.MjSpec, model: mujoco.MjModel) -> sysid.ModelSequences:
         w = self.windows
@@ -482,7 +529,7 @@ class WindowReplay:
             w.measured.reshape(rows, -1),
             [(n, 1, sysid.SignalType.CustomObs) for n in w.names],
         )
-        ctrl = self._controls(model)[:, :: self.substeps].reshape(rows, -1)
+        ctrl = self._controls(model)[:, :: self.substeps, : model.nu].reshape(rows, -1)
         control = sysid.TimeSeries.from_control_names(np.arange(rows) / w.fps, ctrl, model)
         absl_logging.set_verbosity(absl_logging.ERROR)  # "sensor dimension" warnings
         return sysid.ModelSequences(
@@ -509,6 +556,7 @@ class WindowReplay:
             datas,
             np.tile(self.initial_states, (len(models), 1)),
             np.tile(ctrl, (len(models), 1, 1)),
+            control_spec=INPUTS,
         )
         ticks = state[:, self.substeps - 1 :: self.substeps]  # (batch, W, nstate)
         signals = np.empty((len(models), n, rows, len(w.names)))
@@ -532,7 +580,7 @@ class WindowReplay:
         for i in range(len(w)):
             for r in range(ticks.shape[1]):
                 mujoco.mj_setState(model, data, ticks[i, r], spec)
-                data.ctrl[:] = ctrl[i, (r + 1) * self.substeps - 1]
+                mujoco.mj_setState(model, data, ctrl[i, (r + 1) * self.substeps - 1], INPUTS)
                 mujoco.mj_forward(model, data)
                 row = [data.qpos[arm_qpos], data.qvel[arm_dof], data.site_xpos[tcp]]
                 if tau:
