@@ -286,13 +286,13 @@ gap_app = typer.Typer(
 )
 
 
-def load_episodes(paths: list[Path]) -> list[Episode]:
-    """Every episode (without images) of the sessions, .mcap files and LeRobotDatasets
-    found under ``paths`` (the catalog's discovery)."""
+def load_episodes(paths: list[Path], *, images: bool = False) -> list[Episode]:
+    """Every episode of the sessions, .mcap files and LeRobotDatasets found under
+    ``paths`` (the catalog's discovery), with camera images only if ``images``."""
     mcaps, datasets = discover(paths)
-    episodes = [read_episode(p, images=False) for p in mcaps]
+    episodes = [read_episode(p, images=images) for p in mcaps]
     for root in datasets:
-        episodes += list(iter_dataset_episodes(root))
+        episodes += list(iter_dataset_episodes(root, cameras=None if images else []))
     if not episodes:
         raise ValueError("no episodes found in the given paths")
     return episodes
@@ -372,7 +372,8 @@ def diagnose_command(
     effects_allowed: Annotated[
         str | None,
         typer.Option(
-            help=f"Comma-separated candidates to try (default: all of {', '.join(CANDIDATES)})."
+            help="Comma-separated candidates to try (default: all of "
+            f"{', '.join(CANDIDATES)}, camera_pose when images are logged)."
         ),
     ] = None,
     window: Annotated[int, typer.Option(help="Control steps per shooting window.", min=2)] = 20,
@@ -380,7 +381,7 @@ def diagnose_command(
         str,
         typer.Option(
             help="Sensor noise per signal family, the residuals' unit, e.g. 'q=2e-4,tau=0.1' "
-            "(families: q rad, qd rad/s, tcp m, tau N m, object m)."
+            "(families: q rad, qd rad/s, tcp m, tau N m, object m, image: standardised grey)."
         ),
     ] = "",
     seed: Annotated[int, typer.Option(help="Seeds the held-out split and window choice.")] = 0,
@@ -396,7 +397,7 @@ def diagnose_command(
     )
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
-    episodes = load_episodes(measured)
+    episodes = load_episodes(measured, images=allowed is None or "camera_pose" in allowed)
     with progress() as bar:
         job = bar.add_task("diagnose", total=None)
         diagnosis = diagnose(
@@ -430,4 +431,8 @@ def diagnose_command(
         f"named: {named}; held-out error {diagnosis.gap_before:.3g} -> {diagnosis.gap_after:.3g} "
         f"({100 * diagnosis.heldout_reduction:.1f} % smaller, noise floor 1)"
     )
+    for camera, gap in diagnosis.image_gap.items():
+        console.print(
+            f"{camera} camera: held-out image error {gap['before']:.3g} -> {gap['after']:.3g}"
+        )
     console.print(f"{out}/gap_report.json, twin_fitted.yaml, report.md, overlay.rrd")

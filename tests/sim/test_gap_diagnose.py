@@ -118,6 +118,45 @@ def test_task_windows_start_with_fixtures_in_place_and_resting_objects_averaged(
     assert np.sqrt(np.mean(replay.residuals()[0] ** 2)) < 2.0
 
 
+def test_names_a_hidden_camera_tilt_from_images(tmp_path):
+    hidden = tmp_path / "hidden.yaml"
+    tilt = [0.0, 0.03, -0.02]
+    hidden.write_text(
+        yaml.safe_dump({"camera_pose": {"camera": "front", "xyz": [0, 0, 0], "rpy": tilt}})
+    )
+    session = Session.create(tmp_path / "s")
+    run_scripted_expert(
+        "pick_place", world="plant", effects=hidden, episodes=2, seed=3, session=session
+    )
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        ["gap", "diagnose", str(tmp_path / "s"), "--twin", "pick_place",
+         "--effects-allowed", "camera_pose", "--out", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "gap_report.json").read_text())
+    assert [s["effect"] for s in report["selected"]] == ["camera_pose"]
+    named = report["selected"][0]["params"]
+    assert named["camera"] == "front"  # the wrist camera is where it should be
+    # Each angle within 15 % of the tilt's size (the hidden roll is zero).
+    assert np.abs(np.subtract(named["rpy"], tilt)).max() <= 0.15 * np.abs(tilt).max()
+    assert np.abs(named["xyz"]).max() < 0.005
+    front = report["image_gap"]["front"]
+    assert front["after"] <= 0.3 * front["before"]
+    assert not next(c for c in report["candidates"] if c["compared"] == "images:wrist")[
+        "significant"
+    ]
+    fitted = load_spec(out / "twin_fitted.yaml")
+    assert fitted.effects["camera_pose"]["camera"] == "front"
+
+
+def test_camera_pose_needs_images(tmp_path):
+    episodes = _record(tmp_path / "s", {}, episodes=2)
+    with pytest.raises(ValueError, match="camera_pose needs camera images"):
+        diagnose(episodes, SCENE, allowed=["camera_pose"])
+
+
 def test_noise_floor_parses_and_rejects_bad_entries():
     assert NoiseFloor.parse("q=1e-3, tau=0.2") == NoiseFloor(q=1e-3, tau=0.2)
     with pytest.raises(ValueError, match="unknown signal family 'torque'"):
@@ -162,7 +201,7 @@ def test_cli_writes_the_report_and_a_fitted_twin(tmp_path):
 @pytest.mark.parametrize(
     ("option", "message"),
     [
-        ("--effects-allowed camera_pose", "camera_pose cannot be fitted"),
+        ("--effects-allowed camera_pose", "camera_pose needs camera images"),
         ("--effects-allowed friction", "'friction' is not an effect"),
         ("--heldout 1.5", "--heldout must be a fraction"),
         ("--noise q=-1", "must be positive"),

@@ -12,6 +12,10 @@
    keeps a candidate that only fits noise from being named.
 4. Repeat with the named effects added, among the candidates that were significant on
    their own, until none is; then refit all named effects together.
+5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
+   residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
+   against the logged image) and named by the same rule; the camera it helps most is
+   named (an effects file holds one ``camera_pose``).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from mujoco.rollout import Rollout
 from twinrl_data import schema as contract
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import EFFECTS
+from twinrl_sim.gap.camera import CameraFit, logged_cameras, sample_frames
 from twinrl_sim.gap.identify import (
     CANDIDATES,
     NoiseFloor,
@@ -38,6 +43,10 @@ from twinrl_sim.spec import SceneSpec
 
 BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
 MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must bring
+# The same for a camera pose: pixel residuals are strongly correlated and carry the
+# lighting and tracking differences no pose can explain, on which a sub-millimetre
+# nudge of a well-mounted camera gains a few per cent; a real mounting error gains more.
+MIN_IMAGE_GAIN = 0.2
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
 MAX_EFFECTS = 3  # rounds of naming
 
@@ -56,6 +65,7 @@ class CandidateResult:
     significant: bool
     iterations: int
     seconds: float
+    compared: str = "motion"  # the residuals it was judged on: motion, or images:<camera>
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,6 +90,9 @@ class Diagnosis:
     windows: dict[str, int]
     skipped: dict[str, str]  # candidate -> why it was not fitted
     seconds: float
+    cameras: list[CandidateResult]  # camera_pose per logged camera, best first
+    image_gap: dict[str, dict[str, float]]  # camera -> held-out image error before/after
+    image_noise: float
     heldout: Windows = field(repr=False)
     predicted_before: np.ndarray = field(repr=False)  # (n, W, n_signals) held-out
     predicted_after: np.ndarray = field(repr=False)
@@ -90,8 +103,9 @@ class Diagnosis:
 
     @property
     def candidates(self) -> list[CandidateResult]:
-        """The first round's ranking: every candidate against the twin as it is."""
-        return self.rounds[0] if self.rounds else []
+        """The first round's ranking of every candidate against the twin as it is (on
+        motion residuals), then ``camera_pose`` per camera (on image residuals)."""
+        return (self.rounds[0] if self.rounds else []) + self.cameras
 
 
 UNITS = {"q": "rad", "qd": "rad/s", "tcp": "m", "tau": "N m", "object": "m"}
@@ -120,17 +134,13 @@ def candidate_pool(
     names = list(CANDIDATES)
     if allowed:
         unknown = [a for a in allowed if a not in CANDIDATES]
-        if "camera_pose" in unknown:
-            raise ValueError(
-                "camera_pose cannot be fitted: the gap workflow compares joint, TCP, torque "
-                "and object signals, not images"
-            )
+        unknown = [a for a in unknown if a != "camera_pose"]
         if unknown:
             known = ", ".join(CANDIDATES)
             effect = "an effect" if unknown[0] in EFFECTS else "not an effect"
             raise ValueError(
                 f"--effects-allowed: '{unknown[0]}' is {effect} the workflow fits; "
-                f"choose among {known}"
+                f"choose among {known}, camera_pose"
             )
         names = [n for n in names if n in allowed]
     skipped = {}
@@ -186,6 +196,15 @@ def diagnose(
         )
     fit_on = _spread(train, fit_windows, seed)
     pool, skipped = candidate_pool(windows, allowed)
+    cameras_wanted = allowed is None or "camera_pose" in allowed
+    cameras = logged_cameras(episodes, layout) if cameras_wanted else []
+    if cameras_wanted and not cameras:
+        if allowed:
+            raise ValueError(
+                "camera_pose needs camera images in every episode; record with images "
+                "(twinrl sim expert --out records both cameras)"
+            )
+        skipped["camera_pose"] = "no camera images in the episodes"
     log(
         f"{len(train_idx)} training episodes ({len(fit_on)} of {len(train)} windows fitted), "
         f"{len(held_idx)} held out ({len(held)} windows); candidates: {', '.join(pool)}"
@@ -217,12 +236,34 @@ def diagnose(
         if len(selected) > 1:
             log(f"refitting {', '.join(s['effect'] for s in selected)} together")
             fixed, selected = _refit(scene, fit_on, noise, selected, rollout)
+        camera_results, image_gap = [], {}
+        for camera in cameras:
+            log(f"fitting camera_pose of the {camera} camera on its images")
+            result, gap = _fit_camera(
+                scene,
+                [episodes[i] for i in train_idx],
+                [episodes[i] for i in held_idx],
+                layout,
+                objects,
+                camera,
+                noise.image,
+                fixed,
+            )
+            camera_results.append(result)
+            image_gap[camera] = gap
+        camera_results.sort(key=lambda r: r.heldout_error / image_gap[r.params["camera"]]["before"])
+        if camera_results and camera_results[0].significant:
+            best = camera_results[0]
+            selected.append({"effect": best.effect, "params": best.params, "ci": best.ci})
+            fixed = {**fixed, best.effect: best.params}
+            log(f"named camera_pose of the {best.params['camera']} camera")
         before = WindowReplay(scene, held, noise, pool=rollout)
         after = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout)
         predicted_before = before.predict([before.sequences.gt_model])[0][0]
         predicted_after = after.predict([after.sequences.gt_model])[0][0]
     finally:
         rollout.close()
+    named_cameras = [s["params"]["camera"] for s in selected if s["effect"] == "camera_pose"]
     scale = np.array([getattr(noise, f) for f in windows.families])
     rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
     gap_before = _rms((held.measured - predicted_before) / scale)
@@ -247,6 +288,12 @@ def diagnose(
         windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},
         skipped=skipped,
         seconds=time.perf_counter() - started,
+        cameras=camera_results,
+        image_noise=noise.image,
+        image_gap={
+            c: g if c in named_cameras else {**g, "after": g["before"]}
+            for c, g in image_gap.items()
+        },
         heldout=held,
         predicted_before=predicted_before,
         predicted_after=predicted_after,
@@ -316,3 +363,42 @@ def _refit(scene, fit_on, noise, selected, rollout) -> tuple[dict, list[dict]]:
     effects, intervals = replay.effects_at(x), replay.intervals_at(half_width)
     refitted = [{"effect": n, "params": effects[n], "ci": intervals[n]} for n in names]
     return effects, refitted
+
+
+def _fit_camera(
+    scene, train_episodes, held_episodes, layout, objects, camera, noise, fixed
+) -> tuple[CandidateResult, dict[str, float]]:
+    """camera_pose of ``camera`` fitted on the training episodes' images, scored on the
+    held-out ones: the result and the held-out image error before and after."""
+    started = time.perf_counter()
+    fit = CameraFit(
+        scene, sample_frames(train_episodes, layout, objects, camera), noise, fixed=fixed
+    )
+    check = CameraFit(
+        scene, sample_frames(held_episodes, layout, objects, camera), noise, fixed=fixed
+    )
+    try:
+        before = fit.residuals()
+        x, half_width, iterations = fit.fit()
+        after = fit.residuals(x)
+        gap = {"before": _rms(check.residuals()), "after": _rms(check.residuals(x))}
+    finally:
+        fit.close()
+        check.close()
+    _, bic_before = _information(before.reshape(len(before), -1, 1), 0)
+    aic, bic = _information(after.reshape(len(after), -1, 1), len(x))
+    gain = 1 - gap["after"] / gap["before"] if gap["before"] > 0 else 0.0
+    significant = bic < bic_before - BIC_MARGIN and gain >= MIN_IMAGE_GAIN
+    return CandidateResult(
+        effect="camera_pose",
+        params=fit.effect_at(x),
+        ci=fit.interval_at(half_width),
+        heldout_error=gap["after"],
+        aic=aic,
+        bic=bic,
+        delta_bic=bic - bic_before,
+        significant=bool(significant),
+        iterations=iterations,
+        seconds=time.perf_counter() - started,
+        compared=f"images:{camera}",
+    ), gap

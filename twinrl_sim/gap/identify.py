@@ -50,7 +50,8 @@ class NoiseFloor:
     """Standard deviation of each measured signal family: the residuals' unit.
 
     The defaults are those of a UR e-series arm's joint encoders, velocity estimate,
-    TCP pose and joint torque estimate, and of a tracked object's position.
+    TCP pose and joint torque estimate, of a tracked object's position, and of a
+    camera image compared in standardised grey levels.
     """
 
     q: float = 2e-4  # rad
@@ -58,6 +59,7 @@ class NoiseFloor:
     tcp: float = 3e-4  # m
     tau: float = 0.05  # N m
     object: float = 1e-3  # m
+    image: float = 0.05  # standardised grey level of a compared image (see gap.camera)
 
     @classmethod
     def parse(cls, text: str) -> NoiseFloor:
@@ -122,8 +124,8 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("gripper_force", 1.0, 1.0, 1.0, "grasp"),
     )
 }
-"""Every effect of the library that the gap workflow can fit (``camera_pose`` needs
-image residuals and is not among them)."""
+"""Every effect of the library fitted on motion residuals (``camera_pose`` is fitted on
+image residuals, by :mod:`twinrl_sim.gap.camera`)."""
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
 # What a window's rollout sets at every step: the servo and gripper commands, and the

@@ -10,7 +10,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from twinrl_sim.gap.diagnose import BIC_MARGIN, MIN_HELDOUT_GAIN, Diagnosis
+from twinrl_sim.gap.diagnose import BIC_MARGIN, MIN_HELDOUT_GAIN, MIN_IMAGE_GAIN, Diagnosis
 from twinrl_sim.gap.localize import Disagreement, plot_localization
 from twinrl_sim.spec import SceneSpec, save_spec
 
@@ -59,6 +59,7 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
                 d.signals, d.units, d.heldout_rms_before, d.heldout_rms_after, strict=True
             )
         ],
+        "image_gap": d.image_gap,
         "skipped": d.skipped,
         "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
         "windows": d.windows,
@@ -279,6 +280,30 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
                 f"{'yes' if r.significant else 'no'} |"
             )
         lines.append("")
+    if d.cameras:
+        lines += [
+            "### Cameras",
+            "",
+            "`camera_pose` per camera, judged on image residuals (the twin's render at the "
+            f"measured state against the logged image, grey, standardised; noise unit "
+            f"{d.image_noise:g}); significant when BIC improves by more than {BIC_MARGIN:g} and "
+            f"the held-out image error drops by at least {100 * MIN_IMAGE_GAIN:.0f} %. "
+            "A shift across the view and a small turn look alike from "
+            "one camera over a shallow scene: the fitted pose is the one the images support.",
+            "",
+            "| camera | parameters | 95 % (±) | held-out image error before | after | ΔBIC "
+            "| significant |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for r in d.cameras:
+            camera = r.params["camera"]
+            shown = {k: v for k, v in r.params.items() if k != "camera"}
+            lines.append(
+                f"| {camera} | {format_params(shown)} | {format_params(r.ci)} | "
+                f"{d.image_gap[camera]['before']:.3g} | {r.heldout_error:.3g} | "
+                f"{r.delta_bic:+.0f} | {'yes' if r.significant else 'no'} |"
+            )
+        lines.append("")
     if d.skipped:
         lines += ["Not fitted: " + "; ".join(f"{k} ({v})" for k, v in d.skipped.items()), ""]
     lines += [
@@ -318,6 +343,8 @@ def format_params(params: dict) -> str:
     for key, value in params.items():
         if isinstance(value, list):
             parts.append(f"{key} [{', '.join(f'{v:.3g}' for v in value)}]")
+        elif isinstance(value, str):
+            parts.append(f"{key} {value}")
         else:
             parts.append(f"{key} {value:.3g}")
     return "; ".join(parts)
