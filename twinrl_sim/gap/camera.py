@@ -28,6 +28,7 @@ from mujoco import sysid
 from twinrl_data import schema as contract
 from twinrl_sim.build import CellLayout, build_mjspec
 from twinrl_sim.effects import apply_camera_pose, apply_effects
+from twinrl_sim.gap.identify import place_measured
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec
 
@@ -182,29 +183,11 @@ class CameraFit:
         self.model.cam_quat[self.camera_id] = moved.cam_quat[self.camera_id]
         f = self.frames
         arm = [self.model.joint(j).qposadr[0] for j in self.layout.arm_joints]
-        fingers = (
-            [self.model.joint(j).qposadr[0] for j in (gripper_lib.JOINT, gripper_lib.MIRROR_JOINT)]
-            if self.layout.gripper_joint
-            else []
-        )
         images = np.empty((len(f), *f.size, 3), np.uint8)
         for i in range(len(f)):
             mujoco.mj_resetData(self.model, self.data)
-            for k, name in enumerate(f.objects):
-                pose = f.poses[i, k]
-                if np.isnan(pose).any():
-                    continue
-                body = self.model.body(name)
-                if body.mocapid[0] >= 0:
-                    self.data.mocap_pos[body.mocapid[0]] = pose[:3]
-                    self.data.mocap_quat[body.mocapid[0]] = pose[3:]
-                else:
-                    adr = self.model.joint(f"{name}_free").qposadr[0]
-                    self.data.qpos[adr : adr + 7] = pose
+            place_measured(self.model, self.data, self.layout, f.objects, f.poses[i], f.opening[i])
             self.data.qpos[arm] = f.q[i]
-            self.data.qpos[fingers] = np.clip(
-                gripper_lib.STROKE - f.opening[i] / 2, 0, gripper_lib.STROKE
-            )
             mujoco.mj_forward(self.model, self.data)
             self.renderer.update_scene(self.data, camera=self.camera_id)
             images[i] = self.renderer.render()

@@ -344,6 +344,32 @@ def _check_episode(episode: contract.Episode, arm: Sequence[str], control_hz: fl
         )
 
 
+def place_measured(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    layout: CellLayout,
+    objects: Sequence[str],
+    poses: np.ndarray,
+    opening: float,
+) -> None:
+    """Put ``objects`` at measured ``poses`` (n, 7: xyz, wxyz; NaN: not measured, left
+    alone) — free bodies in ``qpos``, fixtures as mocap inputs — and the gripper's
+    fingers at the measured ``opening`` (m)."""
+    for name, pose in zip(objects, poses, strict=True):
+        if np.isnan(pose).any():
+            continue
+        body = model.body(name)
+        if body.mocapid[0] >= 0:
+            data.mocap_pos[body.mocapid[0]] = pose[:3]
+            data.mocap_quat[body.mocapid[0]] = pose[3:]
+        else:
+            adr = model.joint(f"{name}_free").qposadr[0]
+            data.qpos[adr : adr + 7] = pose
+    if layout.gripper_joint:
+        fingers = [model.joint(j).qposadr[0] for j in (gripper_lib.JOINT, gripper_lib.MIRROR_JOINT)]
+        data.qpos[fingers] = np.clip(gripper_lib.STROKE - opening / 2, 0, gripper_lib.STROKE)
+
+
 class WindowReplay:
     """The twin of ``scene`` (plus ``fixed`` effects) replaying ``windows``, with the
     effects of ``free`` adjustable: a ``mujoco.sysid`` residual over all windows."""
@@ -463,31 +489,15 @@ class WindowReplay:
         data = mujoco.MjData(model)
         arm_qpos, arm_dof = self._arm_addresses(model)
         arm_act = [model.actuator(a).id for a in self.layout.arm_actuators]
-        fingers = (
-            [model.joint(j).qposadr[0] for j in (gripper_lib.JOINT, gripper_lib.MIRROR_JOINT)]
-            if self.layout.gripper_joint
-            else []
-        )
         size = mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         states = np.empty((len(w), size))
         inputs = np.empty((len(w), mujoco.mj_stateSize(model, INPUTS)))
         control_dt = 1.0 / w.fps
         for i in range(len(w)):
             mujoco.mj_resetData(model, data)
-            if w.objects0.shape[1]:
-                for k, name in enumerate(w.objects):
-                    pose = w.objects0[i, k]
-                    body = model.body(name)
-                    if body.mocapid[0] >= 0:
-                        data.mocap_pos[body.mocapid[0]] = pose[:3]
-                        data.mocap_quat[body.mocapid[0]] = pose[3:]
-                    else:
-                        adr = model.joint(f"{name}_free").qposadr[0]
-                        data.qpos[adr : adr + 7] = pose
+            place_measured(model, data, self.layout, w.objects, w.objects0[i], w.opening0[i])
             data.qpos[arm_qpos] = w.q0[i]
             data.qvel[arm_dof] = w.qd0[i]
-            finger = np.clip(gripper_lib.STROKE - w.opening0[i] / 2, 0, gripper_lib.STROKE)
-            data.qpos[fingers] = finger
             data.ctrl[arm_act] = w.history[i, -1]
             for a, act in enumerate(arm_act):
                 samples = int(model.actuator_history[act, 0])
