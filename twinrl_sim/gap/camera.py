@@ -16,8 +16,6 @@ twin's ``MjSpec``; :func:`sysid.optimize` on the image residual; and
 
 from __future__ import annotations
 
-import io
-import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
@@ -28,7 +26,7 @@ from mujoco import sysid
 from twinrl_data import schema as contract
 from twinrl_sim.build import CellLayout, build_mjspec
 from twinrl_sim.effects import apply_camera_pose, apply_effects
-from twinrl_sim.gap.identify import place_measured
+from twinrl_sim.gap.identify import least_squares, place_measured
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec
 
@@ -208,22 +206,11 @@ class CameraFit:
 
     def fit(self) -> tuple[np.ndarray, np.ndarray, int]:
         """Least-squares fit: (x, 95 % half-widths, iterations) in optimiser units."""
-        logging.getLogger("absl").setLevel(logging.ERROR)
-        params, result = sysid.optimize(
-            self.params,
-            self._residual_fn,
-            optimizer="mujoco",
-            verbose=False,
-            max_iters=MAX_ITERS,
-            eps=FD_STEP,
-            x_scale="jac",
-            mu_factor=10**0.5,
-            xtol=1e-3,
-            output=io.StringIO(),
+        params, result, iterations = least_squares(
+            self.params, self._residual_fn, eps=FD_STEP, xtol=1e-3, max_iters=MAX_ITERS
         )
         x = params.as_vector()
         _, half_width = sysid.calculate_intervals([self.residuals(x).ravel()], result.jac)
-        iterations = len(result.extras.get("objective", [])) or MAX_ITERS
         return x, np.asarray(half_width), iterations
 
     def close(self) -> None:

@@ -344,6 +344,27 @@ def _check_episode(episode: contract.Episode, arm: Sequence[str], control_hz: fl
         )
 
 
+def least_squares(
+    params: sysid.ParameterDict, residual_fn, *, eps: float, xtol: float, max_iters: int
+):
+    """``sysid.optimize`` with MuJoCo's bounded Levenberg-Marquardt as the gap fits use
+    it: (fitted parameters, the optimiser's result, iterations taken)."""
+    logging.getLogger("absl").setLevel(logging.ERROR)
+    fitted, result = sysid.optimize(
+        params,
+        residual_fn,
+        optimizer="mujoco",
+        verbose=False,
+        max_iters=max_iters,
+        eps=eps,
+        x_scale="jac",  # column-normalised: the damping is then of order one
+        mu_factor=10**0.5,  # few rejected trial steps (each costs a rollout)
+        xtol=xtol,
+        output=io.StringIO(),  # the backend prints every iteration; keep it quiet
+    )
+    return fitted, result, len(result.extras.get("objective", [])) or max_iters
+
+
 def place_measured(
     model: mujoco.MjModel,
     data: mujoco.MjData,
@@ -642,19 +663,8 @@ class WindowReplay:
         optimiser units (see :meth:`physical`)."""
         if not self.free:
             return np.zeros(0), np.zeros(0), 0
-        trace = io.StringIO()  # the backend prints every iteration; keep it quiet
-        logging.getLogger("absl").setLevel(logging.ERROR)
-        params, result = sysid.optimize(
-            self.params,
-            self.residual_fn,
-            optimizer="mujoco",
-            verbose=False,
-            max_iters=max_iters,
-            eps=FD_STEP,
-            x_scale="jac",  # column-normalised: the damping is then of order one
-            mu_factor=10**0.5,  # few rejected trial steps (each costs a rollout)
-            xtol=XTOL,
-            output=trace,
+        params, result, iterations = least_squares(
+            self.params, self.residual_fn, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
         )
         x = params.as_vector()
         if not np.any(result.jac):  # the data say nothing about these parameters
@@ -667,7 +677,6 @@ class WindowReplay:
         low, high = self.params.get_bounds()
         loose = ~(np.asarray(half_width) < (high - low) / 2)
         x = np.where(loose, self._null_vector(), x)
-        iterations = len(result.extras.get("objective", [])) or max_iters
         return x, np.where(loose, np.inf, half_width), iterations
 
     def _null_vector(self) -> np.ndarray:
