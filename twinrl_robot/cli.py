@@ -15,7 +15,7 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
-from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class
+from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class, twin_scene
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 
@@ -105,7 +105,16 @@ def success_table(reports: list[ExpertReport]) -> Table:
 
 def excite(
     out: Annotated[Path, typer.Option(help="Session folder to create with the episodes.")],
-    task: Annotated[str, typer.Option(help=f"Cell to excite: {', '.join(TASKS)}.")] = "pick_place",
+    task: Annotated[
+        str, typer.Option(help=f"Task whose cell and object placement to use: {', '.join(TASKS)}.")
+    ] = "pick_place",
+    twin: Annotated[
+        str | None,
+        typer.Option(
+            help="Scene spec YAML of the cell (e.g. with your robot's MJCF); it must hold "
+            "the task's objects. Default: the task's built-in cell."
+        ),
+    ] = None,
     world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
     episodes: Annotated[int, typer.Option(help="Episodes to record.", min=1)] = 4,
     effects: Annotated[
@@ -124,7 +133,11 @@ def excite(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     settings = ExcitationSettings(duration=duration, amplitude=amplitude)
-    make_task(task)
+    scene = twin_scene(twin) if twin is not None else None
+    try:
+        make_task(task, scene)
+    except KeyError as err:
+        raise ValueError(f"--twin {twin}: {err.args[0]}; pick the --task it is built for") from None
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
     session = Session.create(out)
@@ -132,6 +145,7 @@ def excite(
         job = bar.add_task(f"excite {task} in the {world}", total=episodes)
         run_excitation(
             task,
+            scene=scene,
             world=world,
             episodes=episodes,
             effects=effects,

@@ -3,9 +3,11 @@
 Each episode moves every arm joint along a multi-sine about the home pose (harmonics of
 ``1 / duration`` with random phases, amplitudes falling as ``1 / k`` so that speed
 stays bounded), faded in and out so that it starts and ends at rest. Before anything
-moves, the whole trajectory is checked against the joint speed limit and, through the
-twin's forward kinematics, against the workspace box (with a margin above the table);
-amplitudes are halved until it fits. Episodes are logged with source ``excitation``:
+moves, the whole trajectory is checked against the joint speed limit, the joint ranges
+and, through the twin's forward kinematics, against the workspace box (with a margin
+above the table); amplitudes are halved until it fits. Any arm works: the built-in UR5e
+uses amplitudes tuned per joint, a robot MJCF named in a scene spec a common one capped
+by each joint's range. Episodes are logged with source ``excitation``:
 measured joints, velocities, TCP pose, joint torques (``observation.effort``) and the
 joint targets sent, at the control rate. This is the data ``twinrl gap diagnose``
 identifies effects from.
@@ -30,12 +32,17 @@ from twinrl_sim.cell import Cell
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.robots.ur5e import JOINT_SPEED_LIMIT
+from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import Task, TaskConfig, make_task
 
 WORLDS = ("twin", "plant")
 # Peak amplitude (rad) of each UR joint's multi-sine before scaling: the wrists move
 # most, the shoulder lift least (it carries the whole arm over the table).
 BASE_AMPLITUDE = (0.5, 0.25, 0.35, 0.6, 0.6, 0.9)
+# Any other arm (a robot MJCF named in the spec): this peak per joint, at most a quarter
+# of the joint's range, before the same safety checks scale it down.
+CUSTOM_AMPLITUDE = 0.4
+LIMIT_MARGIN = 0.05  # rad kept clear of each limited joint's range
 
 
 @dataclass(frozen=True)
@@ -58,16 +65,35 @@ class ExcitationSettings:
             raise ValueError(f"--amplitude must be in (0, 2], got {self.amplitude}")
 
 
+def base_amplitude(scene: CompiledScene) -> np.ndarray:
+    """Peak multi-sine amplitude (rad) per arm joint before ``settings.amplitude``."""
+    if scene.spec.robot.is_builtin:
+        return np.asarray(BASE_AMPLITUDE, float)
+    model = scene.model
+    ids = [model.joint(j).id for j in scene.layout.arm_joints]
+    limited = model.jnt_limited[ids].astype(bool)
+    span = np.where(limited, np.ptp(model.jnt_range[ids], axis=1), np.inf)
+    return np.minimum(CUSTOM_AMPLITUDE, span / 4)
+
+
 def multisine(
-    home: np.ndarray, settings: ExcitationSettings, rate: float, rng: np.random.Generator
+    home: np.ndarray,
+    settings: ExcitationSettings,
+    rate: float,
+    rng: np.random.Generator,
+    amplitude: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Joint targets (T, n) at ``rate`` Hz: home plus faded multi-sines, random phases."""
+    """Joint targets (T, n) at ``rate`` Hz: home plus faded multi-sines, random phases.
+
+    ``amplitude`` is the peak per joint before ``settings.amplitude`` (default: the UR's).
+    """
     t = np.arange(round(settings.duration * rate) + 1) / rate
     k = np.arange(1, settings.harmonics + 1)
     freqs = k / settings.duration
     phases = rng.uniform(0, 2 * math.pi, (len(home), len(k)))
     weights = (1.0 / k) / np.sum(1.0 / k)
-    amplitude = np.asarray(BASE_AMPLITUDE[: len(home)]) * settings.amplitude
+    base = np.asarray(BASE_AMPLITUDE if amplitude is None else amplitude, float)
+    amplitude = base * settings.amplitude
     waves = np.sin(2 * math.pi * freqs[None, None] * t[:, None, None] + phases[None])
     offsets = (waves * weights).sum(-1) * amplitude
     ramp = np.clip(np.minimum(t, settings.duration - t) / settings.fade, 0, 1)
@@ -78,26 +104,38 @@ def multisine(
 def safe_trajectory(
     task: Task, settings: ExcitationSettings, rng: np.random.Generator, scene: CompiledScene
 ) -> np.ndarray:
-    """A multi-sine that keeps the TCP inside the workspace box and joint speeds below
-    ``speed_fraction`` of the limit (amplitude halved until it does)."""
+    """A multi-sine that keeps the TCP inside the workspace box, every limited joint
+    ``LIMIT_MARGIN`` inside its range and joint speeds below ``speed_fraction`` of the
+    limit (amplitude halved until it does)."""
     fk = TcpKinematics(scene)
     ws = task.scene.workspace
     low = np.array(ws.low) + settings.margin
     high = np.array(ws.high) - settings.margin
     low[2] = max(low[2], settings.margin)
+    model = scene.model
+    ids = [model.joint(j).id for j in scene.layout.arm_joints]
+    limited = model.jnt_limited[ids].astype(bool)
+    q_low = np.where(limited, model.jnt_range[ids, 0] + LIMIT_MARGIN, -np.inf)
+    q_high = np.where(limited, model.jnt_range[ids, 1] - LIMIT_MARGIN, np.inf)
     rate = task.scene.physics.control_hz
     home = np.asarray(scene.layout.home_qpos, float)
+    amplitude = base_amplitude(scene)
     seed = rng.integers(2**31)
     for halvings in range(8):
         shaped = replace(settings, amplitude=settings.amplitude / 2**halvings)
-        targets = multisine(home, shaped, rate, np.random.default_rng(seed))
+        targets = multisine(home, shaped, rate, np.random.default_rng(seed), amplitude)
         speed = np.abs(np.diff(targets, axis=0)).max() * rate
+        if speed > settings.speed_fraction * JOINT_SPEED_LIMIT:
+            continue
+        if (targets < q_low).any() or (targets > q_high).any():
+            continue
         tcp = np.array([fk(q)[0] for q in targets])
-        if speed <= settings.speed_fraction * JOINT_SPEED_LIMIT and (
-            (tcp >= low).all() and (tcp <= high).all()
-        ):
+        if (tcp >= low).all() and (tcp <= high).all():
             return targets
-    raise ValueError("no safe excitation found; lower --amplitude or enlarge the workspace box")
+    raise ValueError(
+        "no safe excitation found (workspace box, joint limits or speed); lower "
+        "--amplitude, enlarge the workspace box or move the home pose away from the limits"
+    )
 
 
 class _TwinArm:
@@ -143,6 +181,7 @@ def _tcp_actions(targets: np.ndarray, fk: Callable) -> np.ndarray:
 def run_excitation(
     task: str,
     *,
+    scene: SceneSpec | None = None,
     world: str = "twin",
     episodes: int = 4,
     effects: dict | str | Path | None = None,
@@ -151,14 +190,16 @@ def run_excitation(
     session: Session,
     on_episode: Callable[[int], None] | None = None,
 ) -> list[Path]:
-    """Record ``episodes`` excitation episodes of ``task``'s cell into ``session``."""
+    """Record ``episodes`` excitation episodes into ``session``: ``task``'s built-in cell,
+    or ``scene`` (any cell spec, e.g. with a custom robot MJCF) with the task's objects
+    placed as the task places them."""
     if world not in WORLDS:
         raise ValueError(f"--world must be twin or plant, got '{world}'")
     if world == "twin" and effects is not None:
         raise ValueError("--effects applies to --world plant only")
     if episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {episodes}")
-    spec_task = make_task(task)
+    spec_task = make_task(task, scene)
     arm: Any = (
         Plant(spec_task, effects=effects, seed=seed) if world == "plant" else _TwinArm(spec_task)
     )

@@ -10,7 +10,9 @@ place them per episode without recompiling.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import mujoco
@@ -20,6 +22,8 @@ from twinrl_sim.effects import apply_effects
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.robots import ur5e
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, SpecError
+
+EMPTY_PREFIX_WARNING = "Attaching a spec with an empty prefix"  # MuJoCo's words
 
 FLOOR_DEPTH = 0.75  # floor below the table top (m)
 ENV_CONTYPE, ENV_CONAFFINITY = 1, 1
@@ -123,7 +127,7 @@ def compile_scene(scene: SceneSpec, *, extra_effects: dict | None = None) -> Com
         with warnings.catch_warnings():
             # A custom robot is attached without a name prefix on purpose (the spec names
             # its joints as they are in its file); the compiled model is never re-saved.
-            warnings.filterwarnings("ignore", message="Attaching a spec with an empty prefix")
+            warnings.filterwarnings("ignore", message=EMPTY_PREFIX_WARNING)
             model = spec.compile()
     except ValueError as err:
         raise SpecError(f"scene '{scene.name}' does not compile in MuJoCo: {err}") from None
@@ -205,6 +209,27 @@ def _add_robot(
     return _attach_custom_robot(spec, scene, mount)
 
 
+@contextlib.contextmanager
+def _quiet_empty_prefix_warning() -> Iterator[None]:
+    """Swallow MuJoCo's printed warning about attaching without a name prefix.
+
+    A custom robot is attached unprefixed on purpose (the spec names its joints as they
+    are in its file) and the compiled model is never re-saved; any other MuJoCo warning
+    raised meanwhile is passed on as a Python warning.
+    """
+    previous = mujoco.get_mju_user_warning()
+
+    def handler(message: str) -> None:
+        if not message.startswith(EMPTY_PREFIX_WARNING):
+            warnings.warn(f"MuJoCo: {message}", stacklevel=2)
+
+    mujoco.set_mju_user_warning(handler)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
 def _attach_custom_robot(
     spec: mujoco.MjSpec, scene: SceneSpec, mount: mujoco.MjsBody
 ) -> tuple[list[str], list[str], str, str, list[float]]:
@@ -218,7 +243,8 @@ def _attach_custom_robot(
     if root is None:
         raise SpecError(f"robot.mjcf {robot.mjcf} has no body under <worldbody>")
     frame = mount.add_frame()
-    frame.attach_body(root, "", "")
+    with _quiet_empty_prefix_warning():
+        frame.attach_body(root, "", "")
     names = {
         "joint": (robot.joints, {j.name for j in spec.joints}),
         "actuator": (robot.actuators, {a.name for a in spec.actuators}),

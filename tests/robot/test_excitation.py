@@ -56,7 +56,7 @@ def test_excitation_episodes_follow_the_contract(plant_excitation):
     )
 
 
-def _write_rtde(path, episode, delimiter=" "):
+def write_rtde(path, episode, delimiter=" "):
     """The episode as UR's RTDE recorder writes it (125 Hz would be typical; 10 Hz here)."""
     state, target = episode.data[contract.STATE], episode.data[contract.JOINT_TARGET]
     quat = state[:, 15:19].astype(float)
@@ -91,7 +91,7 @@ def _write_rtde(path, episode, delimiter=" "):
 def test_rtde_csv_round_trip(tmp_path, plant_excitation):
     episode = plant_excitation[0]
     csv_path = tmp_path / "rtde.csv"
-    _write_rtde(csv_path, episode)
+    write_rtde(csv_path, episode)
     imported = import_csv(csv_path)
     assert imported.meta.source == "imported" and imported.meta.fps == pytest.approx(10.0)
     assert len(imported) == len(episode)
