@@ -431,6 +431,14 @@ def diagnose_command(
         f"named: {named}; held-out error {diagnosis.gap_before:.3g} -> {diagnosis.gap_after:.3g} "
         f"({100 * diagnosis.heldout_reduction:.1f} % smaller, noise floor 1)"
     )
+    if diagnosis.inverse_dynamics:
+        before, after = (
+            float(np.sqrt(np.mean([g[k] ** 2 for g in diagnosis.inverse_dynamics.values()])))
+            for k in ("before", "after")
+        )
+        console.print(
+            f"inverse dynamics: held-out torque error {before:.3g} -> {after:.3g} N m (RMS)"
+        )
     for camera, gap in diagnosis.image_gap.items():
         console.print(
             f"{camera} camera: held-out image error {gap['before']:.3g} -> {gap['after']:.3g}"

@@ -3,10 +3,12 @@
 import numpy as np
 import pytest
 
+from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_robot.excitation import run_excitation
 from twinrl_sim.gap import localize, replay_windows
+from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.tasks import make_task
 
 SCENE = make_task("pick_place").scene
@@ -25,7 +27,9 @@ def test_no_effect_leaves_only_sensor_noise(tmp_path):
     rows = _table(tmp_path, {})
     assert max(rows[f"tcp.{a}"].rms for a in "xyz") < 6e-4  # plant TCP noise is 3e-4 m
     assert max(r.rms for n, r in rows.items() if n.startswith("q.")) < 5e-4
-    assert all(abs(r.lag_s) < 0.005 for r in rows.values())
+    assert all(abs(r.lag_s) < 0.005 for r in rows.values() if not r.signal.startswith("tau"))
+    torques = [r for n, r in rows.items() if n.startswith("tau_id.")]
+    assert len(torques) == 6 and max(abs(r.bias) for r in torques) < 0.3  # N m
 
 
 def test_delay_shows_as_lag(tmp_path):
@@ -50,6 +54,8 @@ def test_payload_shows_as_sag_and_joint_offset_as_tcp_bias(tmp_path):
         }
         and payload["tcp.z"].regimes["free_motion"] > 0.001
     )
+    # Inverse dynamics: the measured torques carry the load the twin lacks, under gravity.
+    assert payload["tau_id.shoulder_lift"].bias < -4 and payload["tau_id.elbow"].bias < -4
     offset = _table(tmp_path / "o", {"joint_offset": {"radians": [0, 0.02, 0, 0, 0, 0]}})
     assert abs(offset["tcp.z"].bias) > 0.005  # the TCP is elsewhere ...
     assert offset["q.shoulder_lift"].rms < 5e-4  # ... while the encoders agree
@@ -77,10 +83,31 @@ def test_localize_cli_writes_table_and_plot(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     report = json.loads((out / "localization.json").read_text())
-    assert report["episodes"] == 1 and {r["signal"] for r in report["rows"]} >= {"tcp.z", "q.elbow"}
+    signals = {r["signal"] for r in report["rows"]}
+    assert report["episodes"] == 1 and signals >= {"tcp.z", "q.elbow", "tau_id.elbow"}
     assert (out / "localization.png").stat().st_size > 10_000
     bad = twinrl(
         "gap", "localize", str(tmp_path / "s"), "--twin", "pick_plac", "--out", str(tmp_path / "x")
     )
     assert bad.returncode == 2 and "did you mean 'pick_place'" in bad.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_inverse_dynamics_of_a_twin_with_the_load_matches_the_torques(tmp_path):
+    session = Session.create(tmp_path / "s")
+    paths = run_excitation(
+        "pick_place",
+        world="plant",
+        effects={"payload": {"mass": 2.0}},
+        episodes=1,
+        session=session,
+        seed=1,
+    )
+    episode = read_episode(paths[0])
+    before = inverse_dynamics_gap([episode], SCENE)
+    after = inverse_dynamics_gap([episode], SCENE, {"payload": {"mass": 2.0}})
+    for joint in ("shoulder_lift", "elbow", "wrist_1"):
+        assert after[f"tau_id.{joint}"] < 0.8 * before[f"tau_id.{joint}"]
+    untorqued = {k: v for k, v in episode.data.items() if k != schema.EFFORT}
+    without_torques = schema.Episode(meta=episode.meta, data=untorqued)
+    assert inverse_dynamics_gap([without_torques], SCENE) == {}

@@ -8,6 +8,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from tests.robot.test_excitation import write_rtde
 from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -187,6 +188,8 @@ def test_cli_writes_the_report_and_a_fitted_twin(tmp_path):
     assert report["selected"][0]["effect"] == "payload"
     assert abs(report["selected"][0]["params"]["mass"] - 1.5) < 0.15 * 1.5
     assert report["heldout_reduction"] >= 0.7 and report["localization"]
+    torque = report["inverse_dynamics"]["tau_id.elbow"]  # the load, seen by inverse dynamics
+    assert torque["after"] < 0.8 * torque["before"]
     fitted = load_spec(out / "twin_fitted.yaml")
     assert fitted.effects["payload"]["mass"] == report["selected"][0]["params"]["mass"]
     assert fitted.provenance["gap_diagnose"]["heldout_episodes"] == report["episodes"]["heldout"]
@@ -196,6 +199,117 @@ def test_cli_writes_the_report_and_a_fitted_twin(tmp_path):
     # Nothing is overwritten: a second run into the same folder is refused.
     again = runner.invoke(app, args)
     assert again.exit_code != 0 and "not empty" in str(again.exception or again.output)
+
+
+# A four-joint arm (yaw, three pitch joints) that is not a UR: a robot MJCF named in a
+# scene spec with its joint and actuator names.
+FOUR_JOINT_ARM = """
+<mujoco>
+  <compiler angle="radian"/>
+  <default><joint damping="2" armature="0.05"/><geom contype="0" conaffinity="0"/></default>
+  <worldbody>
+    <body name="column">
+      <inertial pos="0 0 0.15" mass="4" diaginertia="0.05 0.05 0.01"/>
+      <joint name="yaw" axis="0 0 1" range="-3 3"/>
+      <geom type="capsule" fromto="0 0 0 0 0 0.35" size="0.05"/>
+      <body name="upper" pos="0 0 0.35">
+        <inertial pos="0.18 0 0" mass="3" diaginertia="0.005 0.04 0.04"/>
+        <joint name="shoulder" axis="0 1 0" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0.35 0 0" size="0.04"/>
+        <body name="fore" pos="0.35 0 0">
+          <inertial pos="0.15 0 0" mass="1.5" diaginertia="0.002 0.015 0.015"/>
+          <joint name="elbow" axis="0 1 0" range="-2.5 2.5"/>
+          <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.035"/>
+          <body name="hand" pos="0.3 0 0">
+            <inertial pos="0 0 -0.03" mass="0.5" diaginertia="0.001 0.001 0.001"/>
+            <joint name="wrist" axis="0 1 0" range="-2.5 2.5"/>
+            <geom type="cylinder" size="0.035 0.03" pos="0 0 -0.03"/>
+            <body name="tool" pos="0 0 -0.06" quat="0 1 0 0"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <position name="m_yaw" joint="yaw" kp="800" forcerange="-150 150"/>
+    <position name="m_shoulder" joint="shoulder" kp="1500" forcerange="-150 150"/>
+    <position name="m_elbow" joint="elbow" kp="800" forcerange="-150 150"/>
+    <position name="m_wrist" joint="wrist" kp="200" forcerange="-28 28"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
+    (tmp_path / "arm.xml").write_text(FOUR_JOINT_ARM)
+    cell = SCENE.model_dump(mode="json")
+    cell["name"] = "four_joint_cell"
+    cell["robot"] = {
+        "mjcf": "arm.xml",  # relative to the spec file
+        "joints": ["yaw", "shoulder", "elbow", "wrist"],
+        "actuators": ["m_yaw", "m_shoulder", "m_elbow", "m_wrist"],
+        "flange_body": "tool",
+        "home_qpos": [0.0, -0.844, 1.604, -0.76],  # tool down at (0.45, 0, 0.22)
+    }
+    spec_file = tmp_path / "cell.yaml"
+    spec_file.write_text(yaml.safe_dump(cell, sort_keys=False))
+    (tmp_path / "hidden.yaml").write_text("joint_friction: {coulomb: [0, 3.0, 0, 0]}\n")
+    runner = CliRunner()
+    record = runner.invoke(
+        app,
+        f"sim excite --twin {spec_file} --world plant --effects {tmp_path}/hidden.yaml "
+        f"--episodes 4 --duration 6 --seed 1 --out {tmp_path}/measured".split(),
+    )
+    assert record.exit_code == 0, record.output
+    measured = read_episode(Session(tmp_path / "measured").episode_paths()[0], images=False)
+    assert measured.meta.names[schema.EFFORT] == schema.effort_names(cell["robot"]["joints"])
+    out = tmp_path / "diag"
+    result = runner.invoke(
+        app,
+        f"gap diagnose {tmp_path}/measured --twin {spec_file} "
+        f"--effects-allowed joint_friction,joint_damping,servo_gain --out {out}".split(),
+    )
+    assert result.exit_code == 0, result.output
+    assert "WARNING" not in result.output  # MuJoCo's note on unprefixed attaching is not news
+    report = json.loads((out / "gap_report.json").read_text())
+    assert report["candidates"][0]["effect"] == "joint_friction"
+    assert [s["effect"] for s in report["selected"]] == ["joint_friction"]
+    fitted = report["selected"][0]["params"]["coulomb"]
+    assert _within(fitted, [0, 3.0, 0, 0], report["selected"][0]["ci"]["coulomb"])
+    assert report["heldout_reduction"] >= 0.7
+    twin = load_spec(out / "twin_fitted.yaml")  # keeps the custom arm, with the effect added
+    assert compile_scene(twin).layout.arm_joints == ("yaw", "shoulder", "elbow", "wrist")
+    assert twin.effects["joint_friction"]["coulomb"] == fitted
+
+
+def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
+    hidden = {"joint_offset": {"radians": [0.0, 0.02, 0.0, 0.0, -0.015, 0.0]}}
+    logs = tmp_path / "rtde"
+    logs.mkdir()
+    for index, episode in enumerate(_record(tmp_path / "plant", hidden, episodes=4)):
+        write_rtde(logs / f"robot_data_{index}.csv", episode)  # what the robot gave us
+    runner = CliRunner()
+    imported = runner.invoke(
+        app,
+        f"data import-csv {' '.join(str(p) for p in sorted(logs.iterdir()))} --format rtde "
+        f"--out {tmp_path}/imported".split(),
+    )
+    assert imported.exit_code == 0, imported.output
+    out = tmp_path / "diag"
+    result = runner.invoke(
+        app,
+        f"gap diagnose {tmp_path}/imported --twin pick_place "
+        f"--effects-allowed {','.join(ARM_EFFECTS)} --out {out}".split(),
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "gap_report.json").read_text())
+    assert report["candidates"][0]["effect"] == "joint_offset"
+    assert [s["effect"] for s in report["selected"]] == ["joint_offset"]
+    fitted = np.array(report["selected"][0]["params"]["radians"])
+    interval = np.array(report["selected"][0]["ci"]["radians"])
+    # The TCP lies on wrist_3's axis: no compared signal tells that joint's offset (ci inf)
+    assert _within(fitted[:5], hidden["joint_offset"]["radians"][:5], interval[:5])
+    assert report["heldout_reduction"] >= 0.7
 
 
 @pytest.mark.parametrize(

@@ -39,6 +39,7 @@ from twinrl_sim.gap.identify import (
     Windows,
     cut_windows,
 )
+from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.spec import SceneSpec
 
 BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
@@ -85,6 +86,9 @@ class Diagnosis:
     units: list[str]
     heldout_rms_before: list[float]  # per signal, physical units
     heldout_rms_after: list[float]
+    # tau_id.<joint> -> held-out RMS (N m) of measured torque minus the inverse dynamics
+    # of the measured motion, twin before and after (empty when no torques are logged)
+    inverse_dynamics: dict[str, dict[str, float]]
     train_episodes: list[str]
     heldout_episodes: list[str]
     windows: dict[str, int]
@@ -268,6 +272,9 @@ def diagnose(
     rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
     gap_before = _rms((held.measured - predicted_before) / scale)
     gap_after = _rms((held.measured - predicted_after) / scale)
+    heldout_episodes = [episodes[i] for i in held_idx]
+    torque_before = inverse_dynamics_gap(heldout_episodes, scene)
+    torque_after = inverse_dynamics_gap(heldout_episodes, scene, fixed)
     return Diagnosis(
         rounds=rounds,
         selected=selected,
@@ -283,6 +290,10 @@ def diagnose(
         units=[UNITS[f] for f in windows.families],
         heldout_rms_before=rms(predicted_before).tolist(),
         heldout_rms_after=rms(predicted_after).tolist(),
+        inverse_dynamics={
+            name: {"before": torque_before[name], "after": torque_after[name]}
+            for name in torque_before
+        },
         train_episodes=[episodes[i].meta.episode_id for i in train_idx],
         heldout_episodes=[episodes[i].meta.episode_id for i in held_idx],
         windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},

@@ -1,5 +1,7 @@
 """Where measured and replayed signals disagree: per signal and joint, per phase and
-motion regime, with time lag, bias and gain.
+motion regime, with time lag, bias and gain. Signals are the forward replay's joints,
+velocities and TCP position and, when torques are logged, the measured torques against
+the inverse dynamics of the measured motion (``tau_id.*``).
 
 - **lag**: the shift (s, sub-step by parabolic interpolation) that best aligns the
   measured joint motion with the replayed one (cross-correlation of the per-step
@@ -19,9 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_sim.gap.inverse import PREFIX as INVERSE_PREFIX
 from twinrl_sim.gap.shooting import ShootingReplay
 
-UNITS = {"q.": "rad", "qd.": "rad/s", "tcp.": "m"}  # signal prefixes compared, and units
+# signal prefixes compared, and units
+UNITS = {"q.": "rad", "qd.": "rad/s", "tcp.": "m", INVERSE_PREFIX: "N m"}
 TCP_POSITION = ("tcp.x", "tcp.y", "tcp.z")
 SLOW = 0.02  # rad/s: "near-zero velocity"
 MAX_LAG = 5  # steps searched either side
@@ -111,7 +115,14 @@ def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
         joint = name.split(".", 1)[1] if prefix != "tcp." else None
         measured = np.concatenate([r.measured[:, i] for r in replays])
         predicted = np.concatenate([r.predicted[:, i] for r in replays])
-        inside = np.concatenate([r.step_in_window > 0 for r in replays])  # predicted rows
+        # Forward replay predicts every row but each window's first (the measurement
+        # itself); inverse dynamics predicts every row.
+        inside = np.concatenate(
+            [
+                r.step_in_window > 0 if prefix != INVERSE_PREFIX else np.ones(len(r.measured), bool)
+                for r in replays
+            ]
+        )
         regimes = [_regimes(r, joint) for r in replays]
         error = (measured - predicted)[inside]
         dm = measured[inside] - measured[inside].mean()

@@ -60,6 +60,7 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
             )
         ],
         "image_gap": d.image_gap,
+        "inverse_dynamics": d.inverse_dynamics,
         "skipped": d.skipped,
         "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
         "windows": d.windows,
@@ -318,10 +319,21 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
         d.signals, d.units, d.heldout_rms_before, d.heldout_rms_after, strict=True
     ):
         lines.append(f"| {s} | {b:.3g} | {a:.3g} | {u} |")
+    lines += ["", "![signals](signals.png)", ""]
+    if d.inverse_dynamics:
+        lines += [
+            "## Inverse dynamics on held-out episodes",
+            "",
+            "Measured joint torques against the torques the twin needs for the measured "
+            "motion (contacts off, so a held object's load counts as disagreement); RMS.",
+            "",
+            "| signal | before | after | unit |",
+            "|---|---|---|---|",
+        ]
+        for signal, gap in d.inverse_dynamics.items():
+            lines.append(f"| {signal} | {gap['before']:.3g} | {gap['after']:.3g} | N m |")
+        lines.append("")
     lines += [
-        "",
-        "![signals](signals.png)",
-        "",
         "## Where the twin disagreed (before)",
         "",
         "| signal | RMS | bias | gain | lag (ms) | worst regime |",

@@ -4,7 +4,8 @@ twin from the measured joint state and re-sends the logged joint targets.
 A single replay of a long episode lets a small early error (a slightly different
 friction) accumulate until everything disagrees; restarting every ``window`` steps from
 what was measured keeps each comparison local, so that the residuals say which effect
-acts where.
+acts where. When the episode logs joint torques, the replay also carries the inverse
+dynamics comparison (``tau_id.*``, see :mod:`twinrl_sim.gap.inverse`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 from twinrl_data import schema as contract
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
+from twinrl_sim.gap.inverse import inverse_dynamics, inverse_model
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import TASKS, TaskConfig, make_task
 
@@ -28,7 +30,7 @@ class ShootingReplay:
     window that contains ``t``; at each window's first row it equals the measurement.
     """
 
-    names: list[str]  # observation.state entry names (q.*, qd.*, tcp.*)
+    names: list[str]  # observation.state entry names (q.*, qd.*, tcp.*), then tau_id.*
     measured: np.ndarray  # (T, n)
     predicted: np.ndarray  # (T, n)
     window: np.ndarray  # (T,) index of the shooting window of each row
@@ -110,6 +112,11 @@ def replay_windows(
             for t in range(start, min(start + window, len(measured)) - 1):
                 cell.send(targets[t], float(gripper[t]))
                 predicted[t + 1, shared] = cell.state_vector()[twin_cols]
+        torques = inverse_dynamics(episode, inverse_model(scene, effects))
+        if torques is not None:
+            names = names + torques.names
+            measured = np.concatenate([measured, torques.measured], axis=1)
+            predicted = np.concatenate([predicted, torques.predicted], axis=1)
         return ShootingReplay(
             names, measured, predicted, windows, steps, targets, gripper, episode.meta.fps
         )
