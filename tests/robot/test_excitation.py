@@ -199,3 +199,15 @@ def test_excite_cli_refuses_to_overwrite(tmp_path):
     assert sorted(p.name for p in (out / "episodes").iterdir()) == before
     bad = twinrl("sim", "excite", "--out", str(tmp_path / "x"), "--world", "mars")
     assert bad.returncode == 2 and "--world must be twin or plant" in bad.stderr
+    wrong_cell = twinrl(
+        "sim",
+        "excite",
+        "--out",
+        str(tmp_path / "y"),
+        "--task",
+        "insert_hexagon",
+        "--twin",
+        "pick_place",
+    )  # a cell without the task's objects
+    assert wrong_cell.returncode == 2 and "pick the --task it is built for" in wrong_cell.stderr
+    assert not (tmp_path / "y").exists()
