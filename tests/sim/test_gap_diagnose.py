@@ -282,6 +282,23 @@ def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
     assert twin.effects["joint_friction"]["coulomb"] == fitted
 
 
+def test_diagnoses_episodes_from_a_lerobot_dataset(tmp_path):
+    _record(tmp_path / "session", {"actuator_delay": {"seconds": 0.04}}, episodes=3)
+    runner = CliRunner()
+    export = runner.invoke(app, f"data export {tmp_path}/session --to {tmp_path}/ds".split())
+    assert export.exit_code == 0, export.output
+    out = tmp_path / "diag"
+    result = runner.invoke(
+        app,
+        f"gap diagnose {tmp_path}/ds --effects-allowed actuator_delay,payload --out {out}".split(),
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "gap_report.json").read_text())
+    assert [s["effect"] for s in report["selected"]] == ["actuator_delay"]
+    assert _within(report["selected"][0]["params"]["seconds"], 0.04)
+    assert len(report["episodes"]["train"]) + len(report["episodes"]["heldout"]) == 3
+
+
 def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
     hidden = {"joint_offset": {"radians": [0.0, 0.02, 0.0, 0.0, -0.015, 0.0]}}
     logs = tmp_path / "rtde"
