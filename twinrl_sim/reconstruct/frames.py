@@ -1,0 +1,134 @@
+"""Frames for structure from motion: from a video file (PyAV) or a folder of images,
+keep sharp ones spread over the clip, and refuse clips that cannot work.
+
+Sharpness is the variance of the Laplacian of the grey image. The clip is cut into as
+many equal spans as frames are wanted and the sharpest frame of each span is kept, so
+the kept frames follow the camera's path (parallax) instead of bunching where it
+lingered. A clip is refused when it is too blurry overall or when the camera barely
+moves (optical flow between the kept frames), with what to film differently.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import av
+import cv2
+import numpy as np
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+MIN_SHARPNESS = 15.0  # variance of the Laplacian below which a frame is a blur
+MIN_TRAVEL = 0.25  # median image motion over the clip, in image widths
+MIN_FRAMES = 12
+
+
+class CaptureError(ValueError):
+    """A clip or photo set that reconstruction cannot use; says what to capture instead."""
+
+
+@dataclass
+class FrameSelection:
+    """The frames kept for SfM (written as images) and why."""
+
+    paths: list[Path]
+    source_indices: list[int]  # index of each kept frame in the clip
+    sharpness: list[float]
+    frames_in_clip: int
+    travel: float  # median image motion across the kept frames, in image widths
+    dropped_blurry: int = 0
+
+
+def sharpness(image: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image (higher: sharper)."""
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def _read_frames(source: Path) -> list[np.ndarray]:
+    if source.is_dir():
+        files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise CaptureError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        frames = []
+        for path in files:
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                raise CaptureError(f"{path} is not a readable image")
+            frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
+        return frames
+    if not source.is_file():
+        raise CaptureError(f"{source} does not exist; give a video file or a folder of images")
+    try:
+        with av.open(str(source)) as container:
+            return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
+    except (av.error.FFmpegError, StopIteration) as err:
+        raise CaptureError(f"{source} is not a readable video ({err})") from None
+
+
+def _travel(frames: list[np.ndarray]) -> float:
+    """Summed median optical-flow motion between consecutive frames, in image widths."""
+    total = 0.0
+    width = frames[0].shape[1]
+    previous = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY)
+    for frame in frames[1:]:
+        grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        points = cv2.goodFeaturesToTrack(previous, 200, 0.01, 8)
+        if points is not None:
+            moved, status, _ = cv2.calcOpticalFlowPyrLK(previous, grey, points, None)
+            ok = status.ravel() == 1
+            if ok.any():
+                total += float(np.median(np.linalg.norm((moved - points)[ok], axis=-1)))
+        previous = grey
+    return total / width
+
+
+def select_frames(
+    source: str | Path,
+    out_dir: str | Path,
+    *,
+    target: int = 150,
+    progress: Callable[[int, int], None] | None = None,
+) -> FrameSelection:
+    """Pick up to ``target`` sharp frames spread over ``source`` and write them as PNGs
+    into ``out_dir``; raise :class:`CaptureError` when the clip cannot work."""
+    source, out_dir = Path(source), Path(out_dir)
+    frames = _read_frames(source)
+    scores = np.array([sharpness(f) for f in frames])
+    sharp = scores >= MIN_SHARPNESS
+    if sharp.sum() < MIN_FRAMES:
+        raise CaptureError(
+            f"{source}: only {int(sharp.sum())} of {len(frames)} frames are sharp "
+            f"(Laplacian variance >= {MIN_SHARPNESS:g}); film slower, in better light, "
+            "and let the phone focus on the table"
+        )
+    spans = np.array_split(np.arange(len(frames)), min(target, len(frames)))
+    kept = []
+    for span in spans:
+        candidates = span[sharp[span]]
+        if len(candidates):
+            kept.append(int(candidates[np.argmax(scores[candidates])]))
+    travel = _travel([frames[i] for i in kept])
+    if travel < MIN_TRAVEL:
+        raise CaptureError(
+            f"{source}: the camera barely moves (the view shifts {travel:.2f} image widths "
+            f"in all, at least {MIN_TRAVEL:g} needed); walk around the table, keeping it "
+            "in view, instead of filming from one spot"
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for n, index in enumerate(kept):
+        path = out_dir / f"frame_{index:05d}.png"
+        cv2.imwrite(str(path), cv2.cvtColor(frames[index], cv2.COLOR_RGB2BGR))
+        paths.append(path)
+        if progress is not None:
+            progress(n + 1, len(kept))
+    return FrameSelection(
+        paths=paths,
+        source_indices=kept,
+        sharpness=[float(scores[i]) for i in kept],
+        frames_in_clip=len(frames),
+        travel=travel,
+        dropped_blurry=int((~sharp).sum()),
+    )

@@ -1,0 +1,130 @@
+"""The table and the objects on it, from the aligned point cloud.
+
+- **Table**: RANSAC plane (open3d ``segment_plane``); the cloud is then turned so that
+  the plane's normal is the base frame's z (gravity), about the tag's centre so that the
+  tag keeps its measured position; the table's extent is that of the plane's inliers.
+- **Objects**: points above the table (and below ``max_height``) clustered with DBSCAN
+  (open3d ``cluster_dbscan``); each large enough cluster is one object, described by its
+  oriented footprint (principal axes of its points seen from above), height, mean colour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+
+from twinrl_sim.reconstruct.frames import CaptureError
+
+PLANE_TOLERANCE = 0.004  # m: RANSAC inlier distance
+ABOVE_TABLE = 0.004  # m: points higher than this over the plane may belong to objects
+CLUSTER_EPS = 0.02  # m: DBSCAN neighbourhood
+MIN_CLUSTER_POINTS = 25
+
+
+@dataclass(frozen=True)
+class TablePlane:
+    height: float  # m, top surface in the base frame (after levelling)
+    center: np.ndarray  # (2,) xy of the inliers' extent
+    size: np.ndarray  # (2,) x, y extent (m)
+    tilt_deg: float  # angle between the fitted normal and the tag's z before levelling
+    inliers: int
+
+
+@dataclass(frozen=True)
+class ObjectCluster:
+    center: np.ndarray  # (3,) footprint centre; z: half the height above the table
+    size: np.ndarray  # (3,) extent along its principal axes (long, short) and height
+    yaw: float  # rad, of the long axis, in (-pi/2, pi/2]
+    color: np.ndarray  # (3,) mean RGB in [0, 1]
+    points: np.ndarray  # (N, 3)
+
+    @property
+    def volume(self) -> float:
+        return float(np.prod(self.size))
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotation taking unit vector ``a`` onto unit vector ``b``."""
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if np.linalg.norm(v) < 1e-12:
+        return np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
+
+
+def level_table(
+    points: np.ndarray, pivot: np.ndarray, seed: int = 0
+) -> tuple[TablePlane, np.ndarray, np.ndarray]:
+    """Fit the table plane and level the cloud about ``pivot``.
+
+    Returns the table, the rotation applied (3x3, about ``pivot``) and the levelled points.
+    """
+    o3d.utility.random.seed(seed)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    (a, b, c, _), inliers = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
+    if len(inliers) < 0.2 * len(points):
+        raise CaptureError(
+            f"no table plane: only {len(inliers)} of {len(points)} points lie on one plane; "
+            "film the table top with more of it in view"
+        )
+    normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
+    if normal[2] < 0:
+        normal = -normal
+    rotation = _rotation_between(normal, np.array([0.0, 0.0, 1.0]))
+    levelled = (points - pivot) @ rotation.T + pivot
+    top = levelled[inliers]
+    height = float(np.median(top[:, 2]))
+    low, high = np.percentile(top[:, :2], [1, 99], axis=0)
+    table = TablePlane(
+        height=height,
+        center=(low + high) / 2,
+        size=high - low,
+        tilt_deg=float(np.degrees(np.arccos(np.clip(normal[2], -1, 1)))),
+        inliers=len(inliers),
+    )
+    return table, rotation, levelled
+
+
+def find_objects(
+    points: np.ndarray, colors: np.ndarray, table: TablePlane, *, max_height: float = 0.3
+) -> list[ObjectCluster]:
+    """Clusters of points standing on the table, largest first."""
+    rise = points[:, 2] - table.height
+    half = table.size / 2 + 0.02
+    on_table = np.all(np.abs(points[:, :2] - table.center) <= half, axis=1)
+    above = (rise > ABOVE_TABLE) & (rise < max_height) & on_table
+    chosen, chosen_colors = points[above], colors[above]
+    if len(chosen) < MIN_CLUSTER_POINTS:
+        return []
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen))
+    labels = np.asarray(cloud.cluster_dbscan(CLUSTER_EPS, 8))
+    objects = []
+    for label in range(labels.max() + 1):
+        member = labels == label
+        if member.sum() < MIN_CLUSTER_POINTS:
+            continue
+        cluster = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen[member]))
+        _, keep = cluster.remove_statistical_outlier(nb_neighbors=8, std_ratio=2.0)
+        pts = chosen[member][keep]
+        xy = pts[:, :2] - pts[:, :2].mean(0)
+        _, vectors = np.linalg.eigh(np.cov(xy.T))
+        long_axis = vectors[:, 1]
+        yaw = float(np.arctan2(long_axis[1], long_axis[0]))
+        yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2
+        axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+        local = pts[:, :2] @ axes.T
+        low, high = local.min(0), local.max(0)
+        centre_xy = ((low + high) / 2) @ axes
+        height = float(pts[:, 2].max() - table.height)
+        objects.append(
+            ObjectCluster(
+                center=np.array([centre_xy[0], centre_xy[1], table.height + height / 2]),
+                size=np.array([high[0] - low[0], high[1] - low[1], height]),
+                yaw=yaw,
+                color=chosen_colors[member][keep].mean(0) / 255.0,
+                points=pts,
+            )
+        )
+    return sorted(objects, key=lambda o: -len(o.points))

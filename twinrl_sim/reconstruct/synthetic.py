@@ -1,0 +1,204 @@
+"""A rendered stand-in for a phone video of a cell: the test data of ``twinrl twin build``.
+
+The cell of a scene spec (table and objects; the arm is left out, as in a walk-around
+clip of the workspace) gets textures a feature matcher can hold on to (multi-scale noise
+on the table and the objects) and an AprilTag 36h11 lying on the table. A hand-held-like
+camera walks an arc around the table (slow azimuth sweep, wobbling height, distance
+and aim) and the frames are written as an mp4 with PyAV. Ground truth is the scene that
+rendered it and the camera path (:class:`Walkthrough`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import av
+import mujoco
+import numpy as np
+
+from twinrl_sim.build import build_mjspec
+from twinrl_sim.reconstruct.tag import CELLS, tag_image
+from twinrl_sim.spec import SceneSpec
+
+HIDDEN_GROUP = 5  # geom group of the arm, not rendered
+TAG_MARGIN_CELLS = 1  # white cells around the black square
+
+
+@dataclass(frozen=True)
+class WalkthroughSettings:
+    """Shape of the clip. Defaults: a short clip for tests (8 s at 10 fps)."""
+
+    seconds: float = 8.0
+    fps: float = 10.0
+    width: int = 640
+    height: int = 480
+    sweep_deg: float = 140.0  # azimuth covered by the walk
+    distance: float = 1.0  # m from the aim point
+    elevation_deg: float = -45.0
+    jitter: float = 0.01  # m of hand shake in the aim point (and 1/10 of it in radians)
+    motion_blur: int = 1  # sub-frames averaged per frame (1: none)
+    static: bool = False  # the camera does not move (a bad clip, for tests)
+
+
+@dataclass(frozen=True)
+class Walkthrough:
+    """What was rendered: the clip and its ground truth."""
+
+    video: Path
+    tag_pose: np.ndarray  # (7,) tag pose in the base frame: x y z qw qx qy qz
+    tag_size: float
+    camera_positions: np.ndarray  # (T, 3) in the base frame
+    fovy_deg: float
+
+
+def _noise_texture(rng: np.random.Generator, size: int, low: float, high: float) -> np.ndarray:
+    """Grey multi-scale value noise in [low, high] as (size, size, 3) uint8."""
+    field = np.zeros((size, size))
+    for cells, weight in ((4, 1.0), (16, 0.6), (64, 0.4), (size, 0.3)):
+        coarse = rng.random((cells, cells))
+        reps = size // cells
+        field += weight * np.kron(coarse, np.ones((reps, reps)))[:size, :size]
+    field = (field - field.min()) / np.ptp(field)
+    grey = (255 * (low + (high - low) * field)).astype(np.uint8)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def _add_texture(spec: mujoco.MjSpec, name: str, image: np.ndarray, rgba, repeat=(1, 1)) -> str:
+    texture = spec.add_texture(
+        name=name,
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        width=image.shape[1],
+        height=image.shape[0],
+        nchannel=3,
+    )
+    texture.data = np.ascontiguousarray(image).tobytes()
+    material = spec.add_material(name=f"{name}_material", rgba=list(rgba), texrepeat=list(repeat))
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = name
+    return f"{name}_material"
+
+
+def quat_from_yaw(yaw: float) -> np.ndarray:
+    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+def walkthrough_model(
+    scene: SceneSpec, tag_xy: tuple[float, float], tag_yaw: float, tag_size: float, seed: int
+) -> tuple[mujoco.MjModel, np.ndarray]:
+    """The textured cell with the tag, and the tag's pose (x y z qw qx qy qz)."""
+    rng = np.random.default_rng(seed)
+    spec, _ = build_mjspec(scene, apply_spec_effects=False)
+    table = spec.geom("table_top")
+    table.material = _add_texture(
+        spec, "walk_table", _noise_texture(rng, 1024, 0.35, 1.0), scene.table.rgba
+    )
+    table.rgba = [0.5, 0.5, 0.5, 1]  # the default: the material's colour applies
+    own_bodies = {"world", "table", *scene.object_names}
+    for index, geom in enumerate(spec.geoms):
+        body = geom.parent.name or "world"
+        if body not in own_bodies:
+            geom.group = HIDDEN_GROUP
+        elif body in scene.object_names and geom.rgba[3] > 0 and not geom.material:
+            noise = _noise_texture(rng, 128, 0.6, 1.0)
+            geom.material = _add_texture(spec, f"walk_geom{index}", noise, list(geom.rgba))
+            geom.rgba = [0.5, 0.5, 0.5, 1]
+    top = scene.table.top_height
+    thickness = 0.0006
+    edge = tag_size * (CELLS + 2 * TAG_MARGIN_CELLS) / CELLS
+    image = np.repeat(tag_image(cell_px=32, margin_cells=TAG_MARGIN_CELLS)[:, :, None], 3, axis=2)
+    quat = quat_from_yaw(tag_yaw)
+    spec.worldbody.add_geom(
+        name="apriltag",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[edge / 2, edge / 2, thickness / 2],
+        pos=[tag_xy[0], tag_xy[1], top + thickness / 2],
+        quat=quat.tolist(),
+        material=_add_texture(spec, "walk_tag", image, (1, 1, 1, 1)),
+        contype=0,
+        conaffinity=0,
+    )
+    model = spec.compile()
+    pose = np.concatenate([[tag_xy[0], tag_xy[1], top + thickness], quat])
+    return model, pose
+
+
+def _camera_path(
+    settings: WalkthroughSettings, aim: np.ndarray, rng: np.random.Generator
+) -> list[tuple[np.ndarray, float, float, float]]:
+    """(look-at point, distance, azimuth, elevation) per frame and blur sub-frame."""
+    frames = max(round(settings.seconds * settings.fps), 2)
+    steps = frames * settings.motion_blur
+    s = np.linspace(0.0, 1.0, steps) if not settings.static else np.zeros(steps)
+    start = 180.0 - settings.sweep_deg / 2  # the walk is on the far side from the arm
+    phases = rng.uniform(0, 2 * math.pi, 4)
+    wobble = lambda k, p: np.sin(2 * math.pi * k * s + p)  # noqa: E731
+    drift = np.cumsum(rng.normal(0, 1, (steps, 3)), axis=0)
+    drift = drift - np.linspace(0, 1, steps)[:, None] * drift[-1]  # a bridge: no net walk
+    drift *= settings.jitter / max(np.abs(drift).max(), 1e-9)
+    if settings.static:
+        drift[:] = 0.0
+    path = []
+    for i in range(steps):
+        azimuth = start + settings.sweep_deg * s[i]
+        elevation = settings.elevation_deg + (
+            6.0 * wobble(1.5, phases[0])[i] if not settings.static else 0
+        )
+        distance = settings.distance + (
+            0.1 * wobble(1.0, phases[1])[i] if not settings.static else 0
+        )
+        path.append((aim + drift[i], distance, azimuth, elevation))
+    return path
+
+
+def render_walkthrough(
+    scene: SceneSpec,
+    out: str | Path,
+    *,
+    tag_xy: tuple[float, float] = (0.3, 0.3),
+    tag_yaw: float = 0.3,
+    tag_size: float = 0.08,
+    settings: WalkthroughSettings = WalkthroughSettings(),
+    seed: int = 0,
+) -> Walkthrough:
+    """Render the hand-held walk around ``scene``'s table to the mp4 ``out``."""
+    rng = np.random.default_rng(seed)
+    model, tag_pose = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed)
+    model.vis.global_.offwidth = max(model.vis.global_.offwidth, settings.width)
+    model.vis.global_.offheight = max(model.vis.global_.offheight, settings.height)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    renderer = mujoco.Renderer(model, settings.height, settings.width)
+    option = mujoco.MjvOption()
+    option.geomgroup[HIDDEN_GROUP] = 0
+    camera = mujoco.MjvCamera()
+    table = scene.table
+    aim = np.array([table.center[0], table.center[1] * 0.5, table.top_height])
+    path = _camera_path(settings, aim, rng)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    positions = []
+    try:
+        with av.open(str(out), mode="w") as container:
+            stream = container.add_stream("libx264", rate=round(settings.fps))
+            stream.width, stream.height, stream.pix_fmt = settings.width, settings.height, "yuv420p"
+            stream.options = {"crf": "18"}
+            for start in range(0, len(path), settings.motion_blur):
+                frames = []
+                for lookat, distance, azimuth, elevation in path[
+                    start : start + settings.motion_blur
+                ]:
+                    camera.lookat[:], camera.distance = lookat, distance
+                    camera.azimuth, camera.elevation = azimuth, elevation
+                    renderer.update_scene(data, camera, option)
+                    frames.append(renderer.render().astype(np.float32))
+                eyes = renderer.scene.camera  # a mono render looks from between the eyes
+                positions.append((np.array(eyes[0].pos) + np.array(eyes[1].pos)) / 2)
+                image = np.mean(frames, axis=0).round().astype(np.uint8)
+                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+    finally:
+        renderer.close()
+    return Walkthrough(out, tag_pose, tag_size, np.array(positions), float(model.vis.global_.fovy))
