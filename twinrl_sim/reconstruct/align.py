@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import mujoco
 import numpy as np
 import open3d as o3d
 
@@ -35,12 +36,6 @@ class Similarity:
     def apply(self, points: np.ndarray) -> np.ndarray:
         return self.scale * np.asarray(points) @ self.rotation.T + self.translation
 
-    def then(self, rotation: np.ndarray, translation: np.ndarray) -> Similarity:
-        """This transform followed by a rigid motion."""
-        return Similarity(
-            self.scale, rotation @ self.rotation, rotation @ self.translation + translation
-        )
-
 
 @dataclass(frozen=True)
 class TagAlignment:
@@ -51,21 +46,12 @@ class TagAlignment:
     views: int
 
 
-def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.asarray(quat, float) / np.linalg.norm(quat)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def tag_corners_in_base(tag_pose: np.ndarray, size: float) -> np.ndarray:
     """(4, 3) corners of a tag at ``tag_pose`` (x y z qw qx qy qz), detection order."""
     pose = np.asarray(tag_pose, float)
-    return pose[:3] + corners_in_tag_frame(size) @ quat_to_matrix(pose[3:]).T
+    rotation = np.zeros(9)
+    mujoco.mju_quat2Mat(rotation, pose[3:] / np.linalg.norm(pose[3:]))
+    return pose[:3] + corners_in_tag_frame(size) @ rotation.reshape(3, 3).T
 
 
 def _triangulate(rays: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:

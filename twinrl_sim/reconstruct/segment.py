@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mujoco
 import numpy as np
 import open3d as o3d
 
@@ -40,19 +41,6 @@ class ObjectCluster:
     color: np.ndarray  # (3,) mean RGB in [0, 1]
     points: np.ndarray  # (N, 3)
 
-    @property
-    def volume(self) -> float:
-        return float(np.prod(self.size))
-
-
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotation taking unit vector ``a`` onto unit vector ``b``."""
-    v, c = np.cross(a, b), float(np.dot(a, b))
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + k + k @ k / (1 + c)
-
 
 def level_table(
     points: np.ndarray, pivot: np.ndarray, seed: int = 0
@@ -72,7 +60,11 @@ def level_table(
     normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
     if normal[2] < 0:
         normal = -normal
-    rotation = _rotation_between(normal, np.array([0.0, 0.0, 1.0]))
+    z_to_normal = np.zeros(4)
+    mujoco.mju_quatZ2Vec(z_to_normal, normal)
+    matrix = np.zeros(9)
+    mujoco.mju_quat2Mat(matrix, z_to_normal)
+    rotation = matrix.reshape(3, 3).T  # normal -> z
     levelled = (points - pivot) @ rotation.T + pivot
     top = levelled[inliers]
     height = float(np.median(top[:, 2]))

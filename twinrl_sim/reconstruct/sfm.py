@@ -26,10 +26,6 @@ class SparseModel:
     registered: int
     frames: int
 
-    @property
-    def image_names(self) -> list[str]:
-        return [image.name for image in self.reconstruction.images.values()]
-
 
 def run_sfm(image_dir: Path, work_dir: Path, *, seed: int = 0, overlap: int = 10) -> SparseModel:
     """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``)."""

@@ -18,7 +18,7 @@ import av
 import mujoco
 import numpy as np
 
-from twinrl_sim.build import build_mjspec
+from twinrl_sim.build import build_mjspec, yaw_quat
 from twinrl_sim.reconstruct.tag import CELLS, tag_image
 from twinrl_sim.spec import SceneSpec
 
@@ -37,7 +37,7 @@ class WalkthroughSettings:
     sweep_deg: float = 140.0  # azimuth covered by the walk
     distance: float = 1.0  # m from the aim point
     elevation_deg: float = -45.0
-    jitter: float = 0.01  # m of hand shake in the aim point (and 1/10 of it in radians)
+    jitter: float = 0.01  # m of hand shake in the aim point
     motion_blur: int = 1  # sub-frames averaged per frame (1: none)
     static: bool = False  # the camera does not move (a bad clip, for tests)
 
@@ -79,10 +79,6 @@ def _add_texture(spec: mujoco.MjSpec, name: str, image: np.ndarray, rgba, repeat
     return f"{name}_material"
 
 
-def quat_from_yaw(yaw: float) -> np.ndarray:
-    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
-
-
 def walkthrough_model(
     scene: SceneSpec, tag_xy: tuple[float, float], tag_yaw: float, tag_size: float, seed: int
 ) -> tuple[mujoco.MjModel, np.ndarray]:
@@ -107,7 +103,7 @@ def walkthrough_model(
     thickness = 0.0006
     edge = tag_size * (CELLS + 2 * TAG_MARGIN_CELLS) / CELLS
     image = np.repeat(tag_image(cell_px=32, margin_cells=TAG_MARGIN_CELLS)[:, :, None], 3, axis=2)
-    quat = quat_from_yaw(tag_yaw)
+    quat = yaw_quat(tag_yaw)
     spec.worldbody.add_geom(
         name="apriltag",
         type=mujoco.mjtGeom.mjGEOM_BOX,
@@ -127,28 +123,18 @@ def _camera_path(
     settings: WalkthroughSettings, aim: np.ndarray, rng: np.random.Generator
 ) -> list[tuple[np.ndarray, float, float, float]]:
     """(look-at point, distance, azimuth, elevation) per frame and blur sub-frame."""
-    frames = max(round(settings.seconds * settings.fps), 2)
-    steps = frames * settings.motion_blur
-    s = np.linspace(0.0, 1.0, steps) if not settings.static else np.zeros(steps)
+    steps = max(round(settings.seconds * settings.fps), 2) * settings.motion_blur
+    motion = 0.0 if settings.static else 1.0
+    s = np.linspace(0.0, 1.0, steps) * motion
     start = 180.0 - settings.sweep_deg / 2  # the walk is on the far side from the arm
-    phases = rng.uniform(0, 2 * math.pi, 4)
-    wobble = lambda k, p: np.sin(2 * math.pi * k * s + p)  # noqa: E731
+    phases = rng.uniform(0, 2 * math.pi, 4)  # 4 draws: the stream the test clips use
     drift = np.cumsum(rng.normal(0, 1, (steps, 3)), axis=0)
     drift = drift - np.linspace(0, 1, steps)[:, None] * drift[-1]  # a bridge: no net walk
-    drift *= settings.jitter / max(np.abs(drift).max(), 1e-9)
-    if settings.static:
-        drift[:] = 0.0
-    path = []
-    for i in range(steps):
-        azimuth = start + settings.sweep_deg * s[i]
-        elevation = settings.elevation_deg + (
-            6.0 * wobble(1.5, phases[0])[i] if not settings.static else 0
-        )
-        distance = settings.distance + (
-            0.1 * wobble(1.0, phases[1])[i] if not settings.static else 0
-        )
-        path.append((aim + drift[i], distance, azimuth, elevation))
-    return path
+    drift *= motion * settings.jitter / max(np.abs(drift).max(), 1e-9)
+    azimuth = start + settings.sweep_deg * s
+    elevation = settings.elevation_deg + motion * 6.0 * np.sin(2 * math.pi * 1.5 * s + phases[0])
+    distance = settings.distance + motion * 0.1 * np.sin(2 * math.pi * s + phases[1])
+    return list(zip(aim + drift, distance, azimuth, elevation, strict=True))
 
 
 def render_walkthrough(
