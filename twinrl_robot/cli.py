@@ -18,6 +18,10 @@ from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
 from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class, twin_scene
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
+PlantEffects = Annotated[
+    Path | None,
+    typer.Option(help=f"Hidden effects YAML for the plant (default: {DEFAULT_EFFECTS_FILE.name})."),
+]
 
 
 def expert(
@@ -27,12 +31,7 @@ def expert(
     world: Annotated[
         list[str] | None, typer.Option(help=f"World: {' or '.join(WORLDS)}; repeat for both.")
     ] = None,
-    effects: Annotated[
-        Path | None,
-        typer.Option(
-            help=f"Hidden effects YAML for the plant (default: {DEFAULT_EFFECTS_FILE.name})."
-        ),
-    ] = None,
+    effects: PlantEffects = None,
     seed: Annotated[int, typer.Option(help="Seed for configurations and grasps.")] = 0,
     noise: Annotated[
         float,
@@ -117,12 +116,7 @@ def excite(
     ] = None,
     world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
     episodes: Annotated[int, typer.Option(help="Episodes to record.", min=1)] = 4,
-    effects: Annotated[
-        Path | None,
-        typer.Option(
-            help=f"Hidden effects YAML for the plant (default: {DEFAULT_EFFECTS_FILE.name})."
-        ),
-    ] = None,
+    effects: PlantEffects = None,
     duration: Annotated[float, typer.Option(help="Seconds per episode.")] = 10.0,
     amplitude: Annotated[
         float, typer.Option(help="Scale of the joint amplitudes (halved until safe).")

@@ -65,15 +65,22 @@ class ExcitationSettings:
             raise ValueError(f"--amplitude must be in (0, 2], got {self.amplitude}")
 
 
+def joint_ranges(scene: CompiledScene) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper limit (rad) of each arm joint; +-inf where it is unlimited."""
+    model = scene.model
+    ids = [model.joint(j).id for j in scene.layout.arm_joints]
+    limited = model.jnt_limited[ids].astype(bool)
+    low = np.where(limited, model.jnt_range[ids, 0], -np.inf)
+    high = np.where(limited, model.jnt_range[ids, 1], np.inf)
+    return low, high
+
+
 def base_amplitude(scene: CompiledScene) -> np.ndarray:
     """Peak multi-sine amplitude (rad) per arm joint before ``settings.amplitude``."""
     if scene.spec.robot.is_builtin:
         return np.asarray(BASE_AMPLITUDE, float)
-    model = scene.model
-    ids = [model.joint(j).id for j in scene.layout.arm_joints]
-    limited = model.jnt_limited[ids].astype(bool)
-    span = np.where(limited, np.ptp(model.jnt_range[ids], axis=1), np.inf)
-    return np.minimum(CUSTOM_AMPLITUDE, span / 4)
+    low, high = joint_ranges(scene)
+    return np.minimum(CUSTOM_AMPLITUDE, (high - low) / 4)
 
 
 def multisine(
@@ -112,11 +119,8 @@ def safe_trajectory(
     low = np.array(ws.low) + settings.margin
     high = np.array(ws.high) - settings.margin
     low[2] = max(low[2], settings.margin)
-    model = scene.model
-    ids = [model.joint(j).id for j in scene.layout.arm_joints]
-    limited = model.jnt_limited[ids].astype(bool)
-    q_low = np.where(limited, model.jnt_range[ids, 0] + LIMIT_MARGIN, -np.inf)
-    q_high = np.where(limited, model.jnt_range[ids, 1] - LIMIT_MARGIN, np.inf)
+    q_low, q_high = joint_ranges(scene)
+    q_low, q_high = q_low + LIMIT_MARGIN, q_high - LIMIT_MARGIN
     rate = task.scene.physics.control_hz
     home = np.asarray(scene.layout.home_qpos, float)
     amplitude = base_amplitude(scene)
