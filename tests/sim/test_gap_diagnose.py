@@ -61,6 +61,13 @@ def _record_teleop(path, effects, episodes=4, seed=3):
     return [read_episode(p, images=False) for p in session.episode_paths()]
 
 
+def _twinrl(command: str):
+    """Run a ``twinrl`` command line in-process; it must succeed."""
+    result = CliRunner().invoke(app, command.split())
+    assert result.exit_code == 0, result.output
+    return result
+
+
 def _within(fitted, truth, interval=0.0, tolerance=0.15):
     """Each component within 15 % of the truth (of the largest one, for components that
     are zero) or the truth inside the reported 95 % interval."""
@@ -169,12 +176,10 @@ def test_noise_floor_parses_and_rejects_bad_entries():
 def test_cli_writes_the_report_and_a_fitted_twin(tmp_path):
     (tmp_path / "hidden.yaml").write_text("payload: {mass: 1.5}\n")
     runner = CliRunner()
-    record = runner.invoke(
-        app,
+    _twinrl(
         f"sim excite --world plant --effects {tmp_path}/hidden.yaml --episodes 3 "
-        f"--duration 6 --out {tmp_path}/measured".split(),
+        f"--duration 6 --out {tmp_path}/measured"
     )
-    assert record.exit_code == 0, record.output
     out = tmp_path / "diag"
     args = (
         f"gap diagnose {tmp_path}/measured --twin pick_place "
@@ -254,22 +259,17 @@ def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
     spec_file = tmp_path / "cell.yaml"
     spec_file.write_text(yaml.safe_dump(cell, sort_keys=False))
     (tmp_path / "hidden.yaml").write_text("joint_friction: {coulomb: [0, 3.0, 0, 0]}\n")
-    runner = CliRunner()
-    record = runner.invoke(
-        app,
+    _twinrl(
         f"sim excite --twin {spec_file} --world plant --effects {tmp_path}/hidden.yaml "
-        f"--episodes 4 --duration 6 --seed 1 --out {tmp_path}/measured".split(),
+        f"--episodes 4 --duration 6 --seed 1 --out {tmp_path}/measured"
     )
-    assert record.exit_code == 0, record.output
     measured = read_episode(Session(tmp_path / "measured").episode_paths()[0], images=False)
     assert measured.meta.names[schema.EFFORT] == schema.effort_names(cell["robot"]["joints"])
     out = tmp_path / "diag"
-    result = runner.invoke(
-        app,
+    result = _twinrl(
         f"gap diagnose {tmp_path}/measured --twin {spec_file} "
-        f"--effects-allowed joint_friction,joint_damping,servo_gain --out {out}".split(),
+        f"--effects-allowed joint_friction,joint_damping,servo_gain --out {out}"
     )
-    assert result.exit_code == 0, result.output
     assert "WARNING" not in result.output  # MuJoCo's note on unprefixed attaching is not news
     report = json.loads((out / "gap_report.json").read_text())
     assert report["candidates"][0]["effect"] == "joint_friction"
@@ -284,15 +284,9 @@ def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
 
 def test_diagnoses_episodes_from_a_lerobot_dataset(tmp_path):
     _record(tmp_path / "session", {"actuator_delay": {"seconds": 0.04}}, episodes=3)
-    runner = CliRunner()
-    export = runner.invoke(app, f"data export {tmp_path}/session --to {tmp_path}/ds".split())
-    assert export.exit_code == 0, export.output
+    _twinrl(f"data export {tmp_path}/session --to {tmp_path}/ds")
     out = tmp_path / "diag"
-    result = runner.invoke(
-        app,
-        f"gap diagnose {tmp_path}/ds --effects-allowed actuator_delay,payload --out {out}".split(),
-    )
-    assert result.exit_code == 0, result.output
+    _twinrl(f"gap diagnose {tmp_path}/ds --effects-allowed actuator_delay,payload --out {out}")
     report = json.loads((out / "gap_report.json").read_text())
     assert [s["effect"] for s in report["selected"]] == ["actuator_delay"]
     assert _within(report["selected"][0]["params"]["seconds"], 0.04)
@@ -305,20 +299,15 @@ def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
     logs.mkdir()
     for index, episode in enumerate(_record(tmp_path / "plant", hidden, episodes=4)):
         write_rtde(logs / f"robot_data_{index}.csv", episode)  # what the robot gave us
-    runner = CliRunner()
-    imported = runner.invoke(
-        app,
+    _twinrl(
         f"data import-csv {' '.join(str(p) for p in sorted(logs.iterdir()))} --format rtde "
-        f"--out {tmp_path}/imported".split(),
+        f"--out {tmp_path}/imported"
     )
-    assert imported.exit_code == 0, imported.output
     out = tmp_path / "diag"
-    result = runner.invoke(
-        app,
+    _twinrl(
         f"gap diagnose {tmp_path}/imported --twin pick_place "
-        f"--effects-allowed {','.join(ARM_EFFECTS)} --out {out}".split(),
+        f"--effects-allowed {','.join(ARM_EFFECTS)} --out {out}"
     )
-    assert result.exit_code == 0, result.output
     report = json.loads((out / "gap_report.json").read_text())
     assert report["candidates"][0]["effect"] == "joint_offset"
     assert [s["effect"] for s in report["selected"]] == ["joint_offset"]
