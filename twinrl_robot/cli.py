@@ -15,6 +15,7 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
+from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class, twin_scene
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
@@ -27,6 +28,13 @@ PlantEffects = Annotated[
 def expert(
     task: Annotated[str, typer.Argument(help=f"Task ({', '.join(TASKS)}) or 'all'.")],
     episodes: Annotated[int, typer.Option(help="Episodes per region.", min=1)] = 20,
+    twin: Annotated[
+        str | None,
+        typer.Option(
+            help="Scene spec YAML of the cell (e.g. from 'twinrl twin build'); it must hold "
+            "the task's objects. Default: the task's built-in cell."
+        ),
+    ] = None,
     region: Annotated[str | None, typer.Option(help="Run only ID or OOD (default: both).")] = None,
     world: Annotated[
         list[str] | None, typer.Option(help=f"World: {' or '.join(WORLDS)}; repeat for both.")
@@ -63,6 +71,11 @@ def expert(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     regions = (region,) if region else REGION_NAMES
+    scene = None
+    if twin is not None:
+        if len(tasks) != 1:
+            raise ValueError("--twin is the cell of one task; name the task instead of 'all'")
+        scene = task_on_twin(tasks[0], twin)
     session = Session.create(out, exist_ok=append) if out is not None else None
     reports: list[ExpertReport] = []
     with progress(disable=as_json) as bar:
@@ -79,6 +92,7 @@ def expert(
                     session=session,
                     action_noise=noise,
                     on_episode=lambda _, job=job: bar.advance(job),
+                    scene=scene,
                 )
                 reports.append(report)
                 if as_json:
@@ -87,6 +101,18 @@ def expert(
         console.print(success_table(reports))
         if session is not None:
             console.print(f"recorded {len(session.entries)} episodes in {session.path}")
+
+
+def task_on_twin(task: str, twin: str) -> SceneSpec:
+    """The cell named by ``--twin``, checked to hold ``task``'s objects."""
+    scene = twin_scene(twin)
+    try:
+        make_task(task, scene)
+    except KeyError as err:
+        raise ValueError(
+            f"--twin {twin}: {err.args[0]}; pick the task it is built for (--task)"
+        ) from None
+    return scene
 
 
 def success_table(reports: list[ExpertReport]) -> Table:
@@ -127,11 +153,7 @@ def excite(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     settings = ExcitationSettings(duration=duration, amplitude=amplitude)
-    scene = twin_scene(twin) if twin is not None else None
-    try:
-        make_task(task, scene)
-    except KeyError as err:
-        raise ValueError(f"--twin {twin}: {err.args[0]}; pick the --task it is built for") from None
+    scene = task_on_twin(task, twin) if twin is not None else None
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
     session = Session.create(out)

@@ -14,6 +14,7 @@ from twinrl_data.schema import EFFORT, EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv
+from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
 
 World = Literal["twin", "plant"]
@@ -65,8 +66,8 @@ class ExpertReport:
 class _TwinWorld:
     source, world = "twin_demo", "twin"
 
-    def __init__(self, task: str, images: bool) -> None:
-        self.env = TwinEnv(task, images=images)
+    def __init__(self, task: str, images: bool, scene: SceneSpec | None) -> None:
+        self.env = TwinEnv(task, scene=scene, images=images)
         self.task = self.env.task
         self.names = self.env.cell.contract_names()
         self._success = False
@@ -95,10 +96,18 @@ class _PlantWorld:
     source, world = "teleop", "plant"
 
     def __init__(
-        self, task: str, effects: dict | str | Path | None, seed: int, images: bool
+        self,
+        task: str,
+        effects: dict | str | Path | None,
+        seed: int,
+        images: bool,
+        scene: SceneSpec | None,
     ) -> None:
         self.plant = Plant(
-            task, effects=effects, seed=seed, images=("front", "wrist") if images else ()
+            make_task(task, scene),
+            effects=effects,
+            seed=seed,
+            images=("front", "wrist") if images else (),
         )
         self.task = self.plant.task
         self.names = {**self.plant.contract_names(), EFFORT: self.plant.effort_names}
@@ -133,6 +142,7 @@ def run_scripted_expert(
     session: Session | None = None,
     action_noise: float = 0.0,
     on_episode: Callable[[ExpertEpisode], None] | None = None,
+    scene: SceneSpec | None = None,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
 
@@ -141,7 +151,8 @@ def run_scripted_expert(
     ``twin_demo`` demonstrations, in the plant as ``teleop`` (the expert stands in for
     the human operator). ``action_noise`` (m) adds human-like jitter to the expert's
     translations (and five times as much, in rad, to its rotations), which the expert
-    then corrects like an operator watching the arm.
+    then corrects like an operator watching the arm. ``scene`` replaces the task's
+    built-in cell (e.g. one built by ``twinrl twin build``) in both worlds.
     """
     if world not in WORLDS:
         raise ValueError(f"world must be one of {', '.join(WORLDS)}, got '{world}'")
@@ -149,11 +160,15 @@ def run_scripted_expert(
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     if world == "twin" and effects is not None:
         raise ValueError("effects apply to the plant only; the twin runs its own scene spec")
-    spec_task = make_task(task)
+    spec_task = make_task(task, scene)
     for region in regions:
         spec_task.region(region)
     images = session is not None
-    sim = _TwinWorld(task, images) if world == "twin" else _PlantWorld(task, effects, seed, images)
+    sim = (
+        _TwinWorld(task, images, scene)
+        if world == "twin"
+        else _PlantWorld(task, effects, seed, images, scene)
+    )
     rng = np.random.default_rng(seed)
     results = []
     try:

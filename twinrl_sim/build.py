@@ -14,9 +14,11 @@ import contextlib
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from twinrl_sim.effects import apply_effects
 from twinrl_sim.robots import gripper as gripper_lib
@@ -155,7 +157,9 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         conaffinity=ENV_CONAFFINITY,
     )
     body = spec.worldbody.add_body(
-        name="table", pos=[table.center[0], table.center[1], table.top_height]
+        name="table",
+        pos=[table.center[0], table.center[1], table.top_height],
+        quat=yaw_quat(table.yaw).tolist(),
     )
     material = ""
     if table.texture != "plain":
@@ -277,9 +281,12 @@ def yaw_quat(yaw: float) -> np.ndarray:
 
 
 def geom_volume(geom: GeomSpec) -> float:
-    """Volume (m^3) of a primitive, used to turn an object's mass into a density."""
+    """Volume (m^3) of a geom, used to turn an object's mass into a density (a mesh
+    counts by its convex hull, which is what MuJoCo collides with)."""
     s = geom.size
     match geom.type:
+        case "mesh":
+            return float(ConvexHull(mesh_vertices(geom.file)).volume)
         case "box":
             return 8 * s[0] * s[1] * s[2]
         case "cylinder":
@@ -292,6 +299,17 @@ def geom_volume(geom: GeomSpec) -> float:
             area = 0.5 * geom.sides * s[0] ** 2 * np.sin(2 * np.pi / geom.sides)
             return area * 2 * s[1]
     raise AssertionError(geom.type)
+
+
+def mesh_vertices(path: str | Path) -> np.ndarray:
+    """(N, 3) vertices of a mesh file (OBJ, STL, PLY)."""
+    import open3d as o3d  # heavy; only scenes with mesh geoms need it
+
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    vertices = np.asarray(mesh.vertices)
+    if len(vertices) < 4:
+        raise SpecError(f"{path}: no mesh could be read from this file (OBJ, STL or PLY)")
+    return vertices
 
 
 def prism_vertices(sides: int, radius: float, half_height: float) -> np.ndarray:
@@ -309,6 +327,7 @@ _GEOM_TYPES = {
     "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE,
     "sphere": mujoco.mjtGeom.mjGEOM_SPHERE,
     "prism": mujoco.mjtGeom.mjGEOM_MESH,
+    "mesh": mujoco.mjtGeom.mjGEOM_MESH,
 }
 
 
@@ -335,6 +354,11 @@ def _add_object(spec: mujoco.MjSpec, scene: SceneSpec, obj: ObjectSpec) -> None:
                 name=mesh_name,
                 uservert=prism_vertices(geom.sides, geom.size[0], geom.size[1]).ravel().tolist(),
             )
+            kwargs["meshname"] = mesh_name
+            size = [0.0, 0.0, 0.0]
+        elif geom.type == "mesh":
+            mesh_name = f"{obj.name}_mesh{i}"
+            spec.add_mesh(name=mesh_name, file=str(geom.file))
             kwargs["meshname"] = mesh_name
             size = [0.0, 0.0, 0.0]
         contact = geom.contact
@@ -372,11 +396,10 @@ def look_at_quat(pos: np.ndarray, target: np.ndarray, up: np.ndarray) -> list[fl
 
 def _add_camera(spec: mujoco.MjSpec, scene: SceneSpec, cam: CameraSpec, flange: str) -> None:
     if cam.mount == "world":
-        parent = spec.worldbody
-        quat = look_at_quat(np.array(cam.pos), np.array(cam.lookat), np.array([0.0, 0.0, 1.0]))
+        parent, up = spec.worldbody, cam.up or (0.0, 0.0, 1.0)
     else:
-        parent = spec.body(flange)
-        quat = look_at_quat(np.array(cam.pos), np.array(cam.lookat), np.array([1.0, 0.0, 0.0]))
+        parent, up = spec.body(flange), cam.up or (1.0, 0.0, 0.0)
+    quat = look_at_quat(np.array(cam.pos), np.array(cam.lookat), np.array(up))
     parent.add_camera(
         name=cam.name,
         pos=list(cam.pos),

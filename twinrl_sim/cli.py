@@ -444,3 +444,135 @@ def diagnose_command(
             f"{camera} camera: held-out image error {gap['before']:.3g} -> {gap['after']:.3g}"
         )
     console.print(f"{out}/gap_report.json, twin_fitted.yaml, report.md, overlay.rrd")
+
+
+twin_app = typer.Typer(
+    help="Build the twin of a cell from a phone video of it.", no_args_is_help=True
+)
+
+
+def parse_assignments(values: list[str] | None, option: str) -> dict[str, str]:
+    """``NAME=VALUE`` options as a mapping; a malformed one is refused by name."""
+    parsed = {}
+    for value in values or []:
+        name, sep, rest = value.partition("=")
+        if not sep or not name.strip() or not rest.strip():
+            raise ValueError(f"{option} '{value}' must look like NAME=VALUE")
+        parsed[name.strip()] = rest.strip()
+    return parsed
+
+
+def parse_numbers(text: str, option: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise ValueError(f"{option} '{text}' must be numbers separated by spaces") from None
+
+
+@twin_app.command("build")
+def build_command(
+    source: Annotated[
+        Path, typer.Argument(help="Walk-around video of the cell, or a folder of its photos.")
+    ],
+    out: Annotated[
+        Path, typer.Option(help="Folder for scene.yaml, meshes/, report.md (+ PNGs), .rrd.")
+    ],
+    tag_size: Annotated[
+        float, typer.Option(help="Edge of the AprilTag 36h11's black square (m), e.g. 0.08.")
+    ],
+    tag_pose: Annotated[
+        str,
+        typer.Option(
+            help="The tag's centre and orientation in the robot-base frame: 'x y z qw qx qy "
+            "qz' (m; a tag lying flat, printed x along the base's x: 'x y z 1 0 0 0')."
+        ),
+    ],
+    tag_id: Annotated[
+        int | None, typer.Option(help="Use only the tag with this id (default: the one seen).")
+    ] = None,
+    task: Annotated[
+        str | None,
+        typer.Option(
+            help=f"Task whose cell was filmed ({', '.join(TASKS)}): objects are named after "
+            "its objects, and its robot, cameras and physics are kept."
+        ),
+    ] = None,
+    object_mesh: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="NAME=FILE: a scan or CAD mesh (metres) of object NAME, registered to its "
+            "points by ICP instead of the reconstructed shape. Repeatable."
+        ),
+    ] = None,
+    camera_image: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="NAME=IMAGE: a photo from fixed camera NAME (e.g. front=front.png); the "
+            "twin's camera is placed at its pose with its focal length. Repeatable."
+        ),
+    ] = None,
+    density: Annotated[
+        list[str] | None,
+        typer.Option(help="NAME=KG_PER_M3 for an object's mass (default 700). Repeatable."),
+    ] = None,
+    frames: Annotated[int, typer.Option(help="Frames to keep for SfM.", min=12)] = 150,
+    name: Annotated[str | None, typer.Option(help="Scene name (default: from the task).")] = None,
+    keep_work: Annotated[
+        bool, typer.Option(help="Keep the frames and the COLMAP database under OUT/work.")
+    ] = False,
+    seed: Annotated[int, typer.Option(help="Seeds SfM, RANSAC and the decomposition.")] = 0,
+) -> None:
+    """Reconstruct a cell from a walk-around video: frames, SfM (pycolmap), metric scale
+    and robot-base frame from an AprilTag, table plane, objects (meshes, CoACD parts,
+    mass), fixed cameras from photos; write a scene spec that every twinrl command takes
+    as --twin, with a report and a Rerun recording."""
+    # Imported here: open3d, pycolmap and CoACD take seconds to load.
+    from twinrl_sim.reconstruct.pipeline import STAGES, BuildSettings, build_twin
+
+    settings = BuildSettings(
+        tag_size=tag_size,
+        tag_pose=parse_numbers(tag_pose, "--tag-pose"),
+        tag_id=tag_id,
+        task=task,
+        object_meshes={
+            k: Path(v) for k, v in parse_assignments(object_mesh, "--object-mesh").items()
+        },
+        camera_images={
+            k: Path(v) for k, v in parse_assignments(camera_image, "--camera-image").items()
+        },
+        densities={
+            k: parse_numbers(v, "--density")[0]
+            for k, v in parse_assignments(density, "--density").items()
+        },
+        frames=frames,
+        name=name,
+        keep_work=keep_work,
+        seed=seed,
+    )
+    with progress() as bar:
+        job = bar.add_task("twin build", total=len(STAGES))
+
+        def advance(stage: str) -> None:
+            bar.update(job, description=stage, completed=STAGES.index(stage))
+
+        built = build_twin(source, out, settings, on_stage=advance)
+    table = Table(title=f"{built.scene.name}: {len(built.objects)} objects")
+    for column in ("object", "role", "x (m)", "y (m)", "yaw (deg)", "mass (kg)", "parts"):
+        table.add_column(column)
+    for obj in built.objects:
+        table.add_row(
+            obj.name,
+            obj.role,
+            f"{obj.position[0]:.3f}",
+            f"{obj.position[1]:.3f}",
+            f"{np.degrees(obj.yaw):+.1f}",
+            f"{obj.mass:.3f}" if obj.role == "manipulated" else "fixed",
+            str(len(obj.shape.parts)),
+        )
+    console.print(table)
+    console.print(
+        f"{built.model.registered}/{built.model.frames} frames registered, tag residual "
+        f"{1000 * built.alignment.residual_m:.2f} mm, table top at {built.table.height:+.4f} m, "
+        f"{sum(built.seconds.values()):.0f} s"
+    )
+    console.print(f"{out}/scene.yaml (use as --twin), report.md, reconstruction.rrd")

@@ -60,11 +60,16 @@ class GeomSpec(_Strict):
     """One primitive of an object. Sizes follow MuJoCo: half extents, radius, half length.
 
     ``prism`` is a regular prism: ``size = [circumradius, half_height]`` with ``sides``
-    faces (a hexagonal block is ``sides: 6``).
+    faces (a hexagonal block is ``sides: 6``). ``mesh`` is a triangle mesh file (OBJ or
+    STL, metres, in the object's frame) given by ``file``, relative to the spec's folder;
+    MuJoCo collides with its convex hull, so a non-convex object is several convex
+    ``mesh`` parts (``twinrl twin build`` writes them) plus, optionally, its whole
+    surface as a ``contact: false`` mesh for looks.
     """
 
-    type: Literal["box", "cylinder", "capsule", "sphere", "prism"]
-    size: list[Positive] = Field(min_length=1, max_length=3)
+    type: Literal["box", "cylinder", "capsule", "sphere", "prism", "mesh"]
+    size: list[Positive] = Field(default_factory=list, max_length=3)
+    file: Path | None = None
     pos: Vec3 = (0.0, 0.0, 0.0)
     euler: Vec3 = (0.0, 0.0, 0.0)
     rgba: Rgba | None = None
@@ -73,6 +78,12 @@ class GeomSpec(_Strict):
 
     @model_validator(mode="after")
     def _check_size(self) -> GeomSpec:
+        if self.type == "mesh":
+            if self.file is None or self.size:
+                raise ValueError("a mesh geom needs 'file' (OBJ or STL) and no 'size'")
+            return self
+        if self.file is not None:
+            raise ValueError(f"'file' is for mesh geoms only, not a {self.type}")
         expected = {"box": 3, "cylinder": 2, "capsule": 2, "sphere": 1, "prism": 2}[self.type]
         if len(self.size) != expected:
             raise ValueError(f"a {self.type} needs {expected} size value(s), got {len(self.size)}")
@@ -143,8 +154,11 @@ class RobotSpec(_Strict):
 
 
 class TableSpec(_Strict):
+    """The table top: ``size`` along its own axes, turned by ``yaw`` about the vertical."""
+
     size: tuple[Positive, Positive] = (0.9, 1.3)
     center: tuple[float, float] = (0.45, 0.0)
+    yaw: float = 0.0
     thickness: Positive = 0.04
     top_height: Annotated[float, Field(ge=-1.0, le=1.5)] = 0.0
     friction: Annotated[float, Field(gt=0, le=5)] = 0.8
@@ -154,12 +168,15 @@ class TableSpec(_Strict):
 
 class CameraSpec(_Strict):
     """A camera. ``mount: world`` cameras look from ``pos`` at ``lookat``; ``wrist``
-    cameras are fixed to the flange, ``pos`` in the flange frame, looking along the tool."""
+    cameras are fixed to the flange, ``pos`` in the flange frame, looking along the tool.
+    ``up`` is the direction the top of the image leans towards (default: +z for world
+    cameras, the flange's +x for wrist cameras); a rolled camera gives its own."""
 
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
     mount: Literal["world", "wrist"] = "world"
     pos: Vec3
     lookat: Vec3 = (0.45, 0.0, 0.0)
+    up: Vec3 | None = None
     fovy: Annotated[float, Field(gt=1, lt=179)] = 60.0
     width: int = Field(default=128, ge=16, le=4096)
     height: int = Field(default=128, ge=16, le=4096)
@@ -262,10 +279,13 @@ class SceneSpec(_Strict):
         ``provenance`` is excluded: it documents where a spec came from, not what it is.
         """
         payload = self.model_dump(mode="json", exclude={"provenance"})
+        # Files count by content, not by where they lie.
         if self.robot.mjcf is not None:
-            payload["robot"]["mjcf_sha256"] = hashlib.sha256(
-                Path(self.robot.mjcf).read_bytes()
-            ).hexdigest()
+            payload["robot"]["mjcf"] = _file_sha256(self.robot.mjcf)
+        for obj in payload["objects"]:
+            for geom in obj["geoms"]:
+                if geom["file"] is not None:
+                    geom["file"] = _file_sha256(geom["file"])
         text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -303,10 +323,41 @@ def load_spec(path: str | Path) -> SceneSpec:
     except yaml.YAMLError as err:
         raise SpecError(f"{path}: not valid YAML ({err.__class__.__name__}: {err})") from None
     spec = parse_spec(data or {}, source=str(path))
-    if spec.robot.mjcf is not None and not spec.robot.mjcf.is_absolute():
-        robot = spec.robot.model_copy(update={"mjcf": (path.parent / spec.robot.mjcf).resolve()})
-        spec = spec.model_copy(update={"robot": robot})
-    return spec
+    return resolve_files(spec, path.parent)
+
+
+def resolve_files(spec: SceneSpec, folder: Path) -> SceneSpec:
+    """``spec`` with its relative file paths (robot MJCF, meshes) made absolute from
+    ``folder``; a missing file is a :class:`SpecError` naming it."""
+    updates: dict[str, Any] = {}
+    if spec.robot.mjcf is not None:
+        updates["robot"] = spec.robot.model_copy(
+            update={"mjcf": _existing(folder, spec.robot.mjcf, "robot.mjcf")}
+        )
+    objects = []
+    for obj in spec.objects:
+        geoms = [
+            g.model_copy(
+                update={"file": _existing(folder, g.file, f"objects.{obj.name}.geoms.{i}.file")}
+            )
+            if g.file is not None
+            else g
+            for i, g in enumerate(obj.geoms)
+        ]
+        objects.append(obj.model_copy(update={"geoms": geoms}))
+    updates["objects"] = objects
+    return spec.model_copy(update=updates)
+
+
+def _existing(folder: Path, file: Path, where: str) -> Path:
+    path = file if file.is_absolute() else (folder / file).resolve()
+    if not path.is_file():
+        raise SpecError(f"{where}: {path} does not exist (relative paths start at {folder})")
+    return path
+
+
+def _file_sha256(path: str | Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def save_spec(spec: SceneSpec, path: str | Path) -> Path:

@@ -31,7 +31,7 @@ def reconstruction(tmp_path_factory):
     model = run_sfm(root / "frames", root / "sfm")
     alignment = align_to_tag(model, root / "frames", walk.tag_pose, walk.tag_size)
     points = alignment.to_base.apply(model.points)
-    table, _, levelled = level_table(points, walk.tag_pose[:3])
+    table, _, levelled = level_table(points, model.colors, walk.tag_pose[:3])
     objects = find_objects(levelled, model.colors, table)
     return walk, frames, model, alignment, table, objects
 

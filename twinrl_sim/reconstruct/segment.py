@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import mujoco
 import numpy as np
 import open3d as o3d
@@ -22,13 +23,29 @@ PLANE_TOLERANCE = 0.004  # m: RANSAC inlier distance
 ABOVE_TABLE = 0.004  # m: points higher than this over the plane may belong to objects
 CLUSTER_EPS = 0.02  # m: DBSCAN neighbourhood
 MIN_CLUSTER_POINTS = 25
+TOP_PERCENTILE = 98
+
+
+def footprint_yaw(xy: np.ndarray) -> float:
+    """Heading of the long axis of the convex hull of ``xy`` (rad, in (-pi/2, pi/2]).
+
+    The hull's area moments are used rather than the points' own spread: SfM points
+    bunch where the texture is richest, the hull does not care.
+    """
+    scale = 1000.0  # cv2 wants float32 pixels-like numbers; millimetres keep precision
+    centred = (xy - xy.mean(0)) * scale
+    moments = cv2.moments(cv2.convexHull(centred.astype(np.float32)))
+    yaw = 0.5 * np.arctan2(2 * moments["mu11"], moments["mu20"] - moments["mu02"])
+    return float((yaw + np.pi / 2) % np.pi - np.pi / 2)
 
 
 @dataclass(frozen=True)
 class TablePlane:
     height: float  # m, top surface in the base frame (after levelling)
     center: np.ndarray  # (2,) xy of the inliers' extent
-    size: np.ndarray  # (2,) x, y extent (m)
+    size: np.ndarray  # (2,) extent along the table's own x, y (m)
+    yaw: float  # rad, of the table's x axis, in (-pi/4, pi/4]
+    color: np.ndarray  # (3,) median RGB of the top in [0, 1]
     tilt_deg: float  # angle between the fitted normal and the tag's z before levelling
     inliers: int
 
@@ -43,9 +60,12 @@ class ObjectCluster:
 
 
 def level_table(
-    points: np.ndarray, pivot: np.ndarray, seed: int = 0
+    points: np.ndarray, colors: np.ndarray, pivot: np.ndarray, seed: int = 0
 ) -> tuple[TablePlane, np.ndarray, np.ndarray]:
     """Fit the table plane and level the cloud about ``pivot``.
+
+    The table's heading is that of its seen top's minimum-area rectangle (its edges),
+    folded so that the table's x axis is the one nearest the base frame's.
 
     Returns the table, the rotation applied (3x3, about ``pivot``) and the levelled points.
     """
@@ -68,11 +88,16 @@ def level_table(
     levelled = (points - pivot) @ rotation.T + pivot
     top = levelled[inliers]
     height = float(np.median(top[:, 2]))
-    low, high = np.percentile(top[:, :2], [1, 99], axis=0)
+    (_, _, angle) = cv2.minAreaRect((top[:, :2] * 1000).astype(np.float32))
+    yaw = float((np.radians(angle) + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+    axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    low, high = np.percentile(top[:, :2] @ axes.T, [1, 99], axis=0)
     table = TablePlane(
         height=height,
-        center=(low + high) / 2,
+        center=((low + high) / 2) @ axes,
         size=high - low,
+        yaw=yaw,
+        color=np.median(colors[inliers], axis=0) / 255.0,
         tilt_deg=float(np.degrees(np.arccos(np.clip(normal[2], -1, 1)))),
         inliers=len(inliers),
     )
@@ -84,8 +109,9 @@ def find_objects(
 ) -> list[ObjectCluster]:
     """Clusters of points standing on the table, largest first."""
     rise = points[:, 2] - table.height
-    half = table.size / 2 + 0.02
-    on_table = np.all(np.abs(points[:, :2] - table.center) <= half, axis=1)
+    c, s = np.cos(table.yaw), np.sin(table.yaw)
+    along_table = (points[:, :2] - table.center) @ np.array([[c, -s], [s, c]])
+    on_table = np.all(np.abs(along_table) <= table.size / 2 + 0.02, axis=1)
     above = (rise > ABOVE_TABLE) & (rise < max_height) & on_table
     chosen, chosen_colors = points[above], colors[above]
     if len(chosen) < MIN_CLUSTER_POINTS:
@@ -100,16 +126,13 @@ def find_objects(
         cluster = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen[member]))
         _, keep = cluster.remove_statistical_outlier(nb_neighbors=8, std_ratio=2.0)
         pts = chosen[member][keep]
-        xy = pts[:, :2] - pts[:, :2].mean(0)
-        _, vectors = np.linalg.eigh(np.cov(xy.T))
-        long_axis = vectors[:, 1]
-        yaw = float(np.arctan2(long_axis[1], long_axis[0]))
-        yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2
+        yaw = footprint_yaw(pts[:, :2])
         axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
         local = pts[:, :2] @ axes.T
         low, high = local.min(0), local.max(0)
         centre_xy = ((low + high) / 2) @ axes
-        height = float(pts[:, 2].max() - table.height)
+        # The top is a high percentile: a few stray matches float above every object.
+        height = float(np.percentile(pts[:, 2], TOP_PERCENTILE) - table.height)
         objects.append(
             ObjectCluster(
                 center=np.array([centre_xy[0], centre_xy[1], table.height + height / 2]),

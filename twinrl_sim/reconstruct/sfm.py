@@ -1,9 +1,15 @@
 """Structure from motion with pycolmap: SIFT features, sequential matching (the frames
 come from one walk, so neighbours in time overlap) and incremental mapping. One camera
-model is shared by all frames (one phone, fixed zoom)."""
+model is shared by all frames (one phone, fixed zoom).
+
+Photos from the cell's fixed cameras join the same reconstruction: each gets a camera
+model of its own (its intrinsics are estimated), is matched against every frame of the
+walk and registered by the mapper like any frame, so its pose and focal length come out
+in the walk's frame."""
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,26 +31,61 @@ class SparseModel:
     colors: np.ndarray  # (N, 3) uint8
     registered: int
     frames: int
+    fixed_images: dict[str, str]  # camera name -> image name in the reconstruction
+
+    def fixed_image(self, camera: str) -> pycolmap.Image:
+        """The registered photo of fixed camera ``camera``."""
+        name = self.fixed_images[camera]
+        return next(i for i in self.reconstruction.images.values() if i.name == name)
 
 
-def run_sfm(image_dir: Path, work_dir: Path, *, seed: int = 0, overlap: int = 10) -> SparseModel:
-    """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``)."""
+def run_sfm(
+    image_dir: Path,
+    work_dir: Path,
+    *,
+    fixed_cameras: dict[str, Path] | None = None,
+    seed: int = 0,
+    overlap: int = 10,
+) -> SparseModel:
+    """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``), with
+    the photos of ``fixed_cameras`` (camera name -> image file) registered among them."""
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
     database.unlink(missing_ok=True)
-    frames = len([p for p in image_dir.iterdir() if p.is_file()])
+    frame_names = sorted(p.name for p in image_dir.iterdir() if p.is_file())
+    frames = len(frame_names)
     pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)  # progress goes to our own bar
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
-    pycolmap.extract_features(
-        database, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, extraction_options=extraction
-    )
+
+    def extract(names: list[str]) -> None:
+        # One call, one camera model: the walk's frames share one, each photo has its own.
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            extraction_options=extraction,
+        )
+
+    extract(frame_names)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
     pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
+    fixed_images = {}
+    for camera, photo in (fixed_cameras or {}).items():
+        name = f"camera_{camera}{Path(photo).suffix.lower()}"
+        shutil.copyfile(photo, image_dir / name)
+        fixed_images[camera] = name
+        extract([name])
+        pairs = work_dir / f"pairs_{camera}.txt"
+        pairs.write_text("".join(f"{name} {frame}\n" for frame in frame_names))
+        imported = pycolmap.ImportedPairingOptions()
+        imported.match_list_path = str(pairs)
+        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported)
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
     options.multiple_models = False
@@ -55,13 +96,21 @@ def run_sfm(image_dir: Path, work_dir: Path, *, seed: int = 0, overlap: int = 10
             "scene with slow, steady motion and plenty of overlap between views"
         )
     best = max(models.values(), key=lambda r: r.num_reg_images())
-    registered = best.num_reg_images()
+    registered_names = {i.name for i in best.images.values() if i.has_pose}
+    registered = len(registered_names - set(fixed_images.values()))
     if registered < max(MIN_REGISTERED, MIN_REGISTERED_FRACTION * frames):
         raise CaptureError(
             f"structure from motion registered only {registered} of {frames} frames (at "
             f"least {max(MIN_REGISTERED, round(MIN_REGISTERED_FRACTION * frames))} needed); "
             "move more slowly, keep the table in view and avoid plain, reflective surfaces"
         )
+    for camera, name in fixed_images.items():
+        if name not in registered_names:
+            raise CaptureError(
+                f"the photo of camera '{camera}' could not be placed in the reconstruction; "
+                "take it from the camera's mount with the table and the tag in view, and "
+                "film the walk-around so that it also passes that side of the table"
+            )
     points = np.array([p.xyz for p in best.points3D.values()])
     colors = np.array([p.color for p in best.points3D.values()], np.uint8)
-    return SparseModel(best, points, colors, registered, frames)
+    return SparseModel(best, points, colors, registered, frames, fixed_images)

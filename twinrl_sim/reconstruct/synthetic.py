@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import av
+import cv2
 import mujoco
 import numpy as np
 
@@ -188,3 +189,33 @@ def render_walkthrough(
     finally:
         renderer.close()
     return Walkthrough(out, tag_pose, tag_size, np.array(positions), float(model.vis.global_.fovy))
+
+
+def render_fixed_view(
+    scene: SceneSpec,
+    camera: str,
+    out: str | Path,
+    *,
+    tag_xy: tuple[float, float] = (0.3, 0.3),
+    tag_yaw: float = 0.3,
+    tag_size: float = 0.08,
+    size: tuple[int, int] = (640, 480),
+    seed: int = 0,
+) -> Path:
+    """A photo (PNG) of the textured cell (arm left out, as in the walk) from
+    ``scene``'s camera ``camera``: the stand-in for a frame of a fixed real camera."""
+    model, _ = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed)
+    width, height = size
+    model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
+    model.vis.global_.offheight = max(model.vis.global_.offheight, height)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    option = mujoco.MjvOption()
+    option.geomgroup[HIDDEN_GROUP] = 0
+    with mujoco.Renderer(model, height, width) as renderer:
+        renderer.update_scene(data, camera, option)
+        image = renderer.render()
+    cv2.imwrite(str(out), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    return out

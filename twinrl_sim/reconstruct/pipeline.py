@@ -1,0 +1,404 @@
+"""``twinrl twin build``: from a walk-around clip to a scene spec the rest of twinrl uses.
+
+Stages: frames, structure from motion (with the fixed cameras' photos), metric alignment
+to the robot base (tag), table, objects (shapes, convex parts, names), cameras, then the
+scene spec (YAML + mesh assets), which is compiled in MuJoCo before anything is
+reported, and the report (Markdown + plots) and the Rerun recording.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+
+from twinrl_sim.build import compile_scene
+from twinrl_sim.reconstruct.align import TagAlignment, align_to_tag
+from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
+from twinrl_sim.reconstruct.objects import (
+    DEFAULT_DENSITY,
+    TwinObject,
+    fit_mesh,
+    heading,
+    match_task_objects,
+    read_mesh,
+    reconstruct_shape,
+)
+from twinrl_sim.reconstruct.report import plot_build, write_build_report, write_build_rrd
+from twinrl_sim.reconstruct.segment import TablePlane, find_objects, level_table
+from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
+from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
+from twinrl_sim.tasks import make_task
+
+STAGES = (
+    "frames",
+    "structure from motion",
+    "tag alignment",
+    "table",
+    "objects",
+    "cameras",
+    "scene",
+    "report",
+)
+CAMERA_DISTANCE = (0.15, 4.0)  # m: where a hand-held phone can be, seen from the tag
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    """What ``twinrl twin build`` is told besides the clip.
+
+    ``tag_pose`` is the tag's centre and orientation in the robot-base frame
+    (x y z qw qx qy qz), ``tag_size`` the edge of its black square (m).
+    """
+
+    tag_size: float
+    tag_pose: tuple[float, ...]
+    tag_id: int | None = None
+    task: str | None = None
+    object_meshes: dict[str, Path] = field(default_factory=dict)
+    camera_images: dict[str, Path] = field(default_factory=dict)
+    densities: dict[str, float] = field(default_factory=dict)
+    frames: int = 150
+    name: str | None = None
+    keep_work: bool = False
+    seed: int = 0
+
+
+@dataclass
+class TwinBuild:
+    """What was built, with everything the report shows."""
+
+    scene_path: Path
+    scene: SceneSpec
+    selection: FrameSelection
+    model: SparseModel
+    alignment: TagAlignment
+    table: TablePlane
+    objects: list[TwinObject]
+    cameras: dict[str, CameraSpec]  # cameras placed from photos
+    levelled: np.ndarray  # (N, 3) the cloud in the base frame
+    camera_path: np.ndarray  # (F, 3) the walk's camera centres, base frame
+    seconds: dict[str, float]
+    size_ratio: float | None = None  # reconstructed / task object size (median)
+
+
+def check_settings(settings: BuildSettings, out: Path) -> None:
+    """Refuse bad arguments before any work is done (one line each)."""
+    if not 0.005 <= settings.tag_size <= 1.0:
+        raise ValueError(
+            f"--tag-size {settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"
+        )
+    if len(settings.tag_pose) != 7:
+        raise ValueError(
+            f"--tag-pose needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
+        )
+    if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
+        raise ValueError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
+    if out.exists() and any(out.iterdir()):
+        raise ValueError(f"{out} exists and is not empty; choose another --out")
+    for what, files in (
+        ("--object-mesh", settings.object_meshes),
+        ("--camera-image", settings.camera_images),
+    ):
+        for name, path in files.items():
+            if not Path(path).is_file():
+                raise ValueError(f"{what} {name}={path}: no such file")
+    for name, density in settings.densities.items():
+        if not 10 <= density <= 25000:
+            raise ValueError(f"--density {name}={density:g} is not a density in kg/m^3")
+    task_scene = make_task(settings.task).scene if settings.task is not None else None
+    for camera in _base_cameras(task_scene):
+        if camera.name in settings.camera_images and camera.mount != "world":
+            raise ValueError(
+                f"--camera-image {camera.name}: that camera is on the {camera.mount}; only "
+                "fixed cameras can be placed from a photo"
+            )
+    if task_scene is not None:
+        for name in settings.object_meshes:
+            if name not in task_scene.object_names:
+                raise ValueError(
+                    f"--object-mesh {name}: task '{settings.task}' has no object '{name}' "
+                    f"(has: {', '.join(task_scene.object_names)})"
+                )
+
+
+def _base_cameras(task_scene: SceneSpec | None) -> list[CameraSpec]:
+    return list(task_scene.cameras if task_scene else SceneSpec(name="cell").cameras)
+
+
+def build_twin(
+    source: str | Path,
+    out: str | Path,
+    settings: BuildSettings,
+    on_stage: Callable[[str], None] | None = None,
+) -> TwinBuild:
+    """Reconstruct the cell filmed in ``source`` (video or image folder) into ``out``."""
+    source, out = Path(source), Path(out)
+    check_settings(settings, out)
+    task_scene = make_task(settings.task).scene if settings.task else None
+    work = out / "work"
+    seconds: dict[str, float] = {}
+    running: list = [None, time.perf_counter()]  # the stage under way and its start
+
+    def stage(name: str | None) -> None:
+        now = time.perf_counter()
+        if running[0] is not None:
+            seconds[running[0]] = now - running[1]
+        running[:] = [name, now]
+        if name is not None and on_stage is not None:
+            on_stage(name)
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        stage("frames")
+        selection = select_frames(source, work / "frames", target=settings.frames)
+        stage("structure from motion")
+        model = run_sfm(
+            work / "frames",
+            work / "sfm",
+            fixed_cameras=settings.camera_images,
+            seed=settings.seed,
+        )
+        stage("tag alignment")
+        tag_pose = np.asarray(settings.tag_pose, float)
+        alignment = align_to_tag(
+            model, work / "frames", tag_pose, settings.tag_size, settings.tag_id
+        )
+        walk = [
+            image
+            for image in model.reconstruction.images.values()
+            if image.has_pose and image.name not in model.fixed_images.values()
+        ]
+        walk.sort(key=lambda image: image.name)
+        path = alignment.to_base.apply(np.array([i.projection_center() for i in walk]))
+        _check_scale(path, tag_pose[:3], settings.tag_size)
+        stage("table")
+        table, levelling, levelled = level_table(
+            alignment.to_base.apply(model.points), model.colors, tag_pose[:3], settings.seed
+        )
+        camera_path = (path - tag_pose[:3]) @ levelling.T + tag_pose[:3]
+        stage("objects")
+        clusters = find_objects(levelled, model.colors, table)
+        objects, ratio = _objects(clusters, table, task_scene, settings)
+        stage("cameras")
+        cameras = {
+            name: _placed_camera(name, model, alignment, levelling, tag_pose[:3], table)
+            for name in settings.camera_images
+        }
+        stage("scene")
+        scene = _scene_spec(settings, source, table, objects, cameras, task_scene, model, alignment)
+        scene_path = _write_scene(scene, objects, out)
+        built = TwinBuild(
+            scene_path=scene_path,
+            scene=load_spec(scene_path),
+            selection=selection,
+            model=model,
+            alignment=alignment,
+            table=table,
+            objects=objects,
+            cameras=cameras,
+            levelled=levelled,
+            camera_path=camera_path,
+            seconds=seconds,
+            size_ratio=ratio,
+        )
+        compile_scene(built.scene)  # a SpecError here names what does not compile
+        stage("report")
+        write_build_rrd(built, out / "reconstruction.rrd")
+        plots = plot_build(built, out)
+        stage(None)
+        write_build_report(built, out, plots)
+    except BaseException:  # nothing half-built is left behind
+        for part in [out] if created else list(out.iterdir()):
+            if part.is_dir():
+                shutil.rmtree(part, ignore_errors=True)
+            else:
+                part.unlink()
+        raise
+    if not settings.keep_work:
+        shutil.rmtree(work, ignore_errors=True)
+    return built
+
+
+def _check_scale(camera_path: np.ndarray, tag: np.ndarray, tag_size: float) -> None:
+    """A wrong --tag-size scales the whole cell: the phone ends up impossibly near or far."""
+    distance = float(np.median(np.linalg.norm(camera_path - tag, axis=1)))
+    low, high = CAMERA_DISTANCE
+    if not low <= distance <= high:
+        raise CaptureError(
+            f"with --tag-size {tag_size:g} m the phone was {distance:.2f} m from the tag, "
+            f"outside {low:g}-{high:g} m; --tag-size must be the edge of the tag's black "
+            "square in metres"
+        )
+
+
+def _objects(
+    clusters: list,
+    table: TablePlane,
+    task_scene: SceneSpec | None,
+    settings: BuildSettings,
+) -> tuple[list[TwinObject], float | None]:
+    if not clusters:
+        raise CaptureError(
+            "no objects stand out on the table; film them from closer and from several "
+            "sides, or on a table of a different colour"
+        )
+    ratio = None
+    if task_scene is not None:
+        names, ratio = match_task_objects(clusters, task_scene)
+    else:
+        names = {}
+    taken = set(task_scene.object_names) if task_scene else set()
+    spare = (f"object_{k}" for k in range(1, 2 * len(clusters) + 1))
+    objects = []
+    for index, cluster in enumerate(clusters):
+        if index in names:
+            name, role = names[index], task_scene.object(names[index]).role
+        else:  # not one of the task's objects: an obstacle it must live with
+            name = next(n for n in spare if n not in taken)
+            role = "fixture" if task_scene is not None else "manipulated"
+        if name in settings.object_meshes:
+            mesh_file = Path(settings.object_meshes[name])
+            position, yaw, shape, rms = fit_mesh(
+                read_mesh(mesh_file), cluster, table.height, settings.seed
+            )
+            source, fit_rms = str(mesh_file), rms
+        else:
+            yaw = heading(cluster)
+            shape = reconstruct_shape(cluster, yaw, table.height, settings.seed)
+            position, source, fit_rms = cluster.center[:2], "reconstructed", None
+        density = settings.densities.get(name, DEFAULT_DENSITY)
+        objects.append(
+            TwinObject(
+                name=name,
+                role=role,
+                position=np.asarray(position, float),
+                yaw=yaw,
+                shape=shape,
+                mass=density * shape.volume,
+                color=cluster.color,
+                cluster=cluster,
+                source=source,
+                fit_rms=fit_rms,
+            )
+        )
+    unmatched = set(settings.object_meshes) - {o.name for o in objects}
+    if unmatched:
+        raise CaptureError(
+            f"--object-mesh names {', '.join(sorted(unmatched))}, which no object on the table "
+            "became; with --task, name the task's objects"
+        )
+    return objects, ratio
+
+
+def _placed_camera(
+    name: str,
+    model: SparseModel,
+    alignment: TagAlignment,
+    levelling: np.ndarray,
+    pivot: np.ndarray,
+    table: TablePlane,
+) -> CameraSpec:
+    """A world camera at the registered pose and focal length of camera ``name``'s photo."""
+    image = model.fixed_image(name)
+    camera = model.reconstruction.cameras[image.camera_id]
+    to_base = alignment.to_base
+    centre = to_base.apply(image.projection_center()[None])[0]
+    centre = (centre - pivot) @ levelling.T + pivot
+    rotation = image.cam_from_world().rotation.matrix()  # rows: camera x, y, z in SfM frame
+    forward = rotation[2] @ to_base.rotation.T @ levelling.T
+    up = -rotation[1] @ to_base.rotation.T @ levelling.T
+    # Look at where the optical axis meets the table (1 m ahead if it never does).
+    reach = (table.height - centre[2]) / forward[2] if forward[2] < -1e-3 else 1.0
+    fovy = float(np.degrees(2 * np.arctan(camera.height / (2 * camera.focal_length_y))))
+    return CameraSpec(
+        name=name,
+        pos=tuple(float(v) for v in centre),
+        lookat=tuple(float(v) for v in centre + forward * min(reach, 5.0)),
+        up=tuple(float(v) for v in up),
+        fovy=fovy,
+        width=int(camera.width),
+        height=int(camera.height),
+    )
+
+
+def _scene_spec(
+    settings: BuildSettings,
+    source: Path,
+    table: TablePlane,
+    objects: list[TwinObject],
+    cameras: dict[str, CameraSpec],
+    task_scene: SceneSpec | None,
+    model: SparseModel,
+    alignment: TagAlignment,
+) -> SceneSpec:
+    base = task_scene.model_dump(mode="python") if task_scene else {"name": "cell"}
+    base_cameras = _base_cameras(task_scene)
+    merged = [cameras.get(c.name, c) for c in base_cameras]
+    merged += [c for n, c in cameras.items() if n not in {m.name for m in merged}]
+    frictions = {o.name: o.friction for o in task_scene.objects} if task_scene else {}
+    specs = []
+    for obj in objects:
+        rgba = (*(float(c) for c in obj.color), 1.0)
+        geoms = [
+            GeomSpec(type="mesh", file=Path(f"meshes/{obj.name}_part{k}.obj"))
+            for k in range(len(obj.shape.parts))
+        ]
+        geoms.append(GeomSpec(type="mesh", file=Path(f"meshes/{obj.name}.obj"), contact=False))
+        specs.append(
+            ObjectSpec(
+                name=obj.name,
+                role=obj.role,
+                pos=(float(obj.position[0]), float(obj.position[1]), obj.shape.half_height),
+                yaw=float(obj.yaw),
+                mass=float(obj.mass) if obj.role == "manipulated" else None,
+                friction=frictions.get(obj.name, 1.0),
+                rgba=rgba,
+                geoms=geoms,
+            )
+        )
+    data = {
+        **base,
+        "name": settings.name or (f"{task_scene.name}_twin" if task_scene else "cell"),
+        "table": {
+            **(task_scene.table.model_dump(mode="python") if task_scene else {}),
+            "size": tuple(float(v) for v in table.size),
+            "center": tuple(float(v) for v in table.center),
+            "yaw": float(table.yaw),
+            "top_height": float(table.height),
+            "rgba": (*(float(c) for c in table.color), 1.0),
+        },
+        "objects": [o.model_dump(mode="python") for o in specs],
+        "cameras": [c.model_dump(mode="python") for c in merged],
+        "provenance": {
+            "built_from": str(source),
+            "frames_registered": f"{model.registered}/{model.frames}",
+            "tag_size_m": settings.tag_size,
+            "tag_pose": [float(v) for v in settings.tag_pose],
+            "tag_residual_mm": round(1000 * alignment.residual_m, 2),
+        },
+    }
+    return parse_spec(data, source="built scene")
+
+
+def _write_scene(scene: SceneSpec, objects: list[TwinObject], out: Path) -> Path:
+    meshes = out / "meshes"
+    meshes.mkdir(parents=True, exist_ok=True)
+    for obj in objects:
+        surface = o3d.geometry.TriangleMesh(obj.shape.surface)
+        surface.triangle_normals = o3d.utility.Vector3dVector()  # OBJ keeps vertex normals only
+        o3d.io.write_triangle_mesh(str(meshes / f"{obj.name}.obj"), surface)
+        for k, (vertices, triangles) in enumerate(obj.shape.parts):
+            part = o3d.geometry.TriangleMesh(
+                o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles)
+            )
+            o3d.io.write_triangle_mesh(str(meshes / f"{obj.name}_part{k}.obj"), part)
+    path = out / "scene.yaml"
+    path.write_text(scene.to_yaml())
+    return path
