@@ -37,8 +37,8 @@ DEFAULT_DENSITY = 700.0  # kg/m^3: fruit, wood, filled plastic; override per obj
 ALPHA = 0.03  # m: alpha-shape radius, about the spacing of sparse SfM points
 CONVEXITY = 0.05  # CoACD concavity threshold
 MAX_PARTS = 8
-ROUND_ASPECT = 1.15  # footprints rounder than this have no heading
-SCALE_MISMATCH = 1.4  # all task objects larger/smaller than this: the tag size is wrong
+ROUND_ASPECT = 1.25  # footprints rounder than this have no heading
+SCALE_MISMATCH = 1.3  # objects this much larger/smaller than the task's: a wrong tag size
 ICP_DISTANCE = 0.01  # m: correspondences farther apart are outliers
 
 
@@ -183,8 +183,9 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def template_sizes(scene: SceneSpec) -> dict[str, np.ndarray]:
-    """(long, short, height) of each object of ``scene`` from its compiled geometry."""
+def template_sizes(scene: SceneSpec) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Footprint centre (xy, base frame) and (long, short, height) of each object of
+    ``scene``, from the bounding boxes of its collision geoms in its own frame."""
     compiled = compile_scene(scene)
     model = compiled.model
     data = mujoco.MjData(model)
@@ -203,8 +204,10 @@ def template_sizes(scene: SceneSpec) -> dict[str, np.ndarray]:
             corners.append(local @ rotation.T + data.geom_xpos[g])
         points = np.concatenate(corners)
         body_rotation = data.xmat[body].reshape(3, 3)
-        extent = np.ptp((points - data.xpos[body]) @ body_rotation, axis=0)
-        sizes[obj.name] = np.array([*sorted(extent[:2], reverse=True), extent[2]])
+        local = (points - data.xpos[body]) @ body_rotation
+        extent = np.ptp(local, axis=0)
+        centre = data.xpos[body] + body_rotation @ ((local.min(0) + local.max(0)) / 2)
+        sizes[obj.name] = (centre[:2], np.array([*sorted(extent[:2], reverse=True), extent[2]]))
     return sizes
 
 
@@ -215,10 +218,10 @@ def match_task_objects(
     median size ratio reconstructed/expected over the matched objects.
 
     Raises :class:`CaptureError` when the table holds fewer objects than the task needs,
-    or when every object comes out too large or too small by the same factor (a wrong
-    ``--tag-size``).
+    or when the objects come out too large or too small by the same factor (a wrong
+    ``--tag-size``; a sparse reconstruction measures them 5-15 % small).
     """
-    templates = template_sizes(task_scene)
+    templates = {name: size for name, (_, size) in template_sizes(task_scene).items()}
     names = list(templates)
     if len(clusters) < len(names):
         raise CaptureError(
@@ -239,9 +242,10 @@ def match_task_objects(
         for i, j in zip(rows, cols, strict=True)
     ]
     ratio = float(np.median(ratios))
-    if all(r > SCALE_MISMATCH for r in ratios) or all(r < 1 / SCALE_MISMATCH for r in ratios):
+    if not 1 / SCALE_MISMATCH < ratio < SCALE_MISMATCH:
         raise CaptureError(
-            f"every object of the task comes out {ratio:.2f}x its expected size; is --tag-size "
-            "the edge of the tag's black square in metres? Measure the printed tag again"
+            f"the objects come out {ratio:.2f}x the size of the task's (median): is "
+            "--tag-size the edge of the tag's black square in metres, without the white "
+            "margin? Measure the printed tag again"
         )
     return {int(i): names[j] for i, j in zip(rows, cols, strict=True)}, ratio

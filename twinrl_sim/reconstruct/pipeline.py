@@ -125,6 +125,8 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
                     f"--object-mesh {name}: task '{settings.task}' has no object '{name}' "
                     f"(has: {', '.join(task_scene.object_names)})"
                 )
+    for path in settings.object_meshes.values():
+        read_mesh(Path(path))  # a mesh that cannot be used is refused before the work
 
 
 def _base_cameras(task_scene: SceneSpec | None) -> list[CameraSpec]:

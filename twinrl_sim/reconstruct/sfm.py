@@ -9,6 +9,7 @@ in the walk's frame."""
 
 from __future__ import annotations
 
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -58,6 +59,7 @@ def run_sfm(
     pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)  # progress goes to our own bar
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
+    extraction.num_threads = os.cpu_count() or 1  # said, so COLMAP does not warn about it
 
     def extract(names: list[str]) -> None:
         # One call, one camera model: the walk's frames share one, each photo has its own.
