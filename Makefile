@@ -65,6 +65,7 @@ bench: setup
 	$(BIN)/python bench/bench_data.py --episodes 4 --steps 100
 	$(BIN)/python bench/bench_expand.py --task insert_hexagon --demos 90
 	$(BIN)/python bench/bench_gap.py --episodes 20 --duration 10
+	$(BIN)/python bench/bench_reconstruct.py --seconds 60
 	@rm -rf out/bench_stage1   # the benchmark's own output from a previous run
 	$(BIN)/twinrl bench stage1 --out out/bench_stage1 --policies state
 

@@ -14,7 +14,7 @@ from tests.test_cli import twinrl
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_tag, select_frames
-from twinrl_sim.reconstruct.objects import match_task_objects
+from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
 from twinrl_sim.reconstruct.synthetic import (
     WalkthroughSettings,
@@ -79,11 +79,11 @@ def test_objects_are_found_named_and_measured(built):
     plate, banana = objects["plate"], objects["banana"]
     assert np.linalg.norm(plate.position - [0.45, 0.0]) < 0.01
     assert abs(plate.cluster.size[:2].mean() - 0.17) < 0.1 * 0.17  # 85 mm radius
-    low, high = _footprint("banana")
+    centre, extent = template_sizes(SCENE)["banana"]  # long, short, height
     # Sparse SIFT points thin out at the banana's ends: 1.1-1.6 cm today, 1 cm is the goal.
-    assert np.linalg.norm(banana.position - (low[:2] + high[:2]) / 2) < 0.02
-    assert abs(banana.cluster.size[2] - high[2]) < 0.1 * high[2]
-    assert abs(banana.cluster.size[0] - (high[0] - low[0])) < 0.15 * (high[0] - low[0])
+    assert np.linalg.norm(banana.position - centre) < 0.02
+    assert abs(banana.cluster.size[2] - extent[2]) < 0.1 * extent[2]
+    assert abs(banana.cluster.size[0] - extent[0]) < 0.15 * extent[0]
     assert abs(np.degrees(banana.yaw)) < 8.0  # 3-6 deg on this short clip
     assert plate.yaw == 0.0  # round: no heading
     assert banana.color[0] > 0.5 and banana.color[2] < 0.3  # yellow
@@ -134,10 +134,10 @@ def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
     assert "banana" in result.stdout and "scene.yaml" in result.stdout
     scene = load_spec(tmp_path / "cell" / "scene.yaml")
     banana = scene.object("banana")
-    low, high = _footprint("banana")
-    assert np.linalg.norm(np.subtract(banana.pos[:2], (low[:2] + high[:2]) / 2)) < 0.01
+    centre, extent = template_sizes(SCENE)["banana"]
+    assert np.linalg.norm(np.subtract(banana.pos[:2], centre)) < 0.01
     assert abs(np.degrees(np.angle(np.exp(1j * banana.yaw)))) < 5.0  # bent: no symmetry
-    assert banana.pos[2] == pytest.approx(high[2] / 2, abs=1e-3)  # the mesh's own size
+    assert banana.pos[2] == pytest.approx(extent[2] / 2, abs=1e-3)  # the mesh's own size
     assert not (tmp_path / "cell" / "work").exists()  # intermediate files are removed
     report = (tmp_path / "cell" / "report.md").read_text()
     assert "banana.stl (ICP" in report
@@ -196,24 +196,6 @@ def test_cameras_and_meshes_must_fit_the_task(tmp_path):
     busy = twinrl("twin", "build", str(tmp_path), *out, *args)
     assert busy.returncode == 2 and "not empty" in busy.stderr
     assert (tmp_path / "o" / "keep.txt").read_text() == "mine"
-
-
-def _footprint(name):
-    """Axis-aligned bounds (low, high) of the surface of object ``name`` as rendered."""
-    compiled = compile_scene(SCENE)
-    model, data = compiled.model, mujoco.MjData(compiled.model)
-    mujoco.mj_forward(model, data)
-    directions = np.random.default_rng(0).normal(size=(400, 3))
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    points = []
-    for g in np.flatnonzero(model.geom_bodyid == model.body(name).id):
-        radius, half = model.geom_size[g][:2]
-        axis = data.geom_xmat[g].reshape(3, 3)[:, 2]
-        capsule = model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE
-        for t in np.linspace(-half, half, 20) if capsule else [0.0]:
-            points.append(data.geom_xpos[g] + axis * t + radius * directions)
-    points = np.concatenate(points)
-    return points.min(0), points.max(0)
 
 
 def _banana_mesh():

@@ -1,12 +1,16 @@
-"""The twin from a phone video: frames, structure from motion (pycolmap), metric scale
-and robot-base frame from an AprilTag, table plane and objects (open3d)."""
+"""The twin from a phone video (``twinrl twin build``): frames, structure from motion
+(pycolmap), metric scale and robot-base frame from an AprilTag, table plane and objects
+(open3d, CoACD), fixed cameras from photos, and the scene spec that comes out."""
 
 from twinrl_sim.reconstruct.align import Similarity, TagAlignment, align_to_tag
 from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
+from twinrl_sim.reconstruct.objects import TwinObject
+from twinrl_sim.reconstruct.pipeline import BuildSettings, TwinBuild, build_twin
 from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane, find_objects, level_table
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 
 __all__ = [
+    "BuildSettings",
     "CaptureError",
     "FrameSelection",
     "ObjectCluster",
@@ -14,7 +18,10 @@ __all__ = [
     "SparseModel",
     "TablePlane",
     "TagAlignment",
+    "TwinBuild",
+    "TwinObject",
     "align_to_tag",
+    "build_twin",
     "find_objects",
     "level_table",
     "run_sfm",
