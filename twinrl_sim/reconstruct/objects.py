@@ -77,9 +77,8 @@ def heading(cluster: ObjectCluster) -> float:
 def _to_object_frame(
     points: np.ndarray, xy: np.ndarray, yaw: float, table_height: float
 ) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    shifted = points - [xy[0], xy[1], table_height]
-    return shifted @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    """Points in the frame at ``xy`` on the table turned by ``yaw``."""
+    return (points - [xy[0], xy[1], table_height]) @ _yaw_matrix(yaw)
 
 
 def decompose(
