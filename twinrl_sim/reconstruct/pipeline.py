@@ -125,8 +125,6 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
                     f"--object-mesh {name}: task '{settings.task}' has no object '{name}' "
                     f"(has: {', '.join(task_scene.object_names)})"
                 )
-    for path in settings.object_meshes.values():
-        read_mesh(Path(path))  # a mesh that cannot be used is refused before the work
 
 
 def _base_cameras(task_scene: SceneSpec | None) -> list[CameraSpec]:
@@ -143,6 +141,8 @@ def build_twin(
     source, out = Path(source), Path(out)
     check_settings(settings, out)
     task_scene = make_task(settings.task).scene if settings.task else None
+    # Read now: a mesh that cannot be used is refused before the work.
+    meshes = {name: read_mesh(Path(path)) for name, path in settings.object_meshes.items()}
     work = out / "work"
     seconds: dict[str, float] = {}
     running: list = [None, time.perf_counter()]  # the stage under way and its start
@@ -187,7 +187,7 @@ def build_twin(
         camera_path = (path - tag_pose[:3]) @ levelling.T + tag_pose[:3]
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)
-        objects, ratio = _objects(clusters, table, task_scene, settings)
+        objects, ratio = _objects(clusters, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
             name: _placed_camera(name, model, alignment, levelling, tag_pose[:3], table)
@@ -210,9 +210,9 @@ def build_twin(
             seconds=seconds,
             size_ratio=ratio,
         )
-        compile_scene(built.scene)  # a SpecError here names what does not compile
+        compiled = compile_scene(built.scene)  # a SpecError here names what does not compile
         stage("report")
-        write_build_rrd(built, out / "reconstruction.rrd")
+        write_build_rrd(built, compiled, out / "reconstruction.rrd")
         plots = plot_build(built, out)
         stage(None)
         write_build_report(built, out, plots)
@@ -244,6 +244,7 @@ def _objects(
     clusters: list,
     table: TablePlane,
     task_scene: SceneSpec | None,
+    meshes: dict[str, o3d.geometry.TriangleMesh],
     settings: BuildSettings,
 ) -> tuple[list[TwinObject], float | None]:
     if not clusters:
@@ -265,12 +266,9 @@ def _objects(
         else:  # not one of the task's objects: an obstacle it must live with
             name = next(n for n in spare if n not in taken)
             role = "fixture" if task_scene is not None else "manipulated"
-        if name in settings.object_meshes:
-            mesh_file = Path(settings.object_meshes[name])
-            position, yaw, shape, rms = fit_mesh(
-                read_mesh(mesh_file), cluster, table.height, settings.seed
-            )
-            source, fit_rms = str(mesh_file), rms
+        if name in meshes:
+            position, yaw, shape, rms = fit_mesh(meshes[name], cluster, table.height, settings.seed)
+            source, fit_rms = str(settings.object_meshes[name]), rms
         else:
             yaw = heading(cluster)
             shape = reconstruct_shape(cluster, yaw, table.height, settings.seed)
@@ -290,7 +288,7 @@ def _objects(
                 fit_rms=fit_rms,
             )
         )
-    unmatched = set(settings.object_meshes) - {o.name for o in objects}
+    unmatched = set(meshes) - {o.name for o in objects}
     if unmatched:
         raise CaptureError(
             f"--object-mesh names {', '.join(sorted(unmatched))}, which no object on the table "

@@ -10,8 +10,9 @@ import mujoco
 import numpy as np
 import rerun as rr
 
-from twinrl_sim.build import compile_scene
+from twinrl_sim.build import CompiledScene
 from twinrl_sim.gap.report import _pyplot
+from twinrl_sim.reconstruct.segment import planar_axes
 
 if TYPE_CHECKING:
     from twinrl_sim.reconstruct.pipeline import TwinBuild
@@ -21,8 +22,7 @@ def _rectangle(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
     """(5, 2) closed outline of a rectangle turned by ``yaw``."""
     half = np.asarray(size) / 2
     corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]]) * half
-    c, s = np.cos(yaw), np.sin(yaw)
-    return corners @ np.array([[c, s], [-s, c]]) + center
+    return corners @ planar_axes(yaw) + center
 
 
 def plot_build(built: TwinBuild, out: Path) -> list[Path]:
@@ -150,7 +150,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
     return path
 
 
-def write_build_rrd(built: TwinBuild, path: Path) -> Path:
+def write_build_rrd(built: TwinBuild, compiled: CompiledScene, path: Path) -> Path:
     """Point cloud, camera path, tag, placed cameras and the compiled scene's geometry."""
     recording = rr.RecordingStream("twinrl", recording_id=f"twin-build-{built.scene.digest}")
     recording.save(str(path))
@@ -172,14 +172,13 @@ def write_build_rrd(built: TwinBuild, path: Path) -> Path:
         ),
         static=True,
     )
-    _log_scene(recording, built)
+    _log_scene(recording, compiled)
     recording.flush()
     return path
 
 
-def _log_scene(recording: rr.RecordingStream, built: TwinBuild) -> None:
+def _log_scene(recording: rr.RecordingStream, compiled: CompiledScene) -> None:
     """Every visible geom of the compiled scene at its initial pose."""
-    compiled = compile_scene(built.scene)
     model = compiled.model
     data = mujoco.MjData(model)
     data.qpos[[model.joint(j).qposadr[0] for j in compiled.layout.arm_joints]] = (

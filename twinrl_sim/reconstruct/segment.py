@@ -26,6 +26,13 @@ MIN_CLUSTER_POINTS = 25
 TOP_PERCENTILE = 98
 
 
+def planar_axes(yaw: float) -> np.ndarray:
+    """(2, 2) rows: the x and y axes of a frame turned by ``yaw`` (``xy @ axes.T`` gives
+    coordinates in that frame, ``local @ axes`` turns them back)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, s], [-s, c]])
+
+
 def footprint_yaw(xy: np.ndarray) -> float:
     """Heading of the long axis of the convex hull of ``xy`` (rad, in (-pi/2, pi/2]).
 
@@ -90,7 +97,7 @@ def level_table(
     height = float(np.median(top[:, 2]))
     (_, _, angle) = cv2.minAreaRect((top[:, :2] * 1000).astype(np.float32))
     yaw = float((np.radians(angle) + np.pi / 4) % (np.pi / 2) - np.pi / 4)
-    axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+    axes = planar_axes(yaw)
     low, high = np.percentile(top[:, :2] @ axes.T, [1, 99], axis=0)
     table = TablePlane(
         height=height,
@@ -109,8 +116,7 @@ def find_objects(
 ) -> list[ObjectCluster]:
     """Clusters of points standing on the table, largest first."""
     rise = points[:, 2] - table.height
-    c, s = np.cos(table.yaw), np.sin(table.yaw)
-    along_table = (points[:, :2] - table.center) @ np.array([[c, -s], [s, c]])
+    along_table = (points[:, :2] - table.center) @ planar_axes(table.yaw).T
     on_table = np.all(np.abs(along_table) <= table.size / 2 + 0.02, axis=1)
     above = (rise > ABOVE_TABLE) & (rise < max_height) & on_table
     chosen, chosen_colors = points[above], colors[above]
@@ -127,7 +133,7 @@ def find_objects(
         _, keep = cluster.remove_statistical_outlier(nb_neighbors=8, std_ratio=2.0)
         pts = chosen[member][keep]
         yaw = footprint_yaw(pts[:, :2])
-        axes = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])
+        axes = planar_axes(yaw)
         local = pts[:, :2] @ axes.T
         low, high = local.min(0), local.max(0)
         centre_xy = ((low + high) / 2) @ axes

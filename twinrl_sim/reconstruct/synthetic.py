@@ -81,11 +81,20 @@ def _add_texture(spec: mujoco.MjSpec, name: str, image: np.ndarray, rgba, repeat
 
 
 def walkthrough_model(
-    scene: SceneSpec, tag_xy: tuple[float, float], tag_yaw: float, tag_size: float, seed: int
+    scene: SceneSpec,
+    tag_xy: tuple[float, float],
+    tag_yaw: float,
+    tag_size: float,
+    seed: int,
+    image_size: tuple[int, int],
 ) -> tuple[mujoco.MjModel, np.ndarray]:
-    """The textured cell with the tag, and the tag's pose (x y z qw qx qy qz)."""
+    """The textured cell with the tag, able to render ``image_size`` (width, height)
+    images, and the tag's pose (x y z qw qx qy qz)."""
     rng = np.random.default_rng(seed)
     spec, _ = build_mjspec(scene, apply_spec_effects=False)
+    width, height = image_size
+    spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, width)
+    spec.visual.global_.offheight = max(spec.visual.global_.offheight, height)
     table = spec.geom("table_top")
     table.material = _add_texture(
         spec, "walk_table", _noise_texture(rng, 1024, 0.35, 1.0), scene.table.rgba
@@ -150,9 +159,9 @@ def render_walkthrough(
 ) -> Walkthrough:
     """Render the hand-held walk around ``scene``'s table to the mp4 ``out``."""
     rng = np.random.default_rng(seed)
-    model, tag_pose = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed)
-    model.vis.global_.offwidth = max(model.vis.global_.offwidth, settings.width)
-    model.vis.global_.offheight = max(model.vis.global_.offheight, settings.height)
+    model, tag_pose = walkthrough_model(
+        scene, tag_xy, tag_yaw, tag_size, seed, (settings.width, settings.height)
+    )
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     renderer = mujoco.Renderer(model, settings.height, settings.width)
@@ -204,10 +213,8 @@ def render_fixed_view(
 ) -> Path:
     """A photo (PNG) of the textured cell (arm left out, as in the walk) from
     ``scene``'s camera ``camera``: the stand-in for a frame of a fixed real camera."""
-    model, _ = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed)
+    model, _ = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed, size)
     width, height = size
-    model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
-    model.vis.global_.offheight = max(model.vis.global_.offheight, height)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     out = Path(out)
