@@ -469,6 +469,12 @@ def parse_numbers(text: str, option: str) -> tuple[float, ...]:
         raise ValueError(f"{option} '{text}' must be numbers separated by spaces") from None
 
 
+def _tag_id(text: str) -> int:
+    if not text.isdigit():
+        raise ValueError(f"--tag-point '{text}=...' must start with a tag id, e.g. 3=0.4,0.2,0")
+    return int(text)
+
+
 @twin_app.command("build")
 def build_command(
     source: Annotated[
@@ -478,17 +484,27 @@ def build_command(
         Path, typer.Option(help="Folder for scene.yaml, meshes/, report.md (+ PNGs), .rrd.")
     ],
     tag_size: Annotated[
-        float, typer.Option(help="Edge of the AprilTag 36h11's black square (m), e.g. 0.08.")
-    ],
+        float | None,
+        typer.Option(help="Edge of the AprilTag 36h11's black square (m), e.g. 0.08."),
+    ] = None,
     tag_pose: Annotated[
-        str,
+        str | None,
         typer.Option(
             help="The tag's centre and orientation in the robot-base frame: 'x y z qw qx qy "
-            "qz' (m; a tag lying flat, printed x along the base's x: 'x y z 1 0 0 0')."
+            "qz' (m; a tag lying flat, printed x along the base's x: 'x y z 1 0 0 0'). "
+            "Needs --tag-size."
         ),
-    ],
+    ] = None,
     tag_id: Annotated[
-        int | None, typer.Option(help="Use only the tag with this id (default: the one seen).")
+        int | None,
+        typer.Option(help="The tag --tag-pose measures (default: the only one seen)."),
+    ] = None,
+    tag_point: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="ID=x,y,z: the centre of tag ID in the robot-base frame (m), instead of "
+            "--tag-pose; 3 or more tags, not on one line. Repeatable."
+        ),
     ] = None,
     task: Annotated[
         str | None,
@@ -523,16 +539,20 @@ def build_command(
     seed: Annotated[int, typer.Option(help="Seeds SfM, RANSAC and the decomposition.")] = 0,
 ) -> None:
     """Reconstruct a cell from a walk-around video: frames, SfM (pycolmap), metric scale
-    and robot-base frame from an AprilTag, table plane, objects (meshes, CoACD parts,
-    mass), fixed cameras from photos; write a scene spec that every twinrl command takes
-    as --twin, with a report and a Rerun recording."""
+    and robot-base frame from AprilTags (one tag's pose, or 3+ tags' centres), table
+    plane, objects (meshes, CoACD parts, mass), fixed cameras from photos; write a scene
+    spec that every twinrl command takes as --twin, with a report and a Rerun recording."""
     # Imported here: open3d, pycolmap and CoACD take seconds to load.
     from twinrl_sim.reconstruct.pipeline import STAGES, BuildSettings, build_twin
 
     settings = BuildSettings(
         tag_size=tag_size,
-        tag_pose=parse_numbers(tag_pose, "--tag-pose"),
+        tag_pose=parse_numbers(tag_pose, "--tag-pose") if tag_pose is not None else None,
         tag_id=tag_id,
+        tag_points={
+            _tag_id(k): parse_numbers(v, "--tag-point")
+            for k, v in parse_assignments(tag_point, "--tag-point").items()
+        },
         task=task,
         object_meshes={
             k: Path(v) for k, v in parse_assignments(object_mesh, "--object-mesh").items()

@@ -1,6 +1,7 @@
-"""``twinrl twin build`` on a rendered walk-around clip: frames, SfM, tag alignment,
-table, objects, the front camera from a photo and the scene spec, against the scene
-that rendered them; and the clips and arguments it must refuse."""
+"""``twinrl twin build`` on a rendered walk-around clip: frames, SfM, alignment to the
+base (one tag's pose, or three tags' centres), table, objects, the front camera from a
+photo and the scene spec, against the scene that rendered them; and the clips and
+arguments it must refuse."""
 
 import dataclasses
 
@@ -13,10 +14,11 @@ import pytest
 from tests.test_cli import twinrl
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene, look_at_quat
-from twinrl_sim.reconstruct import CaptureError, align_to_tag, select_frames
+from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
 from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
 from twinrl_sim.reconstruct.synthetic import (
+    THREE_TAGS,
     WalkthroughSettings,
     render_fixed_view,
     render_walkthrough,
@@ -32,17 +34,27 @@ CLIP = WalkthroughSettings(seconds=6.0, fps=10.0)
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
     root = tmp_path_factory.mktemp("walk")
-    walk = render_walkthrough(SCENE, root / "walk.mp4", settings=CLIP, seed=0)
-    front = render_fixed_view(SCENE, "front", root / "front.png")
+    walk = render_walkthrough(SCENE, root / "walk.mp4", tags=THREE_TAGS, settings=CLIP, seed=0)
+    front = render_fixed_view(SCENE, "front", root / "front.png", tags=THREE_TAGS)
     return walk, front
+
+
+def _tag_pose_args(walk, size: float | None = None) -> list[str]:
+    pose = " ".join(map(str, walk.tag_poses[0]))
+    return ["--tag-size", str(size or walk.tags[0].size), "--tag-pose", pose, "--tag-id", "0"]
+
+
+def _centres(walk) -> dict[int, tuple[float, ...]]:
+    return {tag_id: tuple(pose[:3]) for tag_id, pose in walk.tag_poses.items()}
 
 
 @pytest.fixture(scope="module")
 def built(clip, tmp_path_factory):
     walk, front = clip
     settings = BuildSettings(
-        tag_size=walk.tag_size,
-        tag_pose=tuple(walk.tag_pose),
+        tag_size=walk.tags[0].size,
+        tag_pose=tuple(walk.tag_poses[0]),
+        tag_id=0,
         task="pick_place",
         camera_images={"front": front},
         frames=40,
@@ -125,9 +137,10 @@ def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
     walk, _ = clip
     mesh_file = tmp_path / "banana.stl"
     o3d.io.write_triangle_mesh(str(mesh_file), _banana_mesh())
+    # The base frame from three tags' centres this time (no tag size needed).
+    centres = [f"--tag-point={i}={','.join(map(str, xyz))}" for i, xyz in _centres(walk).items()]
     result = twinrl(
-        "twin", "build", str(walk.video), "--out", str(tmp_path / "cell"),
-        "--tag-size", str(walk.tag_size), "--tag-pose", " ".join(map(str, walk.tag_pose)),
+        "twin", "build", str(walk.video), "--out", str(tmp_path / "cell"), *centres,
         "--task", "pick_place", "--object-mesh", f"banana={mesh_file}", "--frames", "40",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
@@ -140,7 +153,10 @@ def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
     assert banana.pos[2] == pytest.approx(extent[2] / 2, abs=1e-3)  # the mesh's own size
     assert not (tmp_path / "cell" / "work").exists()  # intermediate files are removed
     report = (tmp_path / "cell" / "report.md").read_text()
-    assert "banana.stl (ICP" in report
+    assert (
+        "banana.stl (ICP" in report and "| alignment | tag centres (tag 0, tag 1, tag 2)" in report
+    )
+    assert abs(scene.table.top_height) < 0.005
 
 
 def test_a_wrong_tag_size_is_named_and_nothing_is_left(clip, built, tmp_path):
@@ -148,7 +164,7 @@ def test_a_wrong_tag_size_is_named_and_nothing_is_left(clip, built, tmp_path):
     # Centimetres given as metres' tenths: the phone would have been 10 m away.
     result = twinrl(
         "twin", "build", str(walk.video), "--out", str(tmp_path / "cell"),
-        "--tag-size", "0.8", "--tag-pose", " ".join(map(str, walk.tag_pose)), "--frames", "40",
+        *_tag_pose_args(walk, size=0.8), "--frames", "40",
     )  # fmt: skip
     assert result.returncode == 2
     assert "the phone was 10." in result.stderr and "--tag-size must be the edge" in result.stderr
@@ -161,23 +177,30 @@ def test_a_wrong_tag_size_is_named_and_nothing_is_left(clip, built, tmp_path):
     assert sorted(names.values()) == ["banana", "plate"] and 0.85 < ratio < 1.1
 
 
+TAG = ["--tag-size", "0.08", "--tag-pose", "0.3 0.3 0 1 0 0 0"]
+POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--tag-size", "8"], "not a tag edge in metres"),
-        (["--tag-pose", "0.3 0.3 0"], "needs 7 numbers"),
-        (["--camera-image", "wrist=x.png"], "no such file"),
-        (["--object-mesh", "apple=x.stl", "--task", "pick_place"], "no such file"),
-        (["--density", "banana"], "must look like NAME=VALUE"),
-        (["--task", "pick_plce"], "did you mean 'pick_place'"),
+        (["--tag-size", "8", *TAG[2:]], "not a tag edge in metres"),
+        ([*TAG[:2], "--tag-pose", "0.3 0.3 0"], "needs 7 numbers"),
+        (TAG[2:], "--tag-pose needs --tag-size"),
+        ([], "give --tag-size and --tag-pose of one tag, or --tag-point"),
+        ([*TAG, *POINTS, "--tag-point", "2=0.2,-0.4,0"], "not both"),
+        (POINTS, "for 2 tag(s); give the centres of 3 or more"),
+        ([*POINTS, "--tag-point", "2=1.1,0.5,0"], "lie (almost) on a line"),
+        ([*POINTS, "--tag-point", "2=0.2,-0.4"], "--tag-point 2 needs 3 numbers"),
+        ([*POINTS, "--tag-point", "two=0.2,-0.4,0"], "must start with a tag id"),
+        ([*TAG, "--camera-image", "wrist=x.png"], "no such file"),
+        ([*TAG, "--object-mesh", "apple=x.stl", "--task", "pick_place"], "no such file"),
+        ([*TAG, "--density", "banana"], "must look like NAME=VALUE"),
+        ([*TAG, "--task", "pick_plce"], "did you mean 'pick_place'"),
     ],
 )
 def test_bad_arguments_are_refused_before_any_work(tmp_path, args, message):
-    defaults = {"--tag-size": "0.08", "--tag-pose": "0.3 0.3 0 1 0 0 0"}
-    for flag in args[::2]:
-        defaults.pop(flag, None)
-    extra = [item for pair in defaults.items() for item in pair]
-    result = twinrl("twin", "build", str(tmp_path), "--out", str(tmp_path / "o"), *extra, *args)
+    result = twinrl("twin", "build", str(tmp_path), "--out", str(tmp_path / "o"), *args)
     assert result.returncode == 2 and message in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
 
@@ -236,11 +259,47 @@ def test_a_blurry_clip_is_refused(tmp_path, built):
         select_frames(blurred, tmp_path / "frames")
 
 
+def test_three_tag_centres_tie_the_cell_to_the_base_like_one_tag_pose(built, clip):
+    walk, _ = clip
+    frames = built.selection.paths[0].parent
+    alignment = align_to_points(built.model, frames, _centres(walk))
+    assert alignment.labels == ("tag 0", "tag 1", "tag 2") and alignment.residual_m < 0.003
+    assert alignment.to_base.scale == pytest.approx(built.alignment.to_base.scale, rel=0.01)
+    # The recovered camera path, before levelling, lands where the renderer put it.
+    walk_images = sorted(
+        (
+            image
+            for image in built.model.reconstruction.images.values()
+            if image.name not in built.model.fixed_images.values()
+        ),
+        key=lambda image: image.name,
+    )
+    path = alignment.to_base.apply(np.array([i.projection_center() for i in walk_images]))
+    truth = walk.camera_positions[built.selection.source_indices]
+    assert np.median(np.linalg.norm(path - truth, axis=1)) < 0.02
+    # The outlines of the tags come out at their true size (6-8 cm), though none was given.
+    edges = [np.linalg.norm(o[1] - o[0]) for o in alignment.tag_outlines]
+    assert edges == pytest.approx([t.size for t in THREE_TAGS], rel=0.05)
+
+
+def test_tag_centres_that_do_not_fit_are_named(built, clip):
+    walk, _ = clip
+    frames = built.selection.paths[0].parent
+    moved = _centres(walk) | {2: (0.25, -0.35, 0.0)}  # 10 cm off: a mis-typed coordinate
+    with pytest.raises(CaptureError, match="do not fit one rigid frame.*re-measure the centres"):
+        align_to_points(built.model, frames, moved)
+    missing = _centres(walk) | {5: (0.6, -0.1, 0.0)}
+    with pytest.raises(CaptureError, match="id 5 was found in fewer than 3.*tags seen: 0, 1, 2"):
+        align_to_points(built.model, frames, missing)
+    with pytest.raises(CaptureError, match=r"several tags are in view \(0, 1, 2\).*--tag-id"):
+        align_to_tag(built.model, frames, walk.tag_poses[0], 0.08)
+
+
 def test_a_missing_tag_or_another_family_is_named(built, clip):
     walk, _ = clip
     frames = built.selection.paths[0].parent
-    with pytest.raises(CaptureError, match="found in 0 registered frames.*AprilTag 36h11"):
-        align_to_tag(built.model, frames, walk.tag_pose, walk.tag_size, tag_id=7)
+    with pytest.raises(CaptureError, match="AprilTag 36h11 id 7 was found in fewer than 3"):
+        align_to_tag(built.model, frames, walk.tag_poses[0], 0.08, tag_id=7)
     marker = cv2.aruco.generateImageMarker(
         cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_250), 3, 200
     )

@@ -1,7 +1,7 @@
 """``twinrl twin build``: from a walk-around clip to a scene spec the rest of twinrl uses.
 
 Stages: frames, structure from motion (with the fixed cameras' photos), metric alignment
-to the robot base (tag), table, objects (shapes, convex parts, names), cameras, then the
+to the robot base (tags), table, objects (shapes, convex parts, names), cameras, then the
 scene spec (YAML + mesh assets), which is compiled in MuJoCo before anything is
 reported, and the report (Markdown + plots) and the Rerun recording.
 """
@@ -18,7 +18,12 @@ import numpy as np
 import open3d as o3d
 
 from twinrl_sim.build import compile_scene
-from twinrl_sim.reconstruct.align import TagAlignment, align_to_tag
+from twinrl_sim.reconstruct.align import (
+    Alignment,
+    align_to_points,
+    align_to_tag,
+    check_reference_points,
+)
 from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
 from twinrl_sim.reconstruct.objects import (
     DEFAULT_DENSITY,
@@ -38,7 +43,7 @@ from twinrl_sim.tasks import make_task
 STAGES = (
     "frames",
     "structure from motion",
-    "tag alignment",
+    "alignment",
     "table",
     "objects",
     "cameras",
@@ -52,13 +57,15 @@ CAMERA_DISTANCE = (0.15, 4.0)  # m: where a hand-held phone can be, seen from th
 class BuildSettings:
     """What ``twinrl twin build`` is told besides the clip.
 
-    ``tag_pose`` is the tag's centre and orientation in the robot-base frame
-    (x y z qw qx qy qz), ``tag_size`` the edge of its black square (m).
+    The robot-base frame comes from either ``tag_pose``, one tag's centre and orientation
+    in the base frame (x y z qw qx qy qz), with ``tag_size``, the edge of its black
+    square (m); or ``tag_points``, the base-frame centres of 3+ tags by id.
     """
 
-    tag_size: float
-    tag_pose: tuple[float, ...]
+    tag_size: float | None = None
+    tag_pose: tuple[float, ...] | None = None
     tag_id: int | None = None
+    tag_points: dict[int, tuple[float, ...]] = field(default_factory=dict)
     task: str | None = None
     object_meshes: dict[str, Path] = field(default_factory=dict)
     camera_images: dict[str, Path] = field(default_factory=dict)
@@ -77,7 +84,7 @@ class TwinBuild:
     scene: SceneSpec
     selection: FrameSelection
     model: SparseModel
-    alignment: TagAlignment
+    alignment: Alignment
     table: TablePlane
     objects: list[TwinObject]
     cameras: dict[str, CameraSpec]  # cameras placed from photos
@@ -89,16 +96,28 @@ class TwinBuild:
 
 def check_settings(settings: BuildSettings, out: Path) -> None:
     """Refuse bad arguments before any work is done (one line each)."""
-    if not 0.005 <= settings.tag_size <= 1.0:
+    if settings.tag_pose is not None and settings.tag_points:
+        raise ValueError("give either --tag-pose (one tag) or --tag-point (3+ tags), not both")
+    if settings.tag_points:
+        check_reference_points(settings.tag_points)
+    elif settings.tag_pose is None:
+        raise ValueError(
+            "tie the cell to the robot base: give --tag-size and --tag-pose of one tag, or "
+            "--tag-point ID=x,y,z for 3+ tags"
+        )
+    else:
+        if settings.tag_size is None:
+            raise ValueError("--tag-pose needs --tag-size, the edge of the tag's black square")
+        if len(settings.tag_pose) != 7:
+            raise ValueError(
+                f"--tag-pose needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
+            )
+        if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
+            raise ValueError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
+    if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
         raise ValueError(
             f"--tag-size {settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"
         )
-    if len(settings.tag_pose) != 7:
-        raise ValueError(
-            f"--tag-pose needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
-        )
-    if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
-        raise ValueError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
     for what, files in (
@@ -167,11 +186,18 @@ def build_twin(
             fixed_cameras=settings.camera_images,
             seed=settings.seed,
         )
-        stage("tag alignment")
-        tag_pose = np.asarray(settings.tag_pose, float)
-        alignment = align_to_tag(
-            model, work / "frames", tag_pose, settings.tag_size, settings.tag_id
-        )
+        stage("alignment")
+        if settings.tag_points:
+            alignment = align_to_points(model, work / "frames", settings.tag_points)
+        else:
+            alignment = align_to_tag(
+                model,
+                work / "frames",
+                np.asarray(settings.tag_pose, float),
+                settings.tag_size,
+                settings.tag_id,
+            )
+        pivot = alignment.pivot
         walk = [
             image
             for image in model.reconstruction.images.values()
@@ -179,18 +205,18 @@ def build_twin(
         ]
         walk.sort(key=lambda image: image.name)
         path = alignment.to_base.apply(np.array([i.projection_center() for i in walk]))
-        _check_scale(path, tag_pose[:3], settings.tag_size)
+        _check_scale(path, pivot, settings)
         stage("table")
         table, levelling, levelled = level_table(
-            alignment.to_base.apply(model.points), model.colors, tag_pose[:3], settings.seed
+            alignment.to_base.apply(model.points), model.colors, pivot, settings.seed
         )
-        camera_path = (path - tag_pose[:3]) @ levelling.T + tag_pose[:3]
+        camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)
         objects, ratio = _objects(clusters, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
-            name: _placed_camera(name, model, alignment, levelling, tag_pose[:3], table)
+            name: _placed_camera(name, model, alignment, levelling, pivot, table)
             for name in settings.camera_images
         }
         stage("scene")
@@ -228,16 +254,23 @@ def build_twin(
     return built
 
 
-def _check_scale(camera_path: np.ndarray, tag: np.ndarray, tag_size: float) -> None:
-    """A wrong --tag-size scales the whole cell: the phone ends up impossibly near or far."""
-    distance = float(np.median(np.linalg.norm(camera_path - tag, axis=1)))
+def _check_scale(camera_path: np.ndarray, pivot: np.ndarray, settings: BuildSettings) -> None:
+    """A wrong tag size (or tag centres in the wrong unit) scales the whole cell: the
+    phone ends up impossibly near or far."""
+    distance = float(np.median(np.linalg.norm(camera_path - pivot, axis=1)))
     low, high = CAMERA_DISTANCE
-    if not low <= distance <= high:
+    if low <= distance <= high:
+        return
+    if settings.tag_points:
         raise CaptureError(
-            f"with --tag-size {tag_size:g} m the phone was {distance:.2f} m from the tag, "
-            f"outside {low:g}-{high:g} m; --tag-size must be the edge of the tag's black "
-            "square in metres"
+            f"with these --tag-point centres the phone was {distance:.2f} m from the tags, "
+            f"outside {low:g}-{high:g} m; give the centres in metres in the robot-base frame"
         )
+    raise CaptureError(
+        f"with --tag-size {settings.tag_size:g} m the phone was {distance:.2f} m from the "
+        f"tag, outside {low:g}-{high:g} m; --tag-size must be the edge of the tag's black "
+        "square in metres"
+    )
 
 
 def _objects(
@@ -300,7 +333,7 @@ def _objects(
 def _placed_camera(
     name: str,
     model: SparseModel,
-    alignment: TagAlignment,
+    alignment: Alignment,
     levelling: np.ndarray,
     pivot: np.ndarray,
     table: TablePlane,
@@ -336,7 +369,7 @@ def _scene_spec(
     cameras: dict[str, CameraSpec],
     task_scene: SceneSpec | None,
     model: SparseModel,
-    alignment: TagAlignment,
+    alignment: Alignment,
 ) -> SceneSpec:
     base = task_scene.model_dump(mode="python") if task_scene else {"name": "cell"}
     base_cameras = _base_cameras(task_scene)
@@ -379,9 +412,15 @@ def _scene_spec(
         "provenance": {
             "built_from": str(source),
             "frames_registered": f"{model.registered}/{model.frames}",
-            "tag_size_m": settings.tag_size,
-            "tag_pose": [float(v) for v in settings.tag_pose],
-            "tag_residual_mm": round(1000 * alignment.residual_m, 2),
+            **(
+                {"tag_points": {i: [float(v) for v in p] for i, p in settings.tag_points.items()}}
+                if settings.tag_points
+                else {
+                    "tag_size_m": settings.tag_size,
+                    "tag_pose": [float(v) for v in settings.tag_pose],
+                }
+            ),
+            "alignment_residual_mm": round(1000 * alignment.residual_m, 2),
         },
     }
     return parse_spec(data, source="built scene")

@@ -26,7 +26,8 @@ def _rectangle(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
 
 
 def plot_build(built: TwinBuild, out: Path) -> list[Path]:
-    """``cloud.png`` (top and side views) and ``alignment.png`` (tag residuals, heights)."""
+    """``cloud.png`` (top and side views) and ``alignment.png`` (reference-point
+    residuals, heights)."""
     plt = _pyplot()
     points, colors = built.levelled, built.model.colors / 255.0
     table = built.table
@@ -39,8 +40,10 @@ def plot_build(built: TwinBuild, out: Path) -> list[Path]:
         footprint = obj.cluster.points[:, :2]
         top.scatter(footprint[:, 0], footprint[:, 1], s=3)
         top.annotate(obj.name, obj.position, xytext=(6, 6), textcoords="offset points")
-    corners = built.alignment.corners_base
-    top.fill(corners[:, 0], corners[:, 1], color="k", alpha=0.6, label="tag")
+    for k, corners in enumerate(built.alignment.tag_outlines):
+        top.fill(
+            corners[:, 0], corners[:, 1], color="k", alpha=0.6, label="tags" if k == 0 else None
+        )
     path = built.camera_path
     top.plot(path[:, 0], path[:, 1], "-", color="tab:blue", lw=1, label="camera path")
     for name, camera in built.cameras.items():
@@ -66,11 +69,11 @@ def plot_build(built: TwinBuild, out: Path) -> list[Path]:
 
     fig, (tag, heights) = plt.subplots(1, 2, figsize=(11, 4))
     alignment = built.alignment
-    residuals = 1000 * np.linalg.norm(
-        alignment.to_base.apply(alignment.corners_sfm) - alignment.corners_base, axis=1
+    tag.bar(alignment.labels, 1000 * alignment.residuals)
+    tag.set(
+        ylabel="residual after alignment (mm)",
+        title=f"{alignment.reference} ({alignment.views} views)",
     )
-    tag.bar(["top-left", "top-right", "bottom-right", "bottom-left"], residuals)
-    tag.set(ylabel="corner residual (mm)", title=f"tag corners ({alignment.views} views)")
     rise = points[near, 2] - table.height
     heights.hist(rise[np.abs(rise) < 0.2], bins=120, color="tab:gray")
     heights.set_yscale("log")
@@ -97,8 +100,9 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
         f"({selection.dropped_blurry} blurry), camera travel {selection.travel:.2f} widths |",
         f"| structure from motion | {model.registered}/{model.frames} frames registered, "
         f"{len(model.points)} points |",
-        f"| tag | seen in {alignment.views} frames, corner residual "
-        f"{1000 * alignment.residual_m:.2f} mm RMS, scale {alignment.to_base.scale:.4f} m/unit |",
+        f"| alignment | {alignment.reference} ({', '.join(alignment.labels)}), seen in "
+        f"{alignment.views} frames, residual {1000 * alignment.residual_m:.2f} mm RMS, "
+        f"scale {alignment.to_base.scale:.4f} m/unit |",
         f"| table | top at {table.height:+.4f} m, {table.size[0]:.3f} x {table.size[1]:.3f} m, "
         f"yaw {np.degrees(table.yaw):+.1f} deg, tilt before levelling "
         f"{table.tilt_deg:.2f} deg |",
@@ -151,7 +155,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
 
 
 def write_build_rrd(built: TwinBuild, compiled: CompiledScene, path: Path) -> Path:
-    """Point cloud, camera path, tag, placed cameras and the compiled scene's geometry."""
+    """Point cloud, camera path, tags, placed cameras and the compiled scene's geometry."""
     recording = rr.RecordingStream("twinrl", recording_id=f"twin-build-{built.scene.digest}")
     recording.save(str(path))
     recording.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -166,10 +170,8 @@ def write_build_rrd(built: TwinBuild, compiled: CompiledScene, path: Path) -> Pa
         static=True,
     )
     recording.log(
-        "world/reconstruction/tag",
-        rr.LineStrips3D(
-            [np.vstack([built.alignment.corners_base, built.alignment.corners_base[:1]])]
-        ),
+        "world/reconstruction/tags",
+        rr.LineStrips3D([np.vstack([c, c[:1]]) for c in built.alignment.tag_outlines]),
         static=True,
     )
     _log_scene(recording, compiled)

@@ -2,7 +2,7 @@
 
 The cell of a scene spec (table and objects; the arm is left out, as in a walk-around
 clip of the workspace) gets textures a feature matcher can hold on to (multi-scale noise
-on the table and the objects) and an AprilTag 36h11 lying on the table. A hand-held-like
+on the table and the objects) and AprilTags 36h11 lying on the table. A hand-held-like
 camera walks an arc around the table (slow azimuth sweep, wobbling height, distance
 and aim) and the frames are written as an mp4 with PyAV. Ground truth is the scene that
 rendered it and the camera path (:class:`Walkthrough`).
@@ -28,6 +28,26 @@ TAG_MARGIN_CELLS = 1  # white cells around the black square
 
 
 @dataclass(frozen=True)
+class TagPlacement:
+    """An AprilTag 36h11 lying face up on the table."""
+
+    tag_id: int = 0
+    xy: tuple[float, float] = (0.3, 0.3)  # centre, base frame (m)
+    yaw: float = 0.3  # rad, printed x from the base's x
+    size: float = 0.08  # edge of the black square (m)
+
+
+ONE_TAG = (TagPlacement(),)
+# Three tags spread over the pick-and-place table, clear of its objects: the stand-in for
+# tags whose centres were touched with the TCP (``--tag-point``).
+THREE_TAGS = (
+    TagPlacement(),
+    TagPlacement(tag_id=1, xy=(0.7, 0.4), yaw=-0.5, size=0.06),
+    TagPlacement(tag_id=2, xy=(0.25, -0.45), yaw=0.9, size=0.06),
+)
+
+
+@dataclass(frozen=True)
 class WalkthroughSettings:
     """Shape of the clip. Defaults: a short clip for tests (8 s at 10 fps)."""
 
@@ -48,8 +68,8 @@ class Walkthrough:
     """What was rendered: the clip and its ground truth."""
 
     video: Path
-    tag_pose: np.ndarray  # (7,) tag pose in the base frame: x y z qw qx qy qz
-    tag_size: float
+    tags: tuple[TagPlacement, ...]
+    tag_poses: dict[int, np.ndarray]  # id -> (7,) pose in the base frame: x y z qw qx qy qz
     camera_positions: np.ndarray  # (T, 3) in the base frame
     fovy_deg: float
 
@@ -82,14 +102,12 @@ def _add_texture(spec: mujoco.MjSpec, name: str, image: np.ndarray, rgba, repeat
 
 def walkthrough_model(
     scene: SceneSpec,
-    tag_xy: tuple[float, float],
-    tag_yaw: float,
-    tag_size: float,
+    tags: tuple[TagPlacement, ...],
     seed: int,
     image_size: tuple[int, int],
-) -> tuple[mujoco.MjModel, np.ndarray]:
-    """The textured cell with the tag, able to render ``image_size`` (width, height)
-    images, and the tag's pose (x y z qw qx qy qz)."""
+) -> tuple[mujoco.MjModel, dict[int, np.ndarray]]:
+    """The textured cell with the tags, able to render ``image_size`` (width, height)
+    images, and each tag's pose (x y z qw qx qy qz) by id."""
     rng = np.random.default_rng(seed)
     spec, _ = build_mjspec(scene, apply_spec_effects=False)
     width, height = image_size
@@ -111,22 +129,25 @@ def walkthrough_model(
             geom.rgba = [0.5, 0.5, 0.5, 1]
     top = scene.table.top_height
     thickness = 0.0006
-    edge = tag_size * (CELLS + 2 * TAG_MARGIN_CELLS) / CELLS
-    image = np.repeat(tag_image(cell_px=32, margin_cells=TAG_MARGIN_CELLS)[:, :, None], 3, axis=2)
-    quat = yaw_quat(tag_yaw)
-    spec.worldbody.add_geom(
-        name="apriltag",
-        type=mujoco.mjtGeom.mjGEOM_BOX,
-        size=[edge / 2, edge / 2, thickness / 2],
-        pos=[tag_xy[0], tag_xy[1], top + thickness / 2],
-        quat=quat.tolist(),
-        material=_add_texture(spec, "walk_tag", image, (1, 1, 1, 1)),
-        contype=0,
-        conaffinity=0,
-    )
-    model = spec.compile()
-    pose = np.concatenate([[tag_xy[0], tag_xy[1], top + thickness], quat])
-    return model, pose
+    poses = {}
+    for tag in tags:
+        edge = tag.size * (CELLS + 2 * TAG_MARGIN_CELLS) / CELLS
+        image = tag_image(tag.tag_id, cell_px=32, margin_cells=TAG_MARGIN_CELLS)
+        quat = yaw_quat(tag.yaw)
+        spec.worldbody.add_geom(
+            name=f"apriltag{tag.tag_id}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=[edge / 2, edge / 2, thickness / 2],
+            pos=[tag.xy[0], tag.xy[1], top + thickness / 2],
+            quat=quat.tolist(),
+            material=_add_texture(
+                spec, f"walk_tag{tag.tag_id}", np.repeat(image[:, :, None], 3, axis=2), (1, 1, 1, 1)
+            ),
+            contype=0,
+            conaffinity=0,
+        )
+        poses[tag.tag_id] = np.concatenate([[tag.xy[0], tag.xy[1], top + thickness], quat])
+    return spec.compile(), poses
 
 
 def _camera_path(
@@ -151,17 +172,13 @@ def render_walkthrough(
     scene: SceneSpec,
     out: str | Path,
     *,
-    tag_xy: tuple[float, float] = (0.3, 0.3),
-    tag_yaw: float = 0.3,
-    tag_size: float = 0.08,
+    tags: tuple[TagPlacement, ...] = ONE_TAG,
     settings: WalkthroughSettings = WalkthroughSettings(),
     seed: int = 0,
 ) -> Walkthrough:
     """Render the hand-held walk around ``scene``'s table to the mp4 ``out``."""
     rng = np.random.default_rng(seed)
-    model, tag_pose = walkthrough_model(
-        scene, tag_xy, tag_yaw, tag_size, seed, (settings.width, settings.height)
-    )
+    model, tag_poses = walkthrough_model(scene, tags, seed, (settings.width, settings.height))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     renderer = mujoco.Renderer(model, settings.height, settings.width)
@@ -197,7 +214,7 @@ def render_walkthrough(
                 container.mux(packet)
     finally:
         renderer.close()
-    return Walkthrough(out, tag_pose, tag_size, np.array(positions), float(model.vis.global_.fovy))
+    return Walkthrough(out, tags, tag_poses, np.array(positions), float(model.vis.global_.fovy))
 
 
 def render_fixed_view(
@@ -205,15 +222,13 @@ def render_fixed_view(
     camera: str,
     out: str | Path,
     *,
-    tag_xy: tuple[float, float] = (0.3, 0.3),
-    tag_yaw: float = 0.3,
-    tag_size: float = 0.08,
+    tags: tuple[TagPlacement, ...] = ONE_TAG,
     size: tuple[int, int] = (640, 480),
     seed: int = 0,
 ) -> Path:
     """A photo (PNG) of the textured cell (arm left out, as in the walk) from
     ``scene``'s camera ``camera``: the stand-in for a frame of a fixed real camera."""
-    model, _ = walkthrough_model(scene, tag_xy, tag_yaw, tag_size, seed, size)
+    model, _ = walkthrough_model(scene, tags, seed, size)
     width, height = size
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
