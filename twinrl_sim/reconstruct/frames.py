@@ -6,11 +6,15 @@ many equal spans as frames are wanted and the sharpest frame of each span is kep
 the kept frames follow the camera's path (parallax) instead of bunching where it
 lingered. A clip is refused when it is too blurry overall or when the camera barely
 moves (optical flow between the kept frames), with what to film differently.
+
+The clip is streamed twice (sharpness first, then the chosen frames), so memory does not
+grow with its length: a minute of 4K video is never held whole.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +26,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 MIN_SHARPNESS = 15.0  # variance of the Laplacian below which a frame is a blur
 MIN_TRAVEL = 0.25  # median image motion over the clip, in image widths
 MIN_FRAMES = 12
+FLOW_WIDTH = 640  # px: kept frames are shrunk to this width to measure camera travel
 
 
 class CaptureError(ValueError):
@@ -46,34 +51,45 @@ def sharpness(image: np.ndarray) -> float:
     return float(cv2.Laplacian(grey, cv2.CV_64F).var())
 
 
-def _read_frames(source: Path) -> list[np.ndarray]:
+def _stream(source: Path) -> Iterator[np.ndarray]:
+    """The RGB frames of a video file or an image folder, one at a time."""
     if source.is_dir():
         files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not files:
             raise CaptureError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)})")
-        frames = []
         for path in files:
             image = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if image is None:
                 raise CaptureError(f"{path} is not a readable image")
-            frames.append(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-        return frames
+            yield cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+        return
     if not source.is_file():
         raise CaptureError(f"{source} does not exist; give a video file or a folder of images")
     try:
         with av.open(str(source)) as container:
-            return [f.to_ndarray(format="rgb24") for f in container.decode(video=0)]
-    except (av.error.FFmpegError, StopIteration) as err:
+            stream = container.streams.video[0]
+            stream.thread_type = "AUTO"  # decode on every core
+            for frame in container.decode(stream):
+                yield frame.to_ndarray(format="rgb24")
+    except (av.error.FFmpegError, IndexError) as err:
         raise CaptureError(f"{source} is not a readable video ({err})") from None
 
 
-def _travel(frames: list[np.ndarray]) -> float:
+def _flow_grey(frame: np.ndarray) -> np.ndarray:
+    """The grey frame at most :data:`FLOW_WIDTH` wide, for measuring camera travel."""
+    grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+    if grey.shape[1] <= FLOW_WIDTH:
+        return grey
+    height = round(grey.shape[0] * FLOW_WIDTH / grey.shape[1])
+    return cv2.resize(grey, (FLOW_WIDTH, height), interpolation=cv2.INTER_AREA)
+
+
+def _travel(greys: list[np.ndarray]) -> float:
     """Summed median optical-flow motion between consecutive frames, in image widths."""
     total = 0.0
-    width = frames[0].shape[1]
-    previous = cv2.cvtColor(frames[0], cv2.COLOR_RGB2GRAY)
-    for frame in frames[1:]:
-        grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+    width = greys[0].shape[1]
+    previous = greys[0]
+    for grey in greys[1:]:
         points = cv2.goodFeaturesToTrack(previous, 200, 0.01, 8)
         if points is not None:
             moved, status, _ = cv2.calcOpticalFlowPyrLK(previous, grey, points, None)
@@ -94,41 +110,48 @@ def select_frames(
     """Pick up to ``target`` sharp frames spread over ``source`` and write them as PNGs
     into ``out_dir``; raise :class:`CaptureError` when the clip cannot work."""
     source, out_dir = Path(source), Path(out_dir)
-    frames = _read_frames(source)
-    scores = np.array([sharpness(f) for f in frames])
+    scores = np.array([sharpness(frame) for frame in _stream(source)])
     sharp = scores >= MIN_SHARPNESS
     if sharp.sum() < MIN_FRAMES:
         raise CaptureError(
-            f"{source}: only {int(sharp.sum())} of {len(frames)} frames are sharp "
+            f"{source}: only {int(sharp.sum())} of {len(scores)} frames are sharp "
             f"(Laplacian variance >= {MIN_SHARPNESS:g}); film slower, in better light, "
             "and let the phone focus on the table"
         )
-    spans = np.array_split(np.arange(len(frames)), min(target, len(frames)))
+    spans = np.array_split(np.arange(len(scores)), min(target, len(scores)))
     kept = []
     for span in spans:
         candidates = span[sharp[span]]
         if len(candidates):
             kept.append(int(candidates[np.argmax(scores[candidates])]))
-    travel = _travel([frames[i] for i in kept])
+    created = not out_dir.exists()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths, greys, wanted = [], [], set(kept)
+    for index, frame in enumerate(_stream(source)):
+        if index not in wanted:
+            continue
+        path = out_dir / f"frame_{index:05d}.png"
+        cv2.imwrite(str(path), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+        paths.append(path)
+        greys.append(_flow_grey(frame))
+        if progress is not None:
+            progress(len(paths), len(kept))
+    travel = _travel(greys)
     if travel < MIN_TRAVEL:
+        for path in paths:
+            path.unlink()
+        if created:
+            shutil.rmtree(out_dir, ignore_errors=True)
         raise CaptureError(
             f"{source}: the camera barely moves (the view shifts {travel:.2f} image widths "
             f"in all, at least {MIN_TRAVEL:g} needed); walk around the table, keeping it "
             "in view, instead of filming from one spot"
         )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for n, index in enumerate(kept):
-        path = out_dir / f"frame_{index:05d}.png"
-        cv2.imwrite(str(path), cv2.cvtColor(frames[index], cv2.COLOR_RGB2BGR))
-        paths.append(path)
-        if progress is not None:
-            progress(n + 1, len(kept))
     return FrameSelection(
         paths=paths,
         source_indices=kept,
         sharpness=[float(scores[i]) for i in kept],
-        frames_in_clip=len(frames),
+        frames_in_clip=len(scores),
         travel=travel,
         dropped_blurry=int((~sharp).sum()),
     )
