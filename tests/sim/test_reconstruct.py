@@ -89,14 +89,20 @@ def test_objects_are_found_named_and_measured(built):
     assert set(objects) == {"banana", "plate"}  # named after the task's objects
     assert objects["banana"].role == "manipulated" and objects["plate"].role == "target"
     plate, banana = objects["plate"], objects["banana"]
-    assert np.linalg.norm(plate.position - [0.45, 0.0]) < 0.01
-    assert abs(plate.cluster.size[:2].mean() - 0.17) < 0.1 * 0.17  # 85 mm radius
-    centre, extent = template_sizes(SCENE)["banana"]  # long, short, height
-    # Sparse SIFT points thin out at the banana's ends: 1.1-1.6 cm today, 1 cm is the goal.
-    assert np.linalg.norm(banana.position - centre) < 0.02
-    assert abs(banana.cluster.size[2] - extent[2]) < 0.1 * extent[2]
-    assert abs(banana.cluster.size[0] - extent[0]) < 0.15 * extent[0]
-    assert abs(np.degrees(banana.yaw)) < 8.0  # 3-6 deg on this short clip
+    truth = template_sizes(SCENE)  # footprint centre; long, short, height
+    # The targets (1 cm, 10 %) are met on the benchmark's 60 s clip; this 6 s
+    # one has a third of the points, and the plate's pale rim few of them.
+    for obj, size_tolerance in ((plate, 0.15), (banana, 0.1)):
+        centre, extent = truth[obj.name]
+        size = np.array([*sorted(obj.cluster.size[:2], reverse=True), obj.cluster.size[2]])
+        print(obj.name, obj.position - centre, size / extent - 1)
+        assert np.linalg.norm(obj.position - centre) < 0.01
+        assert np.all(np.abs(size / extent - 1) < size_tolerance)
+    # The yellow banana's footprint is carved from its silhouettes (its ends have few
+    # points); the white plate does not stand out from the table's colour: points only.
+    assert banana.cluster.carved is not None and plate.cluster.carved is None
+    assert banana.source == "points + silhouettes" and plate.source == "points"
+    assert abs(np.degrees(banana.yaw)) < 5.0
     assert plate.yaw == 0.0  # round: no heading
     assert banana.color[0] > 0.5 and banana.color[2] < 0.3  # yellow
     # Closed surfaces, split into convex parts; the banana weighs what its volume says.

@@ -47,6 +47,10 @@ class Similarity:
     def apply(self, points: np.ndarray) -> np.ndarray:
         return self.scale * np.asarray(points) @ self.rotation.T + self.translation
 
+    def invert(self, points: np.ndarray) -> np.ndarray:
+        """The inverse map: base-frame points back to the SfM frame."""
+        return (np.asarray(points) - self.translation) @ self.rotation / self.scale
+
 
 @dataclass(frozen=True)
 class Alignment:

@@ -1,7 +1,8 @@
 """Objects of the twin from their point clusters: shape, convex parts, mass, name.
 
-- **Shape**: the cluster's points (above the table, in the object's own frame) plus
-  their drop onto the table (the underside is never filmed, the object stands on its
+- **Shape**: the cluster's points (above the table, in the object's own frame), with
+  the footprint carved from the frames' silhouettes where there is one, plus their drop
+  onto the table (the underside is never filmed, the object stands on its
   footprint) are closed into a surface by an alpha shape (open3d); CoACD splits it into
   convex parts, which is what MuJoCo can collide with. The mass is the parts' volume
   times a density.
@@ -64,7 +65,7 @@ class TwinObject:
     mass: float
     color: np.ndarray  # (3,) RGB in [0, 1]
     cluster: ObjectCluster
-    source: str  # "reconstructed" or the supplied mesh file
+    source: str  # "points", "points + silhouettes", or the supplied mesh file
     fit_rms: float | None = None  # ICP residual of a supplied mesh (m)
 
 
@@ -105,8 +106,9 @@ def _shape(surface: o3d.geometry.TriangleMesh, seed: int) -> ObjectShape:
 def reconstruct_shape(
     cluster: ObjectCluster, yaw: float, table_height: float, seed: int = 0
 ) -> ObjectShape:
-    """The closed surface of a cluster (alpha shape of its points and their footprint)."""
-    points = _to_object_frame(cluster.points, cluster.center[:2], yaw, table_height)
+    """The closed surface of a cluster (alpha shape of its points, its carved footprint
+    and their drop onto the table)."""
+    points = _to_object_frame(cluster.body_points, cluster.center[:2], yaw, table_height)
     points = points[points[:, 2] <= cluster.size[2]]
     footprint = points.copy()
     footprint[:, 2] = 0.0
@@ -182,9 +184,29 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _half_extent(model: mujoco.MjModel, geom: int, rotation: np.ndarray) -> np.ndarray:
+    """Exact half extent along the axes of a frame of a geom turned by ``rotation``
+    (geom axes in that frame's coordinates, as columns)."""
+    size = model.geom_size[geom]
+    axis = rotation[:, 2]
+    match int(model.geom_type[geom]):
+        case mujoco.mjtGeom.mjGEOM_SPHERE:
+            return np.full(3, size[0])
+        case mujoco.mjtGeom.mjGEOM_CAPSULE:
+            return size[1] * np.abs(axis) + size[0]
+        case mujoco.mjtGeom.mjGEOM_CYLINDER:
+            return size[1] * np.abs(axis) + size[0] * np.sqrt(np.clip(1 - axis**2, 0, 1))
+        case mujoco.mjtGeom.mjGEOM_ELLIPSOID:
+            return np.sqrt(((rotation * size) ** 2).sum(axis=1))
+        case mujoco.mjtGeom.mjGEOM_BOX:
+            return np.abs(rotation) @ size[:3]
+        case _:  # a mesh: its bounding box in the geom frame
+            return np.abs(rotation) @ model.geom_aabb[geom][3:]
+
+
 def template_sizes(scene: SceneSpec) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Footprint centre (xy, base frame) and (long, short, height) of each object of
-    ``scene``, from the bounding boxes of its collision geoms in its own frame."""
+    ``scene``: the exact bounding box of its collision geoms in its own frame."""
     compiled = compile_scene(scene)
     model = compiled.model
     data = mujoco.MjData(model)
@@ -192,20 +214,21 @@ def template_sizes(scene: SceneSpec) -> dict[str, tuple[np.ndarray, np.ndarray]]
     sizes = {}
     for obj in scene.objects:
         body = model.body(obj.name).id
-        corners = []
+        body_rotation = data.xmat[body].reshape(3, 3)
+        lows, highs = [], []
         for g in np.flatnonzero(model.geom_bodyid == body):
             if model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0:
                 continue
-            centre, half = model.geom_aabb[g][:3], model.geom_aabb[g][3:]
-            signs = np.array(np.meshgrid(*[[-1, 1]] * 3)).reshape(3, -1).T
-            local = centre + signs * half
-            rotation = data.geom_xmat[g].reshape(3, 3)
-            corners.append(local @ rotation.T + data.geom_xpos[g])
-        points = np.concatenate(corners)
-        body_rotation = data.xmat[body].reshape(3, 3)
-        local = (points - data.xpos[body]) @ body_rotation
-        extent = np.ptp(local, axis=0)
-        centre = data.xpos[body] + body_rotation @ ((local.min(0) + local.max(0)) / 2)
+            rotation = body_rotation.T @ data.geom_xmat[g].reshape(3, 3)
+            centre = body_rotation.T @ (data.geom_xpos[g] - data.xpos[body])
+            if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+                centre = centre + rotation @ model.geom_aabb[g][:3]
+            half = _half_extent(model, g, rotation)
+            lows.append(centre - half)
+            highs.append(centre + half)
+        low, high = np.min(lows, axis=0), np.max(highs, axis=0)
+        extent = high - low
+        centre = data.xpos[body] + body_rotation @ ((low + high) / 2)
         sizes[obj.name] = (centre[:2], np.array([*sorted(extent[:2], reverse=True), extent[2]]))
     return sizes
 

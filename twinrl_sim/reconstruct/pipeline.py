@@ -1,9 +1,9 @@
 """``twinrl twin build``: from a walk-around clip to a scene spec the rest of twinrl uses.
 
 Stages: frames, structure from motion (with the fixed cameras' photos), metric alignment
-to the robot base (tags), table, objects (shapes, convex parts, names), cameras, then the
-scene spec (YAML + mesh assets), which is compiled in MuJoCo before anything is
-reported, and the report (Markdown + plots) and the Rerun recording.
+to the robot base (tags), table, objects (points and silhouettes, convex parts, names),
+cameras, then the scene spec (YAML + mesh assets), which is compiled in MuJoCo before
+anything is reported, and the report (Markdown + plots) and the Rerun recording.
 """
 
 from __future__ import annotations
@@ -35,8 +35,14 @@ from twinrl_sim.reconstruct.objects import (
     reconstruct_shape,
 )
 from twinrl_sim.reconstruct.report import plot_build, write_build_report, write_build_rrd
-from twinrl_sim.reconstruct.segment import TablePlane, find_objects, level_table
+from twinrl_sim.reconstruct.segment import (
+    TablePlane,
+    describe_cluster,
+    find_objects,
+    level_table,
+)
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
+from twinrl_sim.reconstruct.silhouette import carve_footprints
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
 from twinrl_sim.tasks import make_task
 
@@ -213,6 +219,20 @@ def build_twin(
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)
+        hulls = carve_footprints(
+            clusters,
+            table,
+            model,
+            work / "frames",
+            lambda x: alignment.to_base.invert((x - pivot) @ levelling + pivot),
+            settings.seed,
+        )
+        clusters = [
+            cluster
+            if hull is None
+            else describe_cluster(cluster.points, cluster.color, table, hull)
+            for cluster, hull in zip(clusters, hulls, strict=True)
+        ]
         objects, ratio = _objects(clusters, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
@@ -305,7 +325,8 @@ def _objects(
         else:
             yaw = heading(cluster)
             shape = reconstruct_shape(cluster, yaw, table.height, settings.seed)
-            position, source, fit_rms = cluster.center[:2], "reconstructed", None
+            source = "points + silhouettes" if cluster.carved is not None else "points"
+            position, fit_rms = cluster.center[:2], None
         density = settings.densities.get(name, DEFAULT_DENSITY)
         objects.append(
             TwinObject(

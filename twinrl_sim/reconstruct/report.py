@@ -37,6 +37,9 @@ def plot_build(built: TwinBuild, out: Path) -> list[Path]:
     outline = _rectangle(table.center, table.size, table.yaw)
     top.plot(outline[:, 0], outline[:, 1], "k--", lw=1, label="table")
     for obj in built.objects:
+        if obj.cluster.carved is not None:  # the footprint carved from silhouettes
+            carved = obj.cluster.carved
+            top.scatter(carved[:, 0], carved[:, 1], s=1, color="tab:olive", alpha=0.3)
         footprint = obj.cluster.points[:, :2]
         top.scatter(footprint[:, 0], footprint[:, 1], s=3)
         top.annotate(obj.name, obj.position, xytext=(6, 6), textcoords="offset points")

@@ -4,8 +4,8 @@ model is shared by all frames (one phone, fixed zoom).
 
 Photos from the cell's fixed cameras join the same reconstruction: each gets a camera
 model of its own (its intrinsics are estimated), is matched against every frame of the
-walk and registered by the mapper like any frame, so its pose and focal length come out
-in the walk's frame."""
+walk and, once the walk is mapped, registered into it (the walk's poses held fixed), so
+its pose and focal length come out in the walk's frame."""
 
 from __future__ import annotations
 
@@ -88,10 +88,23 @@ def run_sfm(
         imported = pycolmap.ImportedPairingOptions()
         imported.match_list_path = str(pairs)
         pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported)
+    # The walk is mapped first, on its own: a photo matched against every frame would
+    # often seed the mapper's initial pair, and its unknown focal length can sink it.
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
     options.multiple_models = False
-    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "sparse", options)
+    options.image_names = frame_names
+    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "walk", options)
+    if models and fixed_images:  # then the photos join the walk, whose poses stay fixed
+        walk = max(models.values(), key=lambda r: r.num_reg_images())
+        walk_dir = work_dir / "walk_model"
+        walk_dir.mkdir(parents=True, exist_ok=True)
+        walk.write(walk_dir)
+        options.image_names = frame_names + list(fixed_images.values())
+        options.fix_existing_frames = True
+        models = pycolmap.incremental_mapping(
+            database, image_dir, work_dir / "sparse", options, input_path=walk_dir
+        )
     if not models:
         raise CaptureError(
             f"structure from motion registered none of the {frames} frames; film a textured "
