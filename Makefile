@@ -66,6 +66,7 @@ bench: setup
 	$(BIN)/python bench/bench_expand.py --task insert_hexagon --demos 90
 	$(BIN)/python bench/bench_gap.py --episodes 20 --duration 10
 	$(BIN)/python bench/bench_reconstruct.py --seconds 60
+	$(BIN)/python bench/bench_reconstruct.py --seconds 60 --tag-points
 	@rm -rf out/bench_stage1   # the benchmark's own output from a previous run
 	$(BIN)/twinrl bench stage1 --out out/bench_stage1 --policies state
 
