@@ -51,6 +51,12 @@ class Similarity:
         """The inverse map: base-frame points back to the SfM frame."""
         return (np.asarray(points) - self.translation) @ self.rotation / self.scale
 
+    def turned(self, rotation: np.ndarray, pivot: np.ndarray) -> Similarity:
+        """This map followed by ``rotation`` about ``pivot`` (e.g. levelling the table)."""
+        return Similarity(
+            self.scale, rotation @ self.rotation, rotation @ (self.translation - pivot) + pivot
+        )
+
 
 @dataclass(frozen=True)
 class Alignment:

@@ -20,6 +20,7 @@ import open3d as o3d
 from twinrl_sim.build import compile_scene
 from twinrl_sim.reconstruct.align import (
     Alignment,
+    Similarity,
     align_to_points,
     align_to_tag,
     check_reference_points,
@@ -216,6 +217,7 @@ def build_twin(
         table, levelling, levelled = level_table(
             alignment.to_base.apply(model.points), model.colors, pivot, settings.seed
         )
+        to_cell = alignment.to_base.turned(levelling, pivot)  # SfM -> levelled base frame
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)
@@ -224,7 +226,7 @@ def build_twin(
             table,
             model,
             work / "frames",
-            lambda x: alignment.to_base.invert((x - pivot) @ levelling + pivot),
+            to_cell.invert,
             settings.seed,
         )
         clusters = [
@@ -236,8 +238,7 @@ def build_twin(
         objects, ratio = _objects(clusters, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
-            name: _placed_camera(name, model, alignment, levelling, pivot, table)
-            for name in settings.camera_images
+            name: _placed_camera(name, model, to_cell, table) for name in settings.camera_images
         }
         stage("scene")
         scene = _scene_spec(settings, source, table, objects, cameras, task_scene, model, alignment)
@@ -354,20 +355,17 @@ def _objects(
 def _placed_camera(
     name: str,
     model: SparseModel,
-    alignment: Alignment,
-    levelling: np.ndarray,
-    pivot: np.ndarray,
+    to_cell: Similarity,
     table: TablePlane,
 ) -> CameraSpec:
-    """A world camera at the registered pose and focal length of camera ``name``'s photo."""
+    """A world camera at the registered pose and focal length of camera ``name``'s photo
+    (``to_cell``: SfM frame to the levelled base frame)."""
     image = model.fixed_image(name)
     camera = model.reconstruction.cameras[image.camera_id]
-    to_base = alignment.to_base
-    centre = to_base.apply(image.projection_center()[None])[0]
-    centre = (centre - pivot) @ levelling.T + pivot
+    centre = to_cell.apply(image.projection_center()[None])[0]
     rotation = image.cam_from_world().rotation.matrix()  # rows: camera x, y, z in SfM frame
-    forward = rotation[2] @ to_base.rotation.T @ levelling.T
-    up = -rotation[1] @ to_base.rotation.T @ levelling.T
+    forward = rotation[2] @ to_cell.rotation.T
+    up = -rotation[1] @ to_cell.rotation.T
     # Look at where the optical axis meets the table (1 m ahead if it never does).
     reach = (table.height - centre[2]) / forward[2] if forward[2] < -1e-3 else 1.0
     fovy = float(np.degrees(2 * np.arctan(camera.height / (2 * camera.focal_length_y))))

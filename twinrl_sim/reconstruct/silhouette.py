@@ -14,6 +14,7 @@ grey table) is left to its points.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -30,14 +31,56 @@ AGREEMENT = 0.75  # share of the views that must see a voxel inside the silhouet
 MIN_VIEWS = 10  # views a voxel needs to be judged
 
 
-def _chroma(rgb: np.ndarray) -> np.ndarray:
-    """CIELAB (a*, b*) of uint8 RGB values of any shape (..., 3)."""
-    flat = np.asarray(rgb, np.uint8).reshape(1, -1, 3)
-    return (
-        cv2.cvtColor(flat, cv2.COLOR_RGB2LAB)[0, :, 1:]
-        .astype(np.float32)
-        .reshape(*np.shape(rgb)[:-1], 2)
-    )
+def _chroma(color: np.ndarray) -> np.ndarray:
+    """CIELAB (a*, b*) of one RGB colour in [0, 1], on OpenCV's 8-bit Lab scale."""
+    pixel = np.round(255 * np.asarray(color)).astype(np.uint8).reshape(1, 1, 3)
+    return cv2.cvtColor(pixel, cv2.COLOR_RGB2LAB)[0, 0, 1:].astype(np.float32)
+
+
+@dataclass
+class _Carving:
+    """The voxels around one cluster and the votes the frames have cast on them."""
+
+    chroma: np.ndarray  # (2,) the object's colour
+    grid: np.ndarray  # (V, 3) voxel centres, levelled base frame
+    homogeneous: np.ndarray  # (V, 4) the same in the reconstruction's frame
+    inside: np.ndarray  # (V,) views that saw the voxel inside the silhouette
+    seen: np.ndarray  # (V,) views that saw the voxel at all
+
+    def observe(self, lab: np.ndarray, to_table: np.ndarray, camera, pose: np.ndarray) -> None:
+        """Count one frame's votes (``lab``: its a*b* image; ``pose``: cam_from_world)."""
+        to_object = np.linalg.norm(lab - self.chroma, axis=2)
+        mask = (to_object < MASK_CHROMA) & (to_object < to_table)
+        in_camera = self.homogeneous @ pose.T
+        ahead = in_camera[:, 2] > 1e-3
+        uv = np.full((len(in_camera), 2), -1)
+        uv[ahead] = np.round(camera.img_from_cam(in_camera[ahead])).astype(int)
+        u, v = uv.T
+        visible = ahead & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
+        self.seen[visible] += 1
+        self.inside[visible] += mask[v[visible], u[visible]]
+
+    def footprint(self, rng: np.random.Generator) -> np.ndarray | None:
+        """xy of the occupied voxel columns, jittered; None if no voxel was kept."""
+        kept = (self.seen >= MIN_VIEWS) & (self.inside >= AGREEMENT * np.maximum(self.seen, 1))
+        if not kept.any():
+            return None
+        cells = np.unique(np.round(self.grid[kept, :2] / VOXEL).astype(int), axis=0) * VOXEL
+        return cells + rng.uniform(-VOXEL / 10, VOXEL / 10, cells.shape)
+
+
+def _carving(
+    cluster: ObjectCluster, table: TablePlane, to_sfm: Callable[[np.ndarray], np.ndarray]
+) -> _Carving:
+    low = cluster.points.min(axis=0) - [MARGIN, MARGIN, 0.0]
+    high = cluster.points.max(axis=0) + [MARGIN, MARGIN, 0.0]
+    low[2] = table.height + VOXEL
+    high[2] = table.height + max(cluster.size[2], VOXEL)
+    axes = [np.arange(a, b + VOXEL / 2, VOXEL) for a, b in zip(low, high, strict=True)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    homogeneous = np.c_[to_sfm(grid), np.ones(len(grid))]
+    votes = np.zeros(len(grid))
+    return _Carving(_chroma(cluster.color), grid, homogeneous, votes, votes.copy())
 
 
 def carve_footprints(
@@ -54,54 +97,24 @@ def carve_footprints(
     ``to_sfm`` maps levelled base-frame points to the reconstruction's frame. Each frame
     is read once for all clusters. The cell centres are jittered by a tenth of a voxel
     (seeded): a regular grid is degenerate for the alpha shape's Delaunay tetrahedra."""
+    table_chroma = _chroma(table.color)
+    carvings = [
+        _carving(cluster, table, to_sfm)
+        if np.linalg.norm(_chroma(cluster.color) - table_chroma) >= MIN_CONTRAST
+        else None
+        for cluster in clusters
+    ]
+    active = [c for c in carvings if c is not None]
+    if active:
+        for image in model.reconstruction.images.values():
+            if not image.has_pose:
+                continue
+            bgr = cv2.imread(str(image_dir / image.name))
+            lab = cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB)[:, :, 1:].astype(np.float32)
+            to_table = np.linalg.norm(lab - table_chroma, axis=2)
+            camera = model.reconstruction.cameras[image.camera_id]
+            pose = image.cam_from_world().matrix()
+            for carving in active:
+                carving.observe(lab, to_table, camera, pose)
     rng = np.random.default_rng(seed)
-    table_chroma = _chroma(np.round(255 * table.color))
-    jobs = []
-    for cluster in clusters:
-        chroma = _chroma(np.round(255 * cluster.color))
-        if np.linalg.norm(chroma - table_chroma) < MIN_CONTRAST:
-            jobs.append(None)
-            continue
-        low = cluster.points.min(axis=0) - [MARGIN, MARGIN, 0.0]
-        high = cluster.points.max(axis=0) + [MARGIN, MARGIN, 0.0]
-        low[2] = table.height + VOXEL
-        high[2] = table.height + max(cluster.size[2], VOXEL)
-        axes = [np.arange(a, b + VOXEL / 2, VOXEL) for a, b in zip(low, high, strict=True)]
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-        homogeneous = np.c_[to_sfm(grid), np.ones(len(grid))]
-        jobs.append((chroma, grid, homogeneous, np.zeros(len(grid)), np.zeros(len(grid))))
-    if not any(jobs):
-        return [None] * len(clusters)
-    for image in model.reconstruction.images.values():
-        if not image.has_pose:
-            continue
-        bgr = cv2.imread(str(image_dir / image.name))
-        lab = cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB)[:, :, 1:].astype(np.float32)
-        to_table = np.linalg.norm(lab - table_chroma, axis=2)
-        camera = model.reconstruction.cameras[image.camera_id]
-        pose = image.cam_from_world().matrix()
-        for job in filter(None, jobs):
-            chroma, _, homogeneous, inside, seen = job
-            to_object = np.linalg.norm(lab - chroma, axis=2)
-            mask = (to_object < MASK_CHROMA) & (to_object < to_table)
-            in_camera = homogeneous @ pose.T
-            ahead = in_camera[:, 2] > 1e-3
-            uv = np.full((len(in_camera), 2), -1)
-            uv[ahead] = np.round(camera.img_from_cam(in_camera[ahead])).astype(int)
-            u, v = uv.T
-            visible = ahead & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
-            seen[visible] += 1
-            inside[visible] += mask[v[visible], u[visible]]
-    hulls: list[np.ndarray | None] = []
-    for job in jobs:
-        if job is None:
-            hulls.append(None)
-            continue
-        _, grid, _, inside, seen = job
-        kept = (seen >= MIN_VIEWS) & (inside >= AGREEMENT * np.maximum(seen, 1))
-        if not kept.any():
-            hulls.append(None)
-            continue
-        cells = np.unique(np.round(grid[kept, :2] / VOXEL).astype(int), axis=0) * VOXEL
-        hulls.append(cells + rng.uniform(-VOXEL / 10, VOXEL / 10, cells.shape))
-    return hulls
+    return [None if c is None else c.footprint(rng) for c in carvings]
