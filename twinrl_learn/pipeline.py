@@ -6,20 +6,24 @@ Stages (shared by every method and seed):
 1. real demos: teleop-like expert demos in the plant, region ID only; twin demos
    (ID + OOD) synthesized by the planner; two SFT policies: real only (what the
    baselines start from) and real + twin (TwinRL's Stage I);
-2. twin RL from the real + twin policy; its successful rollouts are the twin buffer;
+2. twin RL from the real + twin policy, imitating real and twin demos; its successful
+   rollouts are the twin buffer;
 3. failure mining in the twin with the Stage II policy: the first reset targets.
 
 Then real RL in the plant for each method and seed (``RealRL``), all with the same
 simulated operator and evaluation grid:
 
-====================== ============== ============ =========== ==================
-method                 starts from    twin buffer  resets      objective
-====================== ============== ============ =========== ==================
-TwinRL                 Stage II       yes          mined+unif. beta L_IL + eta L_Q
-TwinRL w/o twin buffer Stage II       no           mined+unif. beta L_IL + eta L_Q
-ConRFT-style           real-only SFT  no           uniform     beta L_IL + eta L_Q
-HiL-SERL               real-only SFT  no           uniform     SAC (no IL term)
-====================== ============== ============ =========== ==================
+====================== ============= =========== =========== =========== ================
+method                 starts from   imitates    twin buffer resets      objective
+====================== ============= =========== =========== =========== ================
+TwinRL                 Stage II      real + twin yes         mined+unif. beta L_IL+eta L_Q
+TwinRL w/o twin buffer Stage II      real + twin no          mined+unif. beta L_IL+eta L_Q
+ConRFT-style           real-only SFT real        no          uniform     beta L_IL+eta L_Q
+HiL-SERL               real-only SFT (none)      no          uniform     SAC (no IL term)
+====================== ============= =========== =========== =========== ================
+
+"Imitates" is the demo buffer (interventions join it in every method; HiL-SERL keeps
+it as RLPD's demo half but has no imitation term).
 
 Outputs: ``report.md`` (curves, tables), ``report.json``, ``curves.png``, every
 episode log (each stage's ``session/`` folders), ``catalog.parquet`` over all of them
@@ -210,6 +214,7 @@ def _fresh(folder: Path) -> Path:
 def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
     paths = {
         "real": folder / "real",
+        "twin": folder / "twin" / "dataset",
         "sft_real": folder / f"{p.policy}_real",
         "sft_twin": folder / f"{p.policy}_real_twin",
     }
@@ -220,8 +225,10 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
     kept, recorded = record_real_demos(task, p.real_demos, folder)
     log(f"Stage I: kept {kept} of {recorded}; synthesizing {p.twin_id} ID + {p.twin_ood} OOD")
     expand(task, id_count=p.twin_id, ood_count=p.twin_ood, out=folder / "twin", seed=1)
-    twin = folder / "twin" / "dataset"
-    for name, datasets in (("sft_real", [paths["real"]]), ("sft_twin", [paths["real"], twin])):
+    for name, datasets in (
+        ("sft_real", [paths["real"]]),
+        ("sft_twin", [paths["real"], paths["twin"]]),
+    ):
         log(f"Stage I: SFT {paths[name].name}")
         train_sft(
             SFTConfig(
@@ -244,6 +251,13 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
     return paths
 
 
+def _demos(stage1: dict[str, Path], *, twin: bool) -> list[str]:
+    """The imitation data of a run: the real demos, plus the twin demos for a policy
+    that was fine-tuned on them (imitating only the ID real demos, the quick preset's
+    twin RL wore its OOD success down from 50 to 0 %, 32 plant episodes per region)."""
+    return [str(stage1["real"])] + ([str(stage1["twin"])] if twin else [])
+
+
 def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) -> Path:
     folder = out / "stage2"
     if not _done(folder):
@@ -253,7 +267,7 @@ def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) 
                 task=task,
                 init=str(stage1["sft_twin"]),
                 out=str(_fresh(folder)),
-                demos=[str(stage1["real"])],
+                demos=_demos(stage1, twin=True),
                 envs=p.twin_envs,
                 steps=p.twin_rl_steps,
                 rl=RLConfig.for_method("twinrl", offline_steps=p.offline_steps),
@@ -299,7 +313,7 @@ def _real_rl(
         task=task,
         init=str(stage2 / "agent" if method.from_twin else stage1["sft_real"]),
         out=str(folder),
-        demos=[str(stage1["real"])],
+        demos=_demos(stage1, twin=method.from_twin),
         twin_buffer=str(twin_buffer) if method.twin_buffer and twin_buffer.exists() else None,
         targets=str(targets) if method.mined_resets else None,
         refresh_every=p.refresh_every if method.mined_resets else 0,

@@ -40,6 +40,8 @@ KINDS = ("vla", "state")
 LOG_STD_RANGE = (-5.0, 1.0)
 ACTION_MARGIN = 0.9
 EPS = 1e-4
+IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
+STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
 
 
 @dataclass
@@ -310,6 +312,23 @@ class Policy(nn.Module):
             batch["relative"] = self.relative_positions(state, env)
         return batch
 
+    def augment(
+        self, batch: dict[str, torch.Tensor], generator: torch.Generator
+    ) -> dict[str, torch.Tensor]:
+        """A training copy of a normalised batch: images shifted by up to IMAGE_SHIFT
+        pixels, states with STATE_NOISE std units of noise (robustness to the small
+        state errors a rollout makes). SFT and the RL actor's imitation term both use
+        it, so fine-tuning keeps the input tolerance the policy was trained with."""
+        out = dict(batch)
+        if self.config.kind == "vla":
+            for camera in self.config.cameras:
+                out[f"image.{camera}"] = _random_shift(out[f"image.{camera}"], generator)
+        for key in ("state", "env", "relative"):
+            if key in out:
+                noise = torch.randn(out[key].shape, generator=generator) * STATE_NOISE
+                out[key] = out[key] + noise
+        return out
+
     def observation_inputs(
         self, observations: dict[str, Any], instructions: list[str]
     ) -> dict[str, torch.Tensor]:
@@ -397,3 +416,13 @@ def is_checkpoint(path: str | Path) -> bool:
         return json.loads((path / "config.json").read_text()).get("kind") in KINDS
     except json.JSONDecodeError:
         return False
+
+
+def _random_shift(images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """Pad by IMAGE_SHIFT (replicate) and crop back at a random offset per image."""
+    n, _, h, w = images.shape
+    padded = F.pad(images, (IMAGE_SHIFT,) * 4, mode="replicate")
+    offsets = torch.randint(0, 2 * IMAGE_SHIFT + 1, (n, 2), generator=generator).tolist()
+    return torch.stack(
+        [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
+    )

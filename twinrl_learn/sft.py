@@ -33,8 +33,6 @@ DEFAULTS = {
     "state": (3000, 256, 1e-3),
     "vla": (2500, 64, 5e-4),
 }
-IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
-STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
 
 
 @dataclass
@@ -93,26 +91,10 @@ def _batch(
         {camera: frames.images[camera][rows] for camera in frames.images},
         [frames.instruction[r] for r in rows],
     )
-    if augment and policy.config.kind == "vla":
-        for camera in policy.config.cameras:
-            batch[f"image.{camera}"] = _random_shift(batch[f"image.{camera}"], generator)
-    if augment:  # robustness to the small state errors a rollout makes (noise in std units)
-        for key in ("state", "env", "relative"):
-            if key in batch:
-                noise = torch.randn(batch[key].shape, generator=generator) * STATE_NOISE
-                batch[key] = batch[key] + noise
+    if augment:
+        batch = policy.augment(batch, generator)
     actions = policy.normalize("action", torch.from_numpy(frames.action_chunks(rows, chunk)))
     return batch, actions
-
-
-def _random_shift(images: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """Pad by IMAGE_SHIFT (replicate) and crop back at a random offset per image."""
-    n, _, h, w = images.shape
-    padded = torch.nn.functional.pad(images, (IMAGE_SHIFT,) * 4, mode="replicate")
-    offsets = torch.randint(0, 2 * IMAGE_SHIFT + 1, (n, 2), generator=generator).tolist()
-    return torch.stack(
-        [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
-    )
 
 
 def _sample_rows(

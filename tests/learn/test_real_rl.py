@@ -158,6 +158,10 @@ def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
         assert summary["plant_steps"] >= 100
     for name in ("report.md", "curves.png", "catalog.parquet", "representative.rrd"):
         assert (out / name).is_file(), name
+    # TwinRL keeps imitating the twin demos its policy was fine-tuned on; ConRFT has none.
+    for slug, demos in (("twinrl", 2), ("twinrl_no_buffer", 2), ("conrft", 1)):
+        settings = json.loads((out / "real_rl" / slug / "seed0" / "settings.json").read_text())
+        assert len(settings["demos"]) == demos, slug
     assert "![success against plant minutes](curves.png)" in (out / "report.md").read_text()
     # A finished pipeline is never overwritten by accident.
     with pytest.raises(ValueError, match="not empty"):

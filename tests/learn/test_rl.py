@@ -107,8 +107,12 @@ def test_actor_objective_reduces_to_bc_and_to_pure_q(demos):
         loss, _ = agent.actor_loss(t, demo_rows)
         return agent, t, loss
 
+    # The BC limit is SFT's loss: imitation of the demo rows under SFT's augmentation.
     agent, t, loss = gradients(beta=1.0, eta=0.0)
-    assert loss.item() == pytest.approx(agent.policy.imitation_loss(t["obs"], t["actions"]).item())
+    policy, generator = agent.policy, torch.Generator().manual_seed(1)
+    augmented = policy.augment(t["obs"], generator)
+    assert not torch.equal(augmented["env"], t["obs"]["env"])
+    assert loss.item() == pytest.approx(policy.imitation_loss(augmented, t["actions"]).item())
     agent, t, loss = gradients(beta=0.0, eta=1.0)
     torch.manual_seed(5)
     actions, _ = agent.policy.rsample(t["obs"])

@@ -10,7 +10,7 @@ from tests.conftest import lerobot_train, record_demos
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.evaluate import evaluate, grid_cells
-from twinrl_learn.policy import Policy
+from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, Policy, PolicyConfig
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.sft import SFTConfig, train_sft
 
@@ -115,3 +115,25 @@ def test_a_lerobot_policy_is_evaluated_through_the_adapter(dataset, tmp_path):
     assert isinstance(runner, LeRobotRunner) and runner.cameras == ("front", "wrist")
     report = evaluate(runner, "pick_place", grid=(1, 2), out=tmp_path / "eval")
     assert report.episodes == 2  # an untrained ACT fails, but it runs end to end
+
+
+def test_training_augmentation_shifts_images_and_noises_states_without_touching_the_batch():
+    policy = Policy(PolicyConfig(kind="vla", state_dim=6, cameras=["front"]))
+    images = torch.rand(64, 3, 32, 32)
+    batch = {"state": torch.zeros(64, 6), "image.front": images.clone()}
+    augmented = policy.augment(batch, torch.Generator().manual_seed(0))
+    assert torch.equal(batch["image.front"], images) and not batch["state"].any()
+    assert augmented["state"].std().item() == pytest.approx(STATE_NOISE, rel=0.15)
+    # Each image is a crop of its replicate-padded self shifted by at most IMAGE_SHIFT px.
+    padded = torch.nn.functional.pad(images, (IMAGE_SHIFT,) * 4, mode="replicate")
+    offsets = [(dy, dx) for dy in range(2 * IMAGE_SHIFT + 1) for dx in range(2 * IMAGE_SHIFT + 1)]
+    shifts = []
+    for i, image in enumerate(augmented["image.front"]):
+        found = [
+            o
+            for o in offsets
+            if torch.equal(image, padded[i, :, o[0] : o[0] + 32, o[1] : o[1] + 32])
+        ]
+        assert found, f"image {i} is not a shifted crop"
+        shifts.append(found[0])
+    assert len(set(shifts)) > 10  # the shift is drawn per image
