@@ -83,18 +83,16 @@ def _batch(
     rows: np.ndarray,
     generator: torch.Generator,
     chunk: int,
-    augment: bool,
-):
+) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """An augmented, normalised training batch of ``rows`` and their action chunks."""
     batch = policy.inputs(
         frames.state[rows],
         None if frames.environment_state is None else frames.environment_state[rows],
         {camera: frames.images[camera][rows] for camera in frames.images},
         [frames.instruction[r] for r in rows],
     )
-    if augment:
-        batch = policy.augment(batch, generator)
     actions = policy.normalize("action", torch.from_numpy(frames.action_chunks(rows, chunk)))
-    return batch, actions
+    return policy.augment(batch, generator), actions
 
 
 def _sample_rows(
@@ -171,7 +169,7 @@ def train_sft(
     start, window = time.perf_counter(), time.perf_counter()
     while step < config.steps:
         rows = _sample_rows(frames, weights, config.batch_size, generator)
-        batch, actions = _batch(policy, frames, rows, generator, config.chunk, augment=True)
+        batch, actions = _batch(policy, frames, rows, generator, config.chunk)
         loss = policy.imitation_loss(batch, actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
