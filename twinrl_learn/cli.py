@@ -338,6 +338,14 @@ def train_real_rl_command(
     operator: Annotated[
         bool, typer.Option(help="Simulated operator takes over when the policy strays.")
     ] = True,
+    funnel: Annotated[
+        float,
+        typer.Option(
+            help="Operator: metres across the object a closing gripper may be from the "
+            "expert's grasp before it takes over (0: only when the policy stalls).",
+            min=0.0,
+        ),
+    ] = OperatorRule.funnel,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
     resume: ResumeOption = False,
 ) -> None:
@@ -380,7 +388,7 @@ def train_real_rl_command(
         plant_steps=plant_steps,
         eval_every=eval_every,
         eval_grid=_grid(eval_grid, "--eval-grid"),
-        operator=OperatorRule() if operator else None,
+        operator=OperatorRule(funnel=funnel) if operator else None,
         rl=rl,
     )
     torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation

@@ -10,9 +10,11 @@ The simulated operator's rule (:class:`OperatorRule`), judged on the task's prog
 terms (reach, grasp, place/wipe: each in [0, 1]; their sum is the *progress*):
 
 - it **takes over** when the progress has not improved by ``min_progress`` for
-  ``patience`` steps (the policy is stuck) or has fallen ``regression`` below its best
-  (the object was dropped or knocked away), after a reaction delay of ``delay`` steps
-  during which the policy keeps acting;
+  ``patience`` steps (the policy is stuck), has fallen ``regression`` below its best
+  (the object was dropped or knocked away), or the fingers start closing while the TCP
+  is more than ``funnel`` m across the object from where the expert would grasp (a
+  grasp that is going to miss: the operator steps in before the stall it leads to),
+  after a reaction delay of ``delay`` steps during which the policy keeps acting;
 - it then drives the arm with the task's scripted expert, restarted from the measured
   state (from the lift if the object is already in the gripper), with hand jitter of
   ``noise`` m per step;
@@ -29,7 +31,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from twinrl_sim.tasks import Progress, Task, TaskConfig
-from twinrl_sim.tasks.expert import ScriptedExpert
+from twinrl_sim.tasks.expert import ObsView, ScriptedExpert
 
 
 @runtime_checkable
@@ -56,6 +58,7 @@ class OperatorRule:
     handback_gain: float = 1.0  # progress above the policy's best before handing back (a grasp)
     min_control: int = 5  # steps held at least once taken over
     noise: float = 0.002  # hand jitter, m per step (rotation: 5x in rad)
+    funnel: float = 0.015  # m across the object's axis a closing gripper may be off (0: off)
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
@@ -86,6 +89,7 @@ class SimulatedOperator:
         self._countdown: int | None = None
         self._held = 0
         self._best_before = 0.0
+        self._opening = float("nan")
 
     def intervene(
         self, observation: dict[str, np.ndarray], progress: Progress | None
@@ -95,6 +99,7 @@ class SimulatedOperator:
         if progress is None:
             raise ValueError("the simulated operator judges the task's progress; pass it")
         value = float(sum(progress.terms.values()))
+        closing = self._fingers_closing(observation)
         if self.expert is not None:
             self._held += 1
             resolved = value >= self._best_before + self.rule.handback_gain
@@ -115,12 +120,35 @@ class SimulatedOperator:
             self._stalled += 1
         stuck = self._stalled >= self.rule.patience
         regressed = value < self._best - self.rule.regression
-        if stuck or regressed:
+        if stuck or regressed or (closing and self._off_grasp(observation)):
             if self.rule.delay == 0:
                 self._take_over(observation, progress)
                 return self._expert_action(observation)
             self._countdown = self.rule.delay
         return None
+
+    def _fingers_closing(self, observation: dict[str, np.ndarray]) -> bool:
+        """Whether the gripper opening shrank since the last step (by > 1 mm)."""
+        opening = float(observation["observation.state"][-1])
+        closing = opening < self._opening - 1e-3
+        self._opening = opening
+        return closing
+
+    def grasp_error(self, observation: dict[str, np.ndarray]) -> float:
+        """How far (m) the TCP is from the expert's grasp, across the object's long axis
+        (along it, any point is a grasp) and in height; 0 for a task without a grasp."""
+        assert self.task is not None and self.config is not None
+        grasp = self.task.expert(self.config, self.rng).planned_grasp(observation)
+        if grasp is None:
+            return 0.0
+        view = ObsView(self.task.scene, observation)
+        yaw = view.yaw(self.task.object_name)
+        axis = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        offset = view.tcp_pos - grasp[0]
+        return float(np.linalg.norm(offset - np.dot(offset, axis) * axis))
+
+    def _off_grasp(self, observation: dict[str, np.ndarray]) -> bool:
+        return self.rule.funnel > 0 and self.grasp_error(observation) > self.rule.funnel
 
     def _take_over(self, observation: dict[str, np.ndarray], progress: Progress) -> None:
         assert self.task is not None and self.config is not None

@@ -48,11 +48,9 @@ def test_resets_follow_the_targets_by_score_and_mix_in_uniform_draws():
     }
 
 
-def test_the_operator_takes_over_a_stalled_arm_after_its_delay_and_hands_back():
-    task = make_task("pick_place")
+def _operated_episode(task, operator, policy_action):
+    """Run one plant episode with ``operator`` watching; which steps it acted on."""
     plant = Plant(task, seed=0)
-    rule = OperatorRule(patience=5, delay=2, noise=0.0)
-    operator = SimulatedOperator(rule, seed=0)
     config = task.sample_config(np.random.default_rng(1), "ID")
     obs = plant.reset(config)
     operator.reset(task, config)
@@ -63,17 +61,48 @@ def test_the_operator_takes_over_a_stalled_arm_after_its_delay_and_hands_back():
         acting.append(action is not None)
         if action is not None and not was:
             plant.hold()
-        plant.act(np.zeros(7, np.float32) if action is None else action)
+        plant.act(policy_action(obs) if action is None else action)
         obs = plant.observe()
         if plant.success:
             break
+    plant.close()
+    return acting, plant.success
+
+
+def test_the_operator_takes_over_a_stalled_arm_after_its_delay_and_hands_back():
+    task = make_task("pick_place")
+    rule = OperatorRule(patience=5, delay=2, noise=0.0)
+    operator = SimulatedOperator(rule, seed=0)
+    acting, _ = _operated_episode(task, operator, lambda obs: np.zeros(7, np.float32))
     first = acting.index(True)
     assert first == rule.patience + rule.delay  # noticed after patience, acted after delay
     assert not any(acting[:first])
     handed_back = first + acting[first:].index(False)
     assert handed_back > first + rule.min_control
     assert operator.takeovers >= 1
-    plant.close()
+
+
+def test_the_operator_takes_over_a_grasp_that_closes_off_the_object():
+    task = make_task("pick_place")
+    rule = OperatorRule(patience=50, delay=2, noise=0.0, funnel=0.015)
+    close_at_once = np.array([0, 0, 0, 0, 0, 0, 1], np.float32)  # far above the banana
+    acting, _ = _operated_episode(task, SimulatedOperator(rule, seed=0), lambda obs: close_at_once)
+    first = acting.index(True)
+    # The fingers move on the first closed step; the operator sees it on the next
+    # observation and acts after its delay, long before the stall rule's patience.
+    assert 1 <= first - rule.delay <= 3
+
+    # The expert's own grasp lies inside the funnel: as the policy it is never corrected.
+    expert = task.expert(
+        task.sample_config(np.random.default_rng(1), "ID"), np.random.default_rng(2)
+    )
+    acting, success = _operated_episode(task, SimulatedOperator(rule, seed=0), expert.act)
+    assert success and not any(acting)
+
+    # funnel = 0 switches the rule off: the stall rule alone acts, after its patience.
+    quiet = OperatorRule(patience=50, delay=2, noise=0.0, funnel=0.0)
+    acting, _ = _operated_episode(task, SimulatedOperator(quiet, seed=0), lambda obs: close_at_once)
+    assert acting.index(True) >= quiet.patience
 
 
 def real_settings(demos, out, **overrides):

@@ -167,6 +167,16 @@ class ScriptedExpert:
             remember_grasp(holding)(view, self.memory)
             self.phase_index = names.index("lift")
 
+    def planned_grasp(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, float] | None:
+        """Where this plan would grasp from ``obs``: (TCP position (m), tool yaw (rad)),
+        or ``None`` for a plan without a grasp. Leaves the expert's own state alone."""
+        view, memory = ObsView(self.scene, obs), {}
+        for phase in self.phases:
+            phase.goal(view, memory)
+            if "grasp" in memory:
+                return memory["grasp"]
+        return None
+
     def perturb(self, translation: np.ndarray, rotation: np.ndarray) -> None:
         """Shift the reference by what was executed on top of the last action (an
         operator's unsteady hand), so the following actions correct it instead of
