@@ -15,8 +15,7 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
 from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
-from twinrl_sim.spec import SceneSpec
-from twinrl_sim.tasks import REGION_NAMES, TASKS, make_task, task_class, twin_scene
+from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class, task_on_twin
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
 PlantEffects = Annotated[
@@ -101,18 +100,6 @@ def expert(
         console.print(success_table(reports))
         if session is not None:
             console.print(f"recorded {len(session.entries)} episodes in {session.path}")
-
-
-def task_on_twin(task: str, twin: str) -> SceneSpec:
-    """The cell named by ``--twin``, checked to hold ``task``'s objects."""
-    scene = twin_scene(twin)
-    try:
-        make_task(task, scene)
-    except KeyError as err:
-        raise ValueError(
-            f"--twin {twin}: {err.args[0]}; pick the task it is built for (--task)"
-        ) from None
-    return scene
 
 
 def success_table(reports: list[ExpertReport]) -> Table:

@@ -1,5 +1,5 @@
 """The plant: a stand-in for the real cell, built from the twin's scene spec plus
-hidden physical effects, observation noise and small visual differences.
+hidden effects (physical ones and its ``appearance``), and observation noise.
 
 It is stepped through the same :class:`~twinrl_robot.interface.Robot` interface as a
 real UR driver and keeps its own clock: ``elapsed_steps`` control steps at
@@ -20,7 +20,6 @@ from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
 from twinrl_sim.effects import load_effects, validate_effects
-from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import Progress, Task, TaskConfig, make_task
 
 DEFAULT_EFFECTS_FILE = Path(__file__).resolve().parent / "plants" / "default.yaml"
@@ -28,37 +27,18 @@ DEFAULT_EFFECTS_FILE = Path(__file__).resolve().parent / "plants" / "default.yam
 
 @dataclass(frozen=True)
 class PlantSettings:
-    """Sensor noise (standard deviations) and visual differences from the twin."""
+    """Sensor noise (standard deviations); how the plant looks is its ``appearance`` effect."""
 
     joint_noise: float = 2e-4  # rad, on joint positions
     velocity_noise: float = 2e-3  # rad/s, on joint velocities
     tcp_noise: float = 3e-4  # m, on the reported TCP position
     object_noise: float = 1e-3  # m, on tracked object positions
     torque_noise: float = 0.05  # N m, on reported joint torques
-    light_scale: float = 0.85  # light intensity relative to the twin
-    table_tint: tuple[float, float, float] = (0.04, 0.02, -0.03)  # added to the table colour
 
     def __post_init__(self) -> None:
         for name in ("joint_noise", "velocity_noise", "tcp_noise", "object_noise", "torque_noise"):
             if getattr(self, name) < 0:
                 raise ValueError(f"PlantSettings.{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 < self.light_scale <= 3:
-            raise ValueError(f"PlantSettings.light_scale must be in (0, 3], got {self.light_scale}")
-
-
-def _visually_different(scene: SceneSpec, settings: PlantSettings) -> SceneSpec:
-    lights = [
-        light.model_copy(
-            update={"diffuse": tuple(min(1.0, c * settings.light_scale) for c in light.diffuse)}
-        )
-        for light in scene.lights
-    ]
-    rgba = scene.table.rgba
-    tinted = tuple(
-        float(np.clip(c + t, 0, 1)) for c, t in zip(rgba[:3], settings.table_tint, strict=True)
-    )
-    table = scene.table.model_copy(update={"rgba": (*tinted, rgba[3])})
-    return scene.model_copy(update={"lights": lights, "table": table})
 
 
 class Plant:
@@ -68,7 +48,7 @@ class Plant:
         task: task name or instance (its scene is the nominal cell).
         effects: hidden effects (mapping) or a path to an effects YAML; ``None`` uses
             the built-in plant (``plants/default.yaml``); ``{}`` means none.
-        settings: sensor noise and visual differences.
+        settings: sensor noise.
         seed: seeds the sensor noise.
         images: cameras to render into observations (default: none).
     """
@@ -90,7 +70,7 @@ class Plant:
         else:
             hidden = validate_effects(effects)
         self._hidden_effects = hidden
-        scene = _visually_different(self.task.scene, settings)
+        scene = self.task.scene
         self._cell = Cell(compile_scene(scene, extra_effects=hidden))
         self.settings = settings
         self.control_hz = scene.physics.control_hz

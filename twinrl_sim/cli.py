@@ -25,6 +25,7 @@ from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
 from twinrl_sim.gap import (
     CANDIDATES,
+    IMAGE_EFFECTS,
     NoiseFloor,
     diagnose,
     localize,
@@ -36,7 +37,7 @@ from twinrl_sim.gap.report import format_params
 from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
-from twinrl_sim.tasks import TASKS, TaskConfig, make_task, twin_scene
+from twinrl_sim.tasks import TASKS, TaskConfig, make_task, task_on_twin, twin_scene
 
 app = typer.Typer(
     help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
@@ -181,6 +182,13 @@ def expand_command(
             help=f"Visual randomisation: comma-separated {', '.join(RANDOMIZATIONS)}, or all."
         ),
     ] = "",
+    twin: Annotated[
+        str | None,
+        typer.Option(
+            help="Scene spec to synthesize in (e.g. twin_fitted.yaml from `gap diagnose`, "
+            "with the cell's physics and look); default: the task's built-in cell."
+        ),
+    ] = None,
     seed: Annotated[
         int, typer.Option(help="Seed (attempt k always gets the same configuration).")
     ] = 0,
@@ -189,6 +197,7 @@ def expand_command(
 ) -> None:
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
     kinds = RANDOMIZATIONS if randomize == "all" else tuple(k for k in randomize.split(",") if k)
+    scene = task_on_twin(task, twin) if twin is not None else None
     quiet_encoders()
     with progress("kept") as bar:
         jobs = {
@@ -209,6 +218,7 @@ def expand_command(
             method=method,
             from_demo=from_demo,
             randomize=kinds,
+            scene=scene,
             seed=seed,
             workers=workers,
             force=force,
@@ -373,7 +383,7 @@ def diagnose_command(
         str | None,
         typer.Option(
             help="Comma-separated candidates to try (default: all of "
-            f"{', '.join(CANDIDATES)}, camera_pose when images are logged)."
+            f"{', '.join(CANDIDATES)}, and {' and '.join(IMAGE_EFFECTS)} when images are logged)."
         ),
     ] = None,
     window: Annotated[int, typer.Option(help="Control steps per shooting window.", min=2)] = 20,
@@ -381,7 +391,8 @@ def diagnose_command(
         str,
         typer.Option(
             help="Sensor noise per signal family, the residuals' unit, e.g. 'q=2e-4,tau=0.1' "
-            "(families: q rad, qd rad/s, tcp m, tau N m, object m, image: standardised grey)."
+            "(families: q rad, qd rad/s, tcp m, tau N m, object m, image: standardised grey, "
+            "colour: 0-1)."
         ),
     ] = "",
     seed: Annotated[int, typer.Option(help="Seeds the held-out split and window choice.")] = 0,
@@ -397,7 +408,8 @@ def diagnose_command(
     )
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
-    episodes = load_episodes(measured, images=allowed is None or "camera_pose" in allowed)
+    images = allowed is None or any(e in allowed for e in IMAGE_EFFECTS)
+    episodes = load_episodes(measured, images=images)
     with progress() as bar:
         job = bar.add_task("diagnose", total=None)
         diagnosis = diagnose(
@@ -442,6 +454,11 @@ def diagnose_command(
     for camera, gap in diagnosis.image_gap.items():
         console.print(
             f"{camera} camera: held-out image error {gap['before']:.3g} -> {gap['after']:.3g}"
+        )
+    if diagnosis.appearance_gap:
+        gap = diagnosis.appearance_gap
+        console.print(
+            f"appearance: held-out colour error {gap['before']:.3g} -> {gap['after']:.3g}"
         )
     console.print(f"{out}/gap_report.json, twin_fitted.yaml, report.md, overlay.rrd")
 

@@ -201,6 +201,29 @@ def apply_gripper_force(spec: mujoco.MjSpec, layout: CellLayout, scale: float) -
     act.forcerange = np.asarray(act.forcerange) * scale
 
 
+def apply_appearance(
+    spec: mujoco.MjSpec, layout: CellLayout, light_scale: float, table_tint: list[float]
+) -> None:
+    """How the cell looks: light intensity relative to nominal and a colour offset of the
+    table top (what cameras see differently; no effect on motion).
+
+    ``light_scale`` multiplies the diffuse colour of the cell's lights (not the
+    renderer's headlight), each channel capped at 1; ``table_tint`` (RGB, 0-1 scale) is
+    added to the table top's colour, and to the two colours of its texture if it has one.
+    """
+    for light in spec.lights:
+        light.diffuse = np.minimum(1.0, np.asarray(light.diffuse) * light_scale)
+    tint = np.asarray(table_tint, float)
+    geom = spec.geom(layout.table_geom)
+    rgba = np.asarray(geom.rgba, float)
+    geom.rgba = np.r_[np.clip(rgba[:3] + tint, 0, 1), rgba[3]]
+    if geom.material:
+        role = mujoco.mjtTextureRole.mjTEXROLE_RGB
+        texture = spec.texture(spec.material(geom.material).textures[role])
+        texture.rgb1 = np.clip(np.asarray(texture.rgb1) + tint, 0, 1)
+        texture.rgb2 = np.clip(np.asarray(texture.rgb2) + 0.6 * tint, 0, 1)
+
+
 def _object_geoms(spec: mujoco.MjSpec, layout: CellLayout) -> list[mujoco.MjsGeom]:
     if not layout.manipulated:
         raise ValueError("this cell has no manipulated object")
@@ -277,6 +300,15 @@ EFFECTS: dict[str, EffectDef] = {
             },
             apply_camera_pose,
             apply_camera_pose.__doc__ or "",
+        ),
+        EffectDef(
+            "appearance",
+            {
+                "light_scale": ParamDef("float", "x nominal", 0.05, 3.0, "light intensity"),
+                "table_tint": ParamDef("vec3", "rgb", -1.0, 1.0, "table colour offset"),
+            },
+            apply_appearance,
+            apply_appearance.__doc__ or "",
         ),
         EffectDef(
             "gripper_force",

@@ -37,6 +37,7 @@ from twinrl_sim.augment import retarget
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.planner import plan_demo
 from twinrl_sim.randomize import check_kinds, randomize_scene
+from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import TaskConfig, make_task
 
 METHODS = ("plan", "augment")
@@ -75,6 +76,7 @@ class _Job:
     randomize: tuple[str, ...]
     demo_path: str | None
     episode_dir: str
+    scene: SceneSpec | None = None  # the twin to synthesize in (None: the task's cell)
 
 
 _WORKER_CACHE: dict[str, Any] = {}
@@ -83,7 +85,7 @@ _WORKER_CACHE: dict[str, Any] = {}
 def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
     """Make one demonstration; write it only if it succeeds. Runs in a worker."""
     rng = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt])
-    task = make_task(job.task)
+    task = make_task(job.task, job.scene)
     config = task.sample_config(rng, job.region)
     scene, record = task.scene, {}
     if job.randomize:
@@ -152,6 +154,7 @@ def expand(
     method: str = "plan",
     from_demo: str | Path | None = None,
     randomize: tuple[str, ...] = (),
+    scene: SceneSpec | None = None,
     seed: int = 0,
     workers: int | None = None,
     export: bool = True,
@@ -161,10 +164,12 @@ def expand(
     """Synthesize ``id_count`` + ``ood_count`` successful demonstrations of ``task``.
 
     ``method`` is ``plan`` (grasp sampling + collision-checked waypoints) or ``augment``
-    (re-target the episode ``from_demo``, an .mcap file). ``on_demo(region, kept)`` is
-    called after each attempt (for progress bars).
+    (re-target the episode ``from_demo``, an .mcap file). ``scene`` is the twin to
+    synthesize in (e.g. one fitted by ``twinrl gap diagnose``: its physics and its look);
+    ``None`` is the task's built-in cell. ``on_demo(region, kept)`` is called after each
+    attempt (for progress bars).
     """
-    make_task(task)
+    make_task(task, scene)
     if method not in METHODS:
         raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
     if method == "augment":
@@ -193,6 +198,7 @@ def expand(
         "randomize": tuple(randomize),
         "demo_path": str(from_demo) if from_demo else None,
         "episode_dir": str(session.path / "episodes"),
+        "scene": scene,
     }
     workers = workers or min(2, os.cpu_count() or 1)
     start = time.perf_counter()

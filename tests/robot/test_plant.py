@@ -15,8 +15,6 @@ QUIET = PlantSettings(
     velocity_noise=0,
     tcp_noise=0,
     object_noise=0,
-    light_scale=1.0,
-    table_tint=(0, 0, 0),
 )
 SWING = np.array([0.02, 0.03, -0.01, 0.0, 0.0, 0.2, 0.0], np.float32)
 

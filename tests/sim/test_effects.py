@@ -34,6 +34,7 @@ def test_the_library_has_exactly_the_documented_effects_and_parameters():
         "table_height": {"offset"},
         "joint_offset": {"radians"},
         "camera_pose": {"camera", "xyz", "rpy"},
+        "appearance": {"light_scale", "table_tint"},
         "gripper_force": {"scale"},
     }
     assert all(d.doc for d in EFFECTS.values())
@@ -115,6 +116,30 @@ def test_camera_pose_moves_and_turns_the_camera():
     assert not np.allclose(model.cam_quat[0], NOMINAL.cam_quat[0])
     with pytest.raises(Exception, match="did you mean 'front'"):
         model_with({"camera_pose": {"camera": "fornt", "xyz": [0, 0, 0], "rpy": [0, 0, 0]}})
+
+
+def test_appearance_dims_the_lights_and_tints_the_table():
+    model = model_with({"appearance": {"light_scale": 0.5, "table_tint": [0.1, 0.0, -0.1]}})
+    np.testing.assert_allclose(model.light_diffuse, 0.5 * NOMINAL.light_diffuse, atol=1e-6)
+    table = NOMINAL.geom("table_top").id
+    np.testing.assert_allclose(
+        model.geom_rgba[table], NOMINAL.geom_rgba[table] + [0.1, 0.0, -0.1, 0.0], atol=1e-6
+    )
+    brighter = model_with({"appearance": {"light_scale": 3.0, "table_tint": [0, 0, 0]}})
+    assert brighter.light_diffuse.max() == pytest.approx(1.0)  # capped at full intensity
+    # A textured table's texture is tinted too.
+    checker = TASK.scene.model_copy(
+        update={"table": TASK.scene.table.model_copy(update={"texture": "checker"})}
+    )
+    plain = compile_scene(checker).model
+    tinted = compile_scene(
+        checker, extra_effects={"appearance": {"light_scale": 1.0, "table_tint": [0.2, 0, 0]}}
+    ).model
+    texture = plain.texture("table_texture").id
+    adr, size = plain.tex_adr[texture], 3 * plain.tex_width[texture] * plain.tex_height[texture]
+    red = lambda m: m.tex_data[adr : adr + size].reshape(-1, 3)[:, 0].astype(int)  # noqa: E731
+    assert (red(tinted) - red(plain)).mean() > 20
+    np.testing.assert_array_equal(model.body_mass, NOMINAL.body_mass)  # nothing physical
 
 
 def tracked_trajectory(effects: dict) -> np.ndarray:

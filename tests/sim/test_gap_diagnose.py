@@ -159,6 +159,34 @@ def test_names_a_hidden_camera_tilt_from_images(tmp_path):
     assert fitted.effects["camera_pose"]["camera"] == "front"
 
 
+def test_names_the_cells_appearance_from_images(tmp_path):
+    hidden = {"appearance": {"light_scale": 0.8, "table_tint": [0.05, 0.0, -0.04]}}
+    (tmp_path / "hidden.yaml").write_text(yaml.safe_dump(hidden))
+    session = Session.create(tmp_path / "s")
+    run_scripted_expert(
+        "pick_place", world="plant", effects=tmp_path / "hidden.yaml", episodes=2, seed=3,
+        session=session,
+    )  # fmt: skip
+    out = tmp_path / "out"
+    result = CliRunner().invoke(
+        app,
+        ["gap", "diagnose", str(tmp_path / "s"), "--twin", "pick_place",
+         "--effects-allowed", "appearance", "--out", str(out)],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "held-out colour error" in result.output
+    report = json.loads((out / "gap_report.json").read_text())
+    assert [s["effect"] for s in report["selected"]] == ["appearance"]
+    named = report["selected"][0]["params"]
+    assert named["light_scale"] == pytest.approx(0.8, abs=0.03)
+    np.testing.assert_allclose(named["table_tint"], [0.05, 0.0, -0.04], atol=0.01)
+    gap = report["appearance_gap"]
+    assert gap["after"] <= 0.5 * gap["before"]
+    assert "### Appearance" in (out / "report.md").read_text()
+    fitted = load_spec(out / "twin_fitted.yaml")
+    assert fitted.effects["appearance"]["light_scale"] == pytest.approx(named["light_scale"])
+
+
 def test_camera_pose_needs_images(tmp_path):
     episodes = _record(tmp_path / "s", {}, episodes=2)
     with pytest.raises(ValueError, match="camera_pose needs camera images"):
@@ -322,6 +350,7 @@ def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
     ("option", "message"),
     [
         ("--effects-allowed camera_pose", "camera_pose needs camera images"),
+        ("--effects-allowed appearance", "appearance needs camera images"),
         ("--effects-allowed friction", "'friction' is not an effect"),
         ("--heldout 1.5", "--heldout must be a fraction"),
         ("--noise q=-1", "must be positive"),

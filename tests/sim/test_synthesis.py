@@ -169,3 +169,31 @@ def test_expand_writes_episodes_dataset_and_report(tmp_path):
         expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "out")
     with pytest.raises(ValueError, match="needs --from-demo"):
         expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "x", method="augment")
+
+
+def test_expand_in_a_fitted_twin_renders_with_its_look(tmp_path):
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+    from twinrl_sim.spec import save_spec
+
+    look = {"appearance": {"light_scale": 0.6, "table_tint": [0.1, 0.0, 0.0]}}
+    fitted = make_task("pick_place").scene.with_effects(look)
+    save_spec(fitted, tmp_path / "twin_fitted.yaml")
+    runner = CliRunner()
+    args = ["expand", "pick_place", "--id", "1", "--ood", "0", "--workers", "1", "--out"]
+    twin = ["--twin", str(tmp_path / "twin_fitted.yaml")]
+    result = runner.invoke(app, [*args, str(tmp_path / "fitted"), *twin])
+    assert result.exit_code == 0, result.output
+    assert runner.invoke(app, [*args, str(tmp_path / "nominal")]).exit_code == 0
+    (mine,) = [read_episode(p) for p in Session(tmp_path / "fitted" / "session").episode_paths()]
+    (nominal,) = [
+        read_episode(p) for p in Session(tmp_path / "nominal" / "session").episode_paths()
+    ]
+    assert mine.meta.twin == fitted.digest != nominal.meta.twin
+    assert mine.meta.config == nominal.meta.config  # same attempt, another look
+    front, plain = mine.images["front"][0].astype(float), nominal.images["front"][0].astype(float)
+    assert front.mean() < plain.mean() - 5  # the fitted cell's dimmer light
+    wrong = runner.invoke(app, [*args, str(tmp_path / "w"), "--twin", "insert_hexagon"])
+    assert wrong.exit_code != 0 and "--twin insert_hexagon" in str(wrong.exception)
+    assert not (tmp_path / "w").exists()

@@ -1,6 +1,7 @@
 """The sim-to-real gap workflow: replay measured episodes in the twin, localise where
 they disagree, fit and name the effects the twin lacks, and show the gap shrink."""
 
+from twinrl_sim.gap.diagnose import IMAGE_EFFECTS as IMAGE_EFFECTS
 from twinrl_sim.gap.diagnose import Diagnosis as Diagnosis
 from twinrl_sim.gap.diagnose import diagnose as diagnose
 from twinrl_sim.gap.identify import CANDIDATES as CANDIDATES

@@ -16,7 +16,7 @@ twin's ``MjSpec``; :func:`sysid.optimize` on the image residual; and
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 
 import mujoco
@@ -47,7 +47,7 @@ class Frames:
     """Logged images of one camera with the measured state they were taken in."""
 
     camera: str
-    images: np.ndarray  # (n, S, S) compared form (grey, box-averaged, standardised)
+    images: np.ndarray  # (n, S, S[, 3]) compared form (see :func:`compared`, :func:`colours`)
     size: tuple[int, int]  # logged (height, width)
     q: np.ndarray  # (n, n_arm) measured joints
     opening: np.ndarray  # (n,) gripper opening (m)
@@ -72,15 +72,20 @@ def logged_cameras(episodes: Sequence[contract.Episode], layout: CellLayout) -> 
     return [c for c in layout.cameras if all(c in e.images for e in episodes)]
 
 
+def colours(images: np.ndarray) -> np.ndarray:
+    """(n, H, W, 3) uint8 -> (n, S, S, 3) colour in [0, 1], box-averaged to
+    :data:`IMAGE_SIZE` (what the ``appearance`` fit compares)."""
+    n, h, w, _ = images.shape
+    fy, fx = max(1, h // IMAGE_SIZE), max(1, w // IMAGE_SIZE)
+    cropped = images[:, : h - h % fy, : w - w % fx].astype(np.float32) / 255
+    return cropped.reshape(n, h // fy, fy, w // fx, fx, 3).mean(axis=(2, 4))
+
+
 def compared(images: np.ndarray) -> np.ndarray:
     """(n, H, W, 3) uint8 -> (n, S, S) grey, box-averaged to :data:`IMAGE_SIZE`,
-    standardised per image."""
-    grey = images.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) / 255
-    n, h, w = grey.shape
-    fy, fx = max(1, h // IMAGE_SIZE), max(1, w // IMAGE_SIZE)
-    grey = grey[:, : h - h % fy, : w - w % fx]
-    small = grey.reshape(n, h // fy, fy, w // fx, fx).mean(axis=(2, 4))
-    centred = small - small.mean(axis=(1, 2), keepdims=True)
+    standardised per image (what the ``camera_pose`` fit compares)."""
+    grey = colours(images) @ np.array([0.299, 0.587, 0.114], np.float32)
+    centred = grey - grey.mean(axis=(1, 2), keepdims=True)
     return centred / (centred.std(axis=(1, 2), keepdims=True) + 1e-6)
 
 
@@ -90,8 +95,9 @@ def sample_frames(
     objects: Sequence[str],
     camera: str,
     per_episode: int = FRAMES_PER_EPISODE,
+    form: Callable[[np.ndarray], np.ndarray] = compared,
 ) -> Frames:
-    """``per_episode`` frames spread over each episode's rows."""
+    """``per_episode`` frames spread over each episode's rows, images in ``form``."""
     parts: dict[str, list] = {k: [] for k in ("images", "q", "opening", "poses", "episode")}
     size = (0, 0)
     for e_index, episode in enumerate(episodes):
@@ -100,7 +106,7 @@ def sample_frames(
         rows = np.linspace(0, len(state) - 1, min(per_episode, len(state))).round().astype(int)
         logged = episode.images[camera]
         size = logged.shape[1:3]
-        parts["images"].append(compared(logged[rows]))
+        parts["images"].append(form(logged[rows]))
         parts["q"].append(state[rows][:, [col[f"q.{j}"] for j in layout.arm_joints]])
         opening = (
             state[rows, col["gripper.opening"]]
@@ -120,6 +126,28 @@ def sample_frames(
         parts["episode"].append(np.full(len(rows), e_index))
     arrays = {k: np.concatenate(v) for k, v in parts.items()}
     return Frames(camera, size=size, objects=list(objects), **arrays)
+
+
+def render_measured(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    renderer: mujoco.Renderer,
+    layout: CellLayout,
+    frames: Frames,
+) -> np.ndarray:
+    """(n, H, W, 3) uint8: ``frames``' camera rendering the twin at each frame's
+    measured state (arm joints, gripper opening, object and fixture poses)."""
+    camera = model.camera(frames.camera).id
+    arm = [model.joint(j).qposadr[0] for j in layout.arm_joints]
+    images = np.empty((len(frames), *frames.size, 3), np.uint8)
+    for i in range(len(frames)):
+        mujoco.mj_resetData(model, data)
+        place_measured(model, data, layout, frames.objects, frames.poses[i], frames.opening[i])
+        data.qpos[arm] = frames.q[i]
+        mujoco.mj_forward(model, data)
+        renderer.update_scene(data, camera=camera)
+        images[i] = renderer.render()
+    return images
 
 
 class CameraFit:
@@ -179,17 +207,9 @@ class CameraFit:
         moved = sysid.apply_param_modifiers_spec(params, self.spec.copy()).compile()
         self.model.cam_pos[self.camera_id] = moved.cam_pos[self.camera_id]
         self.model.cam_quat[self.camera_id] = moved.cam_quat[self.camera_id]
-        f = self.frames
-        arm = [self.model.joint(j).qposadr[0] for j in self.layout.arm_joints]
-        images = np.empty((len(f), *f.size, 3), np.uint8)
-        for i in range(len(f)):
-            mujoco.mj_resetData(self.model, self.data)
-            place_measured(self.model, self.data, self.layout, f.objects, f.poses[i], f.opening[i])
-            self.data.qpos[arm] = f.q[i]
-            mujoco.mj_forward(self.model, self.data)
-            self.renderer.update_scene(self.data, camera=self.camera_id)
-            images[i] = self.renderer.render()
-        return compared(images)
+        return compared(
+            render_measured(self.model, self.data, self.renderer, self.layout, self.frames)
+        )
 
     def residuals(self, x: np.ndarray | None = None) -> np.ndarray:
         """(n, S, S) residuals in image-noise units at ``x`` (default: no effect)."""

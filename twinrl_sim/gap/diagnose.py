@@ -16,6 +16,9 @@
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
    named (an effects file holds one ``camera_pose``).
+6. Then ``appearance`` (light intensity, table colour) is fitted on all logged cameras'
+   colours (:mod:`twinrl_sim.gap.appearance`) with the named camera pose in place, and
+   named by the same rule.
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ from mujoco.rollout import Rollout
 from twinrl_data import schema as contract
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import EFFECTS
-from twinrl_sim.gap.camera import CameraFit, logged_cameras, sample_frames
+from twinrl_sim.gap.appearance import AppearanceFit
+from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.identify import (
     CANDIDATES,
     NoiseFloor,
@@ -47,7 +51,9 @@ MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must
 # The same for a camera pose: pixel residuals are strongly correlated and carry the
 # lighting and tracking differences no pose can explain, on which a sub-millimetre
 # nudge of a well-mounted camera gains a few per cent; a real mounting error gains more.
+# Appearance is judged by the same bar.
 MIN_IMAGE_GAIN = 0.2
+IMAGE_EFFECTS = ("camera_pose", "appearance")  # fitted on images, not motion
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
 MAX_EFFECTS = 3  # rounds of naming
 
@@ -97,6 +103,9 @@ class Diagnosis:
     cameras: list[CandidateResult]  # camera_pose per logged camera, best first
     image_gap: dict[str, dict[str, float]]  # camera -> held-out image error before/after
     image_noise: float
+    appearance: CandidateResult | None  # fitted on every logged camera's colours
+    appearance_gap: dict[str, float]  # held-out colour error before/after (empty: not fitted)
+    colour_noise: float
     heldout: Windows = field(repr=False)
     predicted_before: np.ndarray = field(repr=False)  # (n, W, n_signals) held-out
     predicted_after: np.ndarray = field(repr=False)
@@ -108,8 +117,10 @@ class Diagnosis:
     @property
     def candidates(self) -> list[CandidateResult]:
         """The first round's ranking of every candidate against the twin as it is (on
-        motion residuals), then ``camera_pose`` per camera (on image residuals)."""
-        return (self.rounds[0] if self.rounds else []) + self.cameras
+        motion residuals), then ``camera_pose`` per camera (on image residuals), then
+        ``appearance`` (on colour residuals)."""
+        first = self.rounds[0] if self.rounds else []
+        return first + self.cameras + ([self.appearance] if self.appearance else [])
 
 
 UNITS = {"q": "rad", "qd": "rad/s", "tcp": "m", "tau": "N m", "object": "m"}
@@ -138,13 +149,13 @@ def candidate_pool(
     names = list(CANDIDATES)
     if allowed:
         unknown = [a for a in allowed if a not in CANDIDATES]
-        unknown = [a for a in unknown if a != "camera_pose"]
+        unknown = [a for a in unknown if a not in IMAGE_EFFECTS]
         if unknown:
-            known = ", ".join(CANDIDATES)
+            known = ", ".join([*CANDIDATES, *IMAGE_EFFECTS])
             effect = "an effect" if unknown[0] in EFFECTS else "not an effect"
             raise ValueError(
                 f"--effects-allowed: '{unknown[0]}' is {effect} the workflow fits; "
-                f"choose among {known}, camera_pose"
+                f"choose among {known}"
             )
         names = [n for n in names if n in allowed]
     skipped = {}
@@ -200,15 +211,17 @@ def diagnose(
         )
     fit_on = _spread(train, fit_windows, seed)
     pool, skipped = candidate_pool(windows, allowed)
-    cameras_wanted = allowed is None or "camera_pose" in allowed
-    cameras = logged_cameras(episodes, layout) if cameras_wanted else []
-    if cameras_wanted and not cameras:
-        if allowed:
-            raise ValueError(
-                "camera_pose needs camera images in every episode; record with images "
-                "(twinrl sim expert --out records both cameras)"
-            )
-        skipped["camera_pose"] = "no camera images in the episodes"
+    logged = logged_cameras(episodes, layout)
+    wanted = {e: allowed is None or e in allowed for e in IMAGE_EFFECTS}
+    for effect in IMAGE_EFFECTS:
+        if wanted[effect] and not logged:
+            if allowed:
+                raise ValueError(
+                    f"{effect} needs camera images in every episode; record with images "
+                    "(twinrl sim expert --out records both cameras)"
+                )
+            skipped[effect] = "no camera images in the episodes"
+    cameras = logged if wanted["camera_pose"] else []
     log(
         f"{len(train_idx)} training episodes ({len(fit_on)} of {len(train)} windows fitted), "
         f"{len(held_idx)} held out ({len(held)} windows); candidates: {', '.join(pool)}"
@@ -261,6 +274,25 @@ def diagnose(
             selected.append({"effect": best.effect, "params": best.params, "ci": best.ci})
             fixed = {**fixed, best.effect: best.params}
             log(f"named camera_pose of the {best.params['camera']} camera")
+        appearance, appearance_gap = None, {}
+        if wanted["appearance"] and logged:
+            log(f"fitting appearance on the {', '.join(logged)} images' colours")
+            appearance, appearance_gap = _fit_appearance(
+                scene,
+                [episodes[i] for i in train_idx],
+                [episodes[i] for i in held_idx],
+                layout,
+                objects,
+                logged,
+                noise.colour,
+                fixed,
+            )
+            if appearance.significant:
+                selected.append(
+                    {"effect": "appearance", "params": appearance.params, "ci": appearance.ci}
+                )
+                fixed = {**fixed, "appearance": appearance.params}
+                log(f"named appearance {appearance.params}")
         before = WindowReplay(scene, held, noise, pool=rollout)
         after = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout)
         predicted_before = before.predict([before.sequences.gt_model])[0][0]
@@ -301,6 +333,13 @@ def diagnose(
         seconds=time.perf_counter() - started,
         cameras=camera_results,
         image_noise=noise.image,
+        appearance=appearance,
+        appearance_gap=(
+            appearance_gap
+            if appearance is None or appearance.significant
+            else {**appearance_gap, "after": appearance_gap["before"]}
+        ),
+        colour_noise=noise.colour,
         image_gap={
             c: g if c in named_cameras else {**g, "after": g["before"]}
             for c, g in image_gap.items()
@@ -412,4 +451,43 @@ def _fit_camera(
         iterations=iterations,
         seconds=time.perf_counter() - started,
         compared=f"images:{camera}",
+    ), gap
+
+
+def _fit_appearance(
+    scene, train_episodes, held_episodes, layout, objects, cameras, noise, fixed
+) -> tuple[CandidateResult, dict[str, float]]:
+    """appearance fitted on the training episodes' colours (every logged camera), scored
+    on the held-out ones: the result and the held-out colour error before and after."""
+    started = time.perf_counter()
+
+    def frames(episodes):
+        return [sample_frames(episodes, layout, objects, c, form=colours) for c in cameras]
+
+    fit = AppearanceFit(scene, frames(train_episodes), noise, fixed=fixed)
+    check = AppearanceFit(scene, frames(held_episodes), noise, fixed=fixed)
+    try:
+        before = fit.residuals()
+        x, half_width, iterations = fit.fit()
+        after = fit.residuals(x)
+        gap = {"before": _rms(check.residuals()), "after": _rms(check.residuals(x))}
+    finally:
+        fit.close()
+        check.close()
+    _, bic_before = _information(before.reshape(1, -1, 1), 0)
+    aic, bic = _information(after.reshape(1, -1, 1), len(x))
+    gain = 1 - gap["after"] / gap["before"] if gap["before"] > 0 else 0.0
+    significant = bic < bic_before - BIC_MARGIN and gain >= MIN_IMAGE_GAIN
+    return CandidateResult(
+        effect="appearance",
+        params=fit.effect_at(x),
+        ci=fit.interval_at(half_width),
+        heldout_error=gap["after"],
+        aic=aic,
+        bic=bic,
+        delta_bic=bic - bic_before,
+        significant=bool(significant),
+        iterations=iterations,
+        seconds=time.perf_counter() - started,
+        compared=f"colours:{','.join(cameras)}",
     ), gap

@@ -51,7 +51,7 @@ class NoiseFloor:
 
     The defaults are those of a UR e-series arm's joint encoders, velocity estimate,
     TCP pose and joint torque estimate, of a tracked object's position, and of a
-    camera image compared in standardised grey levels.
+    camera image compared in standardised grey levels and in colour.
     """
 
     q: float = 2e-4  # rad
@@ -60,6 +60,7 @@ class NoiseFloor:
     tau: float = 0.05  # N m
     object: float = 1e-3  # m
     image: float = 0.05  # standardised grey level of a compared image (see gap.camera)
+    colour: float = 0.02  # colour level (0-1) of a box-averaged image (see gap.appearance)
 
     @classmethod
     def parse(cls, text: str) -> NoiseFloor:

@@ -60,6 +60,7 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
             )
         ],
         "image_gap": d.image_gap,
+        "appearance_gap": d.appearance_gap,
         "inverse_dynamics": d.inverse_dynamics,
         "skipped": d.skipped,
         "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
@@ -305,6 +306,24 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
                 f"{r.delta_bic:+.0f} | {'yes' if r.significant else 'no'} |"
             )
         lines.append("")
+    if d.appearance is not None:
+        r, gap = d.appearance, d.appearance_gap
+        lines += [
+            "### Appearance",
+            "",
+            "`appearance` (light intensity, table colour) on every logged camera's colours "
+            f"(box-averaged RGB, 0-1; noise unit {d.colour_noise:g}), judged by the same rule "
+            "as the cameras. Image policies trained on twin renders need the twin to look "
+            "like the cell.",
+            "",
+            "| compared | parameters | 95 % (±) | held-out colour error before | after | ΔBIC "
+            "| significant |",
+            "|---|---|---|---|---|---|---|",
+            f"| {r.compared.partition(':')[2]} | {format_params(r.params)} | "
+            f"{format_params(r.ci)} | {gap['before']:.3g} | {r.heldout_error:.3g} | "
+            f"{r.delta_bic:+.0f} | {'yes' if r.significant else 'no'} |",
+            "",
+        ]
     if d.skipped:
         lines += ["Not fitted: " + "; ".join(f"{k} ({v})" for k, v in d.skipped.items()), ""]
     lines += [

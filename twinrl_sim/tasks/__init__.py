@@ -48,3 +48,15 @@ def twin_scene(twin: str) -> SceneSpec:
         f"--twin '{twin}' is neither a built-in cell{hint} ({', '.join(TASKS)}) "
         "nor a scene spec file"
     )
+
+
+def task_on_twin(task: str, twin: str) -> SceneSpec:
+    """The cell named by ``--twin``, checked to hold ``task``'s objects."""
+    scene = twin_scene(twin)
+    try:
+        make_task(task, scene)
+    except KeyError as err:
+        raise ValueError(
+            f"--twin {twin}: {err.args[0]}; pick the task it is built for (--task)"
+        ) from None
+    return scene
