@@ -568,6 +568,13 @@ def bench_stage1(
     seed: Annotated[int, typer.Option(help="Seed for demos, SFT and evaluation.")] = 0,
     vla_steps: Annotated[int | None, typer.Option(help="SFT steps of the image policy.")] = None,
     state_steps: Annotated[int | None, typer.Option(help="SFT steps of the state policy.")] = None,
+    fit_look: Annotated[
+        bool,
+        typer.Option(
+            help="Fit the twin's appearance (light, table colour) to the real demos' images "
+            "(gap diagnose) and synthesize the twin demos in that look."
+        ),
+    ] = False,
 ) -> None:
     """TwinRL's Table I in the plant: real-only SFT vs real + twin ID/OOD demos."""
     steps = {k: v for k, v in (("vla", vla_steps), ("state", state_steps)) if v}
@@ -578,6 +585,7 @@ def bench_stage1(
         grid=_grid(grid),
         episodes_per_cell=episodes,
         steps=steps,
+        fit_look=fit_look,
         seed=seed,
     )
     data_cli.quiet_encoders()

@@ -6,7 +6,10 @@ For each task:
    by the scripted expert acting as a teleoperator with human-like noise, region ID
    (the paper's region A) only; like an operator's dataset, only successful ones are
    kept (a quarter more are recorded to make up for the failures).
-2. Twin demonstrations: planner-synthesized ID and OOD demos in the twin.
+2. Twin demonstrations: planner-synthesized ID and OOD demos in the twin; with
+   ``fit_look`` in the twin whose ``appearance`` (light, table colour) ``twinrl gap
+   diagnose`` fitted to the real demos' images (``<task>/twin_fitted.yaml``), so that
+   an image policy's twin demos look like the cell.
 3. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
    (30, 30), (60, 30), (30, 60) (scaled by ``scale``).
 4. Evaluation of every policy in the plant over a grid covering ID and OOD.
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.evaluate import evaluate
@@ -34,6 +37,10 @@ from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.expand import expand
+from twinrl_sim.gap import diagnose
+from twinrl_sim.gap.report import write_fitted_spec
+from twinrl_sim.spec import SceneSpec, load_spec
+from twinrl_sim.tasks import make_task
 
 TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operator corrects
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
@@ -49,6 +56,7 @@ class Stage1Settings:
     grid: tuple[int, int] = (4, 4)
     episodes_per_cell: int = 4
     steps: dict[str, int] = field(default_factory=dict)  # SFT steps per policy kind
+    fit_look: bool = False  # synthesize in the twin with the appearance fitted to real demos
     seed: int = 0
 
 
@@ -89,6 +97,18 @@ def record_real_demos(
     return len(kept), len(report.episodes)
 
 
+def fit_look(task: str, real: Path, path: Path) -> SceneSpec:
+    """The task's twin with the ``appearance`` that ``twinrl gap diagnose`` fits to the
+    real demos' images, saved at ``path``; refused when the fit is not significant."""
+    nominal = make_task(task).scene
+    episodes = list(iter_dataset_episodes(real))
+    diagnosis = diagnose(episodes, nominal, allowed=["appearance"])
+    if "appearance" not in diagnosis.effects:
+        raise RuntimeError(f"{task}: the real demos' images name no appearance difference")
+    write_fitted_spec(nominal, diagnosis, path)
+    return load_spec(path)
+
+
 def run_stage1(
     settings: Stage1Settings, out: str | Path, log: Callable[[str], None] = print
 ) -> list[Stage1Row]:
@@ -104,6 +124,10 @@ def run_stage1(
         log(f"{task}: recording {n(settings.real)} noisy teleop demos in the plant (region ID)")
         kept, recorded = record_real_demos(task, n(settings.real), base, seed=settings.seed)
         log(f"{task}: keeping {kept} successful demos of {recorded} recorded")
+        scene = None
+        if settings.fit_look:
+            scene = fit_look(task, base / "real", base / "twin_fitted.yaml")
+            log(f"{task}: twin demos in the fitted look {scene.effects['appearance']}")
         most_id = max(m[0] for m in MIXES)
         most_ood = max(m[1] for m in MIXES)
         log(f"{task}: synthesizing {n(most_id)} ID + {n(most_ood)} OOD twin demos")
@@ -112,6 +136,7 @@ def run_stage1(
             id_count=n(most_id),
             ood_count=0,
             out=base / "twin_id",
+            scene=scene,
             seed=settings.seed,
             export=False,
         )
@@ -120,6 +145,7 @@ def run_stage1(
             id_count=0,
             ood_count=n(most_ood),
             out=base / "twin_ood",
+            scene=scene,
             seed=settings.seed + 1,
             export=False,
         )
@@ -172,7 +198,13 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
     lines = [
         "# Stage I: twin demonstrations expand what SFT covers (TwinRL Table I)",
         "",
-        f"{settings.real} real (plant, teleop-like) demos in region ID; twin demos added per row; "
+        f"{settings.real} real (plant, teleop-like) demos in region ID; twin demos added per row"
+        + (
+            " (synthesized in the twin with the look fitted to the real demos)"
+            if settings.fit_look
+            else ""
+        )
+        + "; "
         f"evaluation in the plant over a {settings.grid[0]}x{settings.grid[1]} grid "
         f"({settings.episodes_per_cell} episodes per cell). Paper: one task, real robot.",
         "",

@@ -137,3 +137,26 @@ def test_training_augmentation_shifts_images_and_noises_states_without_touching_
         assert found, f"image {i} is not a shifted crop"
         shifts.append(found[0])
     assert len(set(shifts)) > 10  # the shift is drawn per image
+
+
+def test_fit_look_gives_the_twin_the_plants_appearance(tmp_path):
+    from twinrl_learn.stage1 import fit_look, record_real_demos
+    from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
+    from twinrl_sim.effects import load_effects
+    from twinrl_sim.spec import load_spec
+
+    record_real_demos("pick_place", 2, tmp_path / "plant", seed=1)
+    scene = fit_look("pick_place", tmp_path / "plant" / "real", tmp_path / "fitted.yaml")
+    truth = load_effects(DEFAULT_EFFECTS_FILE)["appearance"]
+    fitted = scene.effects["appearance"]
+    assert fitted["light_scale"] == pytest.approx(truth["light_scale"], abs=0.04)
+    np.testing.assert_allclose(fitted["table_tint"], truth["table_tint"], atol=0.01)
+    assert load_spec(tmp_path / "fitted.yaml").effects == scene.effects
+    # A cell that looks like the twin gives nothing to fit, and says so.
+    (tmp_path / "physics_only.yaml").write_text("object_friction: {sliding: 0.7}\n")
+    record_real_demos(
+        "pick_place", 2, tmp_path / "same", seed=1, effects=tmp_path / "physics_only.yaml"
+    )
+    with pytest.raises(RuntimeError, match="name no appearance difference"):
+        fit_look("pick_place", tmp_path / "same" / "real", tmp_path / "not_written.yaml")
+    assert not (tmp_path / "not_written.yaml").exists()
