@@ -427,31 +427,7 @@ def _fit_camera(
     check = CameraFit(
         scene, sample_frames(held_episodes, layout, objects, camera), noise, fixed=fixed
     )
-    try:
-        before = fit.residuals()
-        x, half_width, iterations = fit.fit()
-        after = fit.residuals(x)
-        gap = {"before": _rms(check.residuals()), "after": _rms(check.residuals(x))}
-    finally:
-        fit.close()
-        check.close()
-    _, bic_before = _information(before.reshape(len(before), -1, 1), 0)
-    aic, bic = _information(after.reshape(len(after), -1, 1), len(x))
-    gain = 1 - gap["after"] / gap["before"] if gap["before"] > 0 else 0.0
-    significant = bic < bic_before - BIC_MARGIN and gain >= MIN_IMAGE_GAIN
-    return CandidateResult(
-        effect="camera_pose",
-        params=fit.effect_at(x),
-        ci=fit.interval_at(half_width),
-        heldout_error=gap["after"],
-        aic=aic,
-        bic=bic,
-        delta_bic=bic - bic_before,
-        significant=bool(significant),
-        iterations=iterations,
-        seconds=time.perf_counter() - started,
-        compared=f"images:{camera}",
-    ), gap
+    return _judge_image_fit(fit, check, "camera_pose", f"images:{camera}", started)
 
 
 def _fit_appearance(
@@ -466,6 +442,18 @@ def _fit_appearance(
 
     fit = AppearanceFit(scene, frames(train_episodes), noise, fixed=fixed)
     check = AppearanceFit(scene, frames(held_episodes), noise, fixed=fixed)
+    return _judge_image_fit(fit, check, "appearance", f"colours:{','.join(cameras)}", started)
+
+
+def _judge_image_fit(
+    fit: CameraFit | AppearanceFit,
+    check: CameraFit | AppearanceFit,
+    effect: str,
+    compared: str,
+    started: float,
+) -> tuple[CandidateResult, dict[str, float]]:
+    """Fit on ``fit``'s frames, score on ``check``'s (the same twin on held-out frames),
+    and name by the image rule: BIC and a held-out error at least MIN_IMAGE_GAIN lower."""
     try:
         before = fit.residuals()
         x, half_width, iterations = fit.fit()
@@ -479,7 +467,7 @@ def _fit_appearance(
     gain = 1 - gap["after"] / gap["before"] if gap["before"] > 0 else 0.0
     significant = bic < bic_before - BIC_MARGIN and gain >= MIN_IMAGE_GAIN
     return CandidateResult(
-        effect="appearance",
+        effect=effect,
         params=fit.effect_at(x),
         ci=fit.interval_at(half_width),
         heldout_error=gap["after"],
@@ -489,5 +477,5 @@ def _fit_appearance(
         significant=bool(significant),
         iterations=iterations,
         seconds=time.perf_counter() - started,
-        compared=f"colours:{','.join(cameras)}",
+        compared=compared,
     ), gap
