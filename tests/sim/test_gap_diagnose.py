@@ -126,22 +126,28 @@ def test_task_windows_start_with_fixtures_in_place_and_resting_objects_averaged(
     assert np.sqrt(np.mean(replay.residuals()[0] ** 2)) < 2.0
 
 
-def test_names_a_hidden_camera_tilt_from_images(tmp_path):
-    hidden = tmp_path / "hidden.yaml"
-    tilt = [0.0, 0.03, -0.02]
-    hidden.write_text(
-        yaml.safe_dump({"camera_pose": {"camera": "front", "xyz": [0, 0, 0], "rpy": tilt}})
-    )
+def _diagnose_images(tmp_path, hidden: dict, effect: str):
+    """Two plant teleop episodes with images under ``hidden`` effects, diagnosed with
+    only ``effect`` allowed; the CLI result and the output folder."""
+    (tmp_path / "hidden.yaml").write_text(yaml.safe_dump(hidden))
     session = Session.create(tmp_path / "s")
     run_scripted_expert(
-        "pick_place", world="plant", effects=hidden, episodes=2, seed=3, session=session
-    )
+        "pick_place", world="plant", effects=tmp_path / "hidden.yaml", episodes=2, seed=3,
+        session=session,
+    )  # fmt: skip
     out = tmp_path / "out"
     result = CliRunner().invoke(
         app,
         ["gap", "diagnose", str(tmp_path / "s"), "--twin", "pick_place",
-         "--effects-allowed", "camera_pose", "--out", str(out)],
+         "--effects-allowed", effect, "--out", str(out)],
     )  # fmt: skip
+    return result, out
+
+
+def test_names_a_hidden_camera_tilt_from_images(tmp_path):
+    tilt = [0.0, 0.03, -0.02]
+    hidden = {"camera_pose": {"camera": "front", "xyz": [0, 0, 0], "rpy": tilt}}
+    result, out = _diagnose_images(tmp_path, hidden, "camera_pose")
     assert result.exit_code == 0, result.output
     report = json.loads((out / "gap_report.json").read_text())
     assert [s["effect"] for s in report["selected"]] == ["camera_pose"]
@@ -161,18 +167,7 @@ def test_names_a_hidden_camera_tilt_from_images(tmp_path):
 
 def test_names_the_cells_appearance_from_images(tmp_path):
     hidden = {"appearance": {"light_scale": 0.8, "table_tint": [0.05, 0.0, -0.04]}}
-    (tmp_path / "hidden.yaml").write_text(yaml.safe_dump(hidden))
-    session = Session.create(tmp_path / "s")
-    run_scripted_expert(
-        "pick_place", world="plant", effects=tmp_path / "hidden.yaml", episodes=2, seed=3,
-        session=session,
-    )  # fmt: skip
-    out = tmp_path / "out"
-    result = CliRunner().invoke(
-        app,
-        ["gap", "diagnose", str(tmp_path / "s"), "--twin", "pick_place",
-         "--effects-allowed", "appearance", "--out", str(out)],
-    )  # fmt: skip
+    result, out = _diagnose_images(tmp_path, hidden, "appearance")
     assert result.exit_code == 0, result.output
     assert "held-out colour error" in result.output
     report = json.loads((out / "gap_report.json").read_text())

@@ -197,6 +197,8 @@ def diagnose(
     started = time.perf_counter()
     noise = noise or NoiseFloor()
     train_idx, held_idx = split_episodes(episodes, heldout, seed)
+    train_episodes = [episodes[i] for i in train_idx]
+    held_episodes = [episodes[i] for i in held_idx]
     layout = compile_scene(scene).layout
     objects = [o.name for o in scene.objects]
     windows = cut_windows(
@@ -257,14 +259,7 @@ def diagnose(
         for camera in cameras:
             log(f"fitting camera_pose of the {camera} camera on its images")
             result, gap = _fit_camera(
-                scene,
-                [episodes[i] for i in train_idx],
-                [episodes[i] for i in held_idx],
-                layout,
-                objects,
-                camera,
-                noise.image,
-                fixed,
+                scene, train_episodes, held_episodes, layout, objects, camera, noise.image, fixed
             )
             camera_results.append(result)
             image_gap[camera] = gap
@@ -278,14 +273,7 @@ def diagnose(
         if wanted["appearance"] and logged:
             log(f"fitting appearance on the {', '.join(logged)} images' colours")
             appearance, appearance_gap = _fit_appearance(
-                scene,
-                [episodes[i] for i in train_idx],
-                [episodes[i] for i in held_idx],
-                layout,
-                objects,
-                logged,
-                noise.colour,
-                fixed,
+                scene, train_episodes, held_episodes, layout, objects, logged, noise.colour, fixed
             )
             if appearance.significant:
                 selected.append(
@@ -304,9 +292,8 @@ def diagnose(
     rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
     gap_before = _rms((held.measured - predicted_before) / scale)
     gap_after = _rms((held.measured - predicted_after) / scale)
-    heldout_episodes = [episodes[i] for i in held_idx]
-    torque_before = inverse_dynamics_gap(heldout_episodes, scene)
-    torque_after = inverse_dynamics_gap(heldout_episodes, scene, fixed)
+    torque_before = inverse_dynamics_gap(held_episodes, scene)
+    torque_after = inverse_dynamics_gap(held_episodes, scene, fixed)
     return Diagnosis(
         rounds=rounds,
         selected=selected,
@@ -326,8 +313,8 @@ def diagnose(
             name: {"before": torque_before[name], "after": torque_after[name]}
             for name in torque_before
         },
-        train_episodes=[episodes[i].meta.episode_id for i in train_idx],
-        heldout_episodes=[episodes[i].meta.episode_id for i in held_idx],
+        train_episodes=[e.meta.episode_id for e in train_episodes],
+        heldout_episodes=[e.meta.episode_id for e in held_episodes],
         windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},
         skipped=skipped,
         seconds=time.perf_counter() - started,
