@@ -45,7 +45,10 @@ class RLConfig:
     critics: int = 2
     hidden: int = 256
     batch_size: int = 64  # as in the paper
-    actor_lr: float = 3e-4
+    # Small, because the actor is a fine-tuned SFT policy: 10 plant minutes of real RL with
+    # imitation alone (eta 0) took it from 44 / 44 % (ID / OOD) to 38 / 6 % at 3e-4 and
+    # to 50 / 38 % at 3e-5 (seed 0). SAC without an imitation term keeps 3e-4.
+    actor_lr: float = 3e-5
     critic_lr: float = 3e-4
     beta: float = 1.0  # weight of L_IL
     # Weight of L_Q. Kept small: at 1 the young critic pulled the SFT policy off its demos
@@ -97,6 +100,7 @@ class RLConfig:
                 "offline_steps": 0,
                 "cql_alpha": 0.0,
                 "exploration": 1.0,
+                "actor_lr": 3e-4,
             }
         return cls(**(base | overrides))
 

@@ -188,6 +188,10 @@ ExplorationOption = Annotated[
     float | None,
     typer.Option(help="Rollout spread as a multiple of the policy's (default 0.3; SAC 1)."),
 ]
+ActorLrOption = Annotated[
+    float | None,
+    typer.Option(help="Actor learning rate (default 3e-5 fine-tuning an SFT policy; SAC 3e-4)."),
+]
 ResumeOption = Annotated[
     bool, typer.Option(help="Continue the run in --out from its last checkpoint.")
 ]
@@ -221,6 +225,7 @@ def train_twin_rl_command(
         float | None, typer.Option(help="Share of each batch from demos/interventions.")
     ] = None,
     exploration: ExplorationOption = None,
+    actor_lr: ActorLrOption = None,
     failures: Annotated[
         int, typer.Option(help="Failed rollouts to add to the exported twin buffer (at most).")
     ] = 0,
@@ -249,6 +254,7 @@ def train_twin_rl_command(
             offline_steps=offline_steps,
             demo_ratio=demo_ratio,
             exploration=exploration,
+            actor_lr=actor_lr,
             seed=seed,
         )
     settings = TwinRLSettings(
@@ -335,6 +341,7 @@ def train_real_rl_command(
     utd: UtdOption = None,
     offline_steps: OfflineStepsOption = None,
     exploration: ExplorationOption = None,
+    actor_lr: ActorLrOption = None,
     operator: Annotated[
         bool, typer.Option(help="Simulated operator takes over when the policy strays.")
     ] = True,
@@ -346,6 +353,14 @@ def train_real_rl_command(
             min=0.0,
         ),
     ] = OperatorRule.funnel,
+    correct_within: Annotated[
+        float,
+        typer.Option(
+            help="Operator: metres from the expert's grasp within which a low arm is "
+            "corrected straight to it instead of backed off to the approach (0: never).",
+            min=0.0,
+        ),
+    ] = OperatorRule.correct_within,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
     resume: ResumeOption = False,
 ) -> None:
@@ -371,6 +386,7 @@ def train_real_rl_command(
             utd=utd,
             offline_steps=offline_steps,
             exploration=exploration,
+            actor_lr=actor_lr,
             seed=seed,
         )
     )
@@ -388,7 +404,7 @@ def train_real_rl_command(
         plant_steps=plant_steps,
         eval_every=eval_every,
         eval_grid=_grid(eval_grid, "--eval-grid"),
-        operator=OperatorRule(funnel=funnel) if operator else None,
+        operator=OperatorRule(funnel=funnel, correct_within=correct_within) if operator else None,
         rl=rl,
     )
     torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation

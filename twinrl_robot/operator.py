@@ -16,8 +16,10 @@ terms (reach, grasp, place/wipe: each in [0, 1]; their sum is the *progress*):
   grasp that is going to miss: the operator steps in before the stall it leads to),
   after a reaction delay of ``delay`` steps during which the policy keeps acting;
 - it then drives the arm with the task's scripted expert, restarted from the measured
-  state (from the lift if the object is already in the gripper), with hand jitter of
-  ``noise`` m per step;
+  state: from the lift if the object is already in the gripper; straight to the grasp
+  (gripper open) if the arm is low beside the object, within ``correct_within`` m of
+  the expert's grasp, as a person nudges a grasp that is slightly off; otherwise from
+  the approach pose above the object; with hand jitter of ``noise`` m per step;
 - it **hands back** once it has held the controls for ``min_control`` steps and the
   progress has risen ``handback_gain`` above the best the policy reached (the stall is
   resolved), or when its plan is done.
@@ -59,6 +61,12 @@ class OperatorRule:
     min_control: int = 5  # steps held at least once taken over
     noise: float = 0.002  # hand jitter, m per step (rotation: 5x in rad)
     funnel: float = 0.015  # m across the object's axis a closing gripper may be off (0: off)
+    # A take-over low beside the object within this distance (m) of the expert's grasp
+    # corrects the arm straight to it instead of backing off to the approach pose (0:
+    # always back off). Measured over 10 plant minutes of real RL from 56 % ID / 44 % OOD
+    # (seed 0, 16 evaluation episodes per region): backing off ended at 44 / 25 %,
+    # correcting at 62 / 38 %.
+    correct_within: float = 0.06
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
@@ -154,7 +162,7 @@ class SimulatedOperator:
         assert self.task is not None and self.config is not None
         self.expert = self.task.expert(self.config, self.rng)
         holding = self.task.object_name if progress.terms.get("grasp", 0.0) > 0.5 else None
-        self.expert.take_over(observation, holding)
+        self.expert.take_over(observation, holding, self.rule.correct_within)
         self.takeovers += 1
         self._countdown, self._held = None, 0
         self._best_before = max(self._best, float(sum(progress.terms.values())))

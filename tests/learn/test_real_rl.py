@@ -18,6 +18,8 @@ from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task
 
+TCP_Z = 14  # observation.state: 6 joints, 6 velocities, tcp.x, tcp.y, tcp.z, ...
+
 
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
@@ -48,14 +50,17 @@ def test_resets_follow_the_targets_by_score_and_mix_in_uniform_draws():
     }
 
 
-def _operated_episode(task, operator, policy_action):
-    """Run one plant episode with ``operator`` watching; which steps it acted on."""
+def _operated_episode(task, operator, policy_action, heights=None):
+    """Run one plant episode with ``operator`` watching; which steps it acted on (and,
+    into ``heights``, the TCP height at each step)."""
     plant = Plant(task, seed=0)
     config = task.sample_config(np.random.default_rng(1), "ID")
     obs = plant.reset(config)
     operator.reset(task, config)
     acting = []
     for _ in range(task.max_steps):
+        if heights is not None:
+            heights.append(float(obs["observation.state"][TCP_Z]))
         was = operator.in_control
         action = operator.intervene(obs, plant.progress)
         acting.append(action is not None)
@@ -103,6 +108,37 @@ def test_the_operator_takes_over_a_grasp_that_closes_off_the_object():
     quiet = OperatorRule(patience=50, delay=2, noise=0.0, funnel=0.0)
     acting, _ = _operated_episode(task, SimulatedOperator(quiet, seed=0), lambda obs: close_at_once)
     assert acting.index(True) >= quiet.patience
+
+
+def test_the_operator_corrects_a_grasp_beside_the_object_without_backing_off():
+    task = make_task("pick_place")
+    config = task.sample_config(np.random.default_rng(1), "ID")
+    yaw = float(config.object[2])
+    across = 0.03 * np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+
+    def grasp_beside(obs):
+        # The expert, told the banana lies 3 cm across from where it is: it closes the
+        # fingers beside it, where the funnel rule takes over.
+        seen = dict(obs)
+        seen["observation.environment_state"] = obs["observation.environment_state"].copy()
+        seen["observation.environment_state"][:3] += across
+        return expert.act(seen)
+
+    tops, held = {}, {}
+    for correct_within in (0.06, 0.0):
+        expert = task.expert(config, np.random.default_rng(2))
+        rule = OperatorRule(patience=50, delay=2, noise=0.0, correct_within=correct_within)
+        operator, heights = SimulatedOperator(rule, seed=0), []
+        acting, _ = _operated_episode(task, operator, grasp_beside, heights)
+        first = acting.index(True)
+        low = heights[first]
+        assert low < 0.05  # taken over at the grasp, beside the banana
+        grasped = next(t for t in range(first, len(acting)) if not acting[t])  # handed back
+        tops[correct_within] = max(heights[first:grasped]) - low
+        held[correct_within] = grasped - first
+    assert tops[0.06] < 0.02  # corrected where it was
+    assert tops[0.0] > 0.08  # backed off to the approach pose first
+    assert held[0.06] < held[0.0]  # and the grasp is done sooner
 
 
 def real_settings(demos, out, **overrides):

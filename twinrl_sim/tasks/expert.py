@@ -21,6 +21,9 @@ from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks.base import yaw_of
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tool z pointing at the table, tool x along base x
+# How far (m) below the approach pose an arm must be for a take-over to correct it
+# straight to the grasp rather than back it off to the approach pose.
+CORRECTION_CLEARANCE = 0.02
 
 
 def tool_quat(yaw: float) -> np.ndarray:
@@ -151,14 +154,20 @@ class ScriptedExpert:
         self._ref = (ref_pos + step, new_quat / np.linalg.norm(new_quat))
         return np.concatenate([step, rot, [phase.gripper]]).astype(np.float32)
 
-    def take_over(self, obs: dict[str, np.ndarray], holding: str | None = None) -> None:
+    def take_over(
+        self, obs: dict[str, np.ndarray], holding: str | None = None, correct_within: float = 0.0
+    ) -> None:
         """Start acting from the arm's measured state, as an operator taking the
         controls in the middle of an episode: the reference restarts at the measured
-        pose; with ``holding`` (the object already lifted in the gripper) the plan
-        resumes at the lift, otherwise from its first phase."""
+        pose. With ``holding`` (the object already lifted in the gripper) the plan
+        resumes at the lift. Otherwise it starts from its first phase, except that an
+        arm already below the approach pose and within ``correct_within`` m (across the
+        table) of the grasp is corrected straight to the grasp (the plan resumes at its
+        descent, gripper open) instead of backing off to the approach pose."""
         view = ObsView(self.scene, obs)
         self.memory.clear()
         self._goal, self._ref, self._last_opening = None, None, float("nan")
+        self._steps_in_phase = self._held = 0
         self.phase_index = 0
         names = [phase.name for phase in self.phases]
         if holding is not None and "lift" in names:
@@ -166,6 +175,13 @@ class ScriptedExpert:
             self.memory["grasp"] = (view.tcp_pos.copy(), view.tool_yaw)
             remember_grasp(holding)(view, self.memory)
             self.phase_index = names.index("lift")
+        elif correct_within > 0 and names[:2] == ["approach", "descend"]:
+            self._goal = self.phases[0].goal(view, self.memory)  # samples the grasp
+            grasp_pos = self.memory["grasp"][0]
+            below = view.tcp_pos[2] < self._goal[0][2] - CORRECTION_CLEARANCE
+            across = float(np.linalg.norm((grasp_pos - view.tcp_pos)[:2]))
+            if below and across < correct_within:
+                self._goal, self.phase_index = None, 1
 
     def planned_grasp(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, float] | None:
         """Where this plan would grasp from ``obs``: (TCP position (m), tool yaw (rad)),
