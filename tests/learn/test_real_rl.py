@@ -224,9 +224,18 @@ def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
     for name in ("report.md", "curves.png", "catalog.parquet", "representative.rrd"):
         assert (out / name).is_file(), name
     # TwinRL keeps imitating the twin demos its policy was fine-tuned on; ConRFT has none.
-    for slug, demos in (("twinrl", 2), ("twinrl_no_buffer", 2), ("conrft", 1)):
+    # The imitating methods fine-tune gently; SAC keeps its usual actor learning rate.
+    # Every method has the same operator, who corrects near-miss grasps where they are.
+    for slug, demos, actor_lr in (
+        ("twinrl", 2, 3e-5),
+        ("twinrl_no_buffer", 2, 3e-5),
+        ("conrft", 1, 3e-5),
+        ("hil_serl", 1, 3e-4),
+    ):
         settings = json.loads((out / "real_rl" / slug / "seed0" / "settings.json").read_text())
         assert len(settings["demos"]) == demos, slug
+        assert settings["rl"]["actor_lr"] == actor_lr, slug
+        assert settings["operator"]["correct_within"] == OperatorRule().correct_within > 0
     assert "![success against plant minutes](curves.png)" in (out / "report.md").read_text()
     # A finished pipeline is never overwritten by accident.
     with pytest.raises(ValueError, match="not empty"):
