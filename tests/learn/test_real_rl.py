@@ -18,8 +18,6 @@ from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task
 
-TCP_Z = 14  # observation.state: 6 joints, 6 velocities, tcp.x, tcp.y, tcp.z, ...
-
 
 @pytest.fixture(scope="module")
 def demos(tmp_path_factory):
@@ -58,9 +56,10 @@ def _operated_episode(task, operator, policy_action, heights=None):
     obs = plant.reset(config)
     operator.reset(task, config)
     acting = []
+    tcp_z = plant.contract_names()["observation.state"].index("tcp.z")
     for _ in range(task.max_steps):
         if heights is not None:
-            heights.append(float(obs["observation.state"][TCP_Z]))
+            heights.append(float(obs["observation.state"][tcp_z]))
         was = operator.in_control
         action = operator.intervene(obs, plant.progress)
         acting.append(action is not None)

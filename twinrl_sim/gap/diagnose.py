@@ -321,16 +321,9 @@ def diagnose(
         cameras=camera_results,
         image_noise=noise.image,
         appearance=appearance,
-        appearance_gap=(
-            appearance_gap
-            if appearance is None or appearance.significant
-            else {**appearance_gap, "after": appearance_gap["before"]}
-        ),
+        appearance_gap=_as_named(appearance_gap, bool(appearance and appearance.significant)),
         colour_noise=noise.colour,
-        image_gap={
-            c: g if c in named_cameras else {**g, "after": g["before"]}
-            for c, g in image_gap.items()
-        },
+        image_gap={c: _as_named(g, c in named_cameras) for c, g in image_gap.items()},
         heldout=held,
         predicted_before=predicted_before,
         predicted_after=predicted_after,
@@ -430,6 +423,12 @@ def _fit_appearance(
     fit = AppearanceFit(scene, frames(train_episodes), noise, fixed=fixed)
     check = AppearanceFit(scene, frames(held_episodes), noise, fixed=fixed)
     return _judge_image_fit(fit, check, "appearance", f"colours:{','.join(cameras)}", started)
+
+
+def _as_named(gap: dict[str, float], named: bool) -> dict[str, float]:
+    """An image fit's held-out error before/after as the diagnosed twin has it: a fit
+    that was not named leaves the error where it was (empty: nothing was fitted)."""
+    return gap if named or not gap else {**gap, "after": gap["before"]}
 
 
 def _judge_image_fit(
