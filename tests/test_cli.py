@@ -145,6 +145,10 @@ def test_train_and_eval_commands(tmp_path):
     ("args", "message"),
     [
         (["train", "sft", "--dataset", "nowhere", "--out", "x"], "is not a LeRobotDataset"),
+        (
+            ["train", "sft", "--dataset", "nowhere", "--out", "x", "--inputs", "sideways"],
+            "--inputs must be one of absolute, relative",
+        ),
         (["eval", "nowhere", "--task", "pick_place", "--out", "x"], "is not a policy checkpoint"),
         (
             ["eval", "expert", "--task", "pick_place", "--grid", "8by8", "--out", "x"],

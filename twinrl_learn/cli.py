@@ -16,7 +16,7 @@ from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import load_targets, mine
 from twinrl_learn.pipeline import PRESETS, run_demo
-from twinrl_learn.policy import is_checkpoint
+from twinrl_learn.policy import INPUTS, is_checkpoint
 from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.runners import load_runner
 from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
@@ -75,17 +75,27 @@ def train_sft_command(
     chunk: Annotated[
         int, typer.Option(help="Actions predicted and executed per look (action chunking).", min=1)
     ] = 8,
+    inputs: Annotated[
+        str,
+        typer.Option(
+            help="State policy only: absolute (object poses in the base frame, joint angles) "
+            "or relative (objects relative to the TCP and tool; evens out generalisation "
+            "from few demos)."
+        ),
+    ] = "absolute",
     seed: Annotated[int, typer.Option(help="Seed (initialisation, sampling, augmentation).")] = 0,
     resume: Annotated[
         bool, typer.Option(help="Continue the run in --out exactly where it stopped.")
     ] = False,
 ) -> None:
     """Supervised fine-tuning on demonstrations (real and twin), with a loss curve."""
+    if policy not in DEFAULTS:
+        raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
+    if inputs not in INPUTS:
+        raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
     missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
     if missing:
         raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
-    if policy not in DEFAULTS:
-        raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
     parsed = [float(w) for w in weights.split(",")] if weights else None
     config = SFTConfig(
         datasets=[str(d) for d in dataset],
@@ -96,6 +106,7 @@ def train_sft_command(
         batch_size=batch_size,
         lr=lr,
         chunk=chunk,
+        inputs=inputs,
         seed=seed,
     ).resolved()
     with data_cli.progress("loss", "rate") as bar:

@@ -6,7 +6,12 @@ Two variants share one head and one checkpoint format:
   feature maps FiLM-conditioned on the instruction's sentence embedding
   (all-MiniLM-L6-v2), fused with the proprio state;
 - ``state`` (**privileged**): proprio + ``observation.environment_state`` (object poses
-  known only in the twin and the plant), for fast experiments.
+  known only in the twin and the plant), for fast experiments. Its ``inputs`` are either
+  ``absolute`` (joint angles, TCP pose, gripper, the objects' poses in the base frame and
+  their offsets from the TCP) or ``relative`` (TCP pose and gripper, and each object's
+  offset from the TCP and orientation relative to the tool, nothing absolute about the
+  objects): the same reach looks the same anywhere on the table, which makes a policy
+  learnt from few demonstrations generalise more evenly.
 
 The head is a tanh-squashed Gaussian over normalised actions in [-1, 1]: its
 log-likelihood is the imitation loss now and the same network serves as the actor of
@@ -37,6 +42,7 @@ from torch import nn
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 
 KINDS = ("vla", "state")
+INPUTS = ("absolute", "relative")
 LOG_STD_RANGE = (-5.0, 1.0)
 ACTION_MARGIN = 0.9
 EPS = 1e-4
@@ -61,6 +67,7 @@ class PolicyConfig:
     # left out by SFT: in demonstrations they are a clock that a rollout does not keep.
     state_inputs: list[int] = field(default_factory=list)
     object_indices: list[int] = field(default_factory=list)  # where each <object>.x is in env
+    inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     instructions: dict[str, list[float]] = field(default_factory=dict)
@@ -70,6 +77,15 @@ class PolicyConfig:
             raise ValueError(f"policy kind must be one of {', '.join(KINDS)}, got '{self.kind}'")
         if self.kind == "state" and self.env_dim == 0:
             raise ValueError("the state policy needs observation.environment_state (env_dim > 0)")
+        if self.inputs not in INPUTS:
+            raise ValueError(f"inputs must be one of {', '.join(INPUTS)}, got '{self.inputs}'")
+        if self.inputs == "relative" and (
+            self.kind != "state" or self.tcp_index < 0 or not self.object_indices
+        ):
+            raise ValueError(
+                "relative inputs need the state policy and a dataset whose state has the TCP "
+                "pose (tcp.x ...) and whose environment state has object poses (<name>.x ...)"
+            )
 
 
 class SpatialSoftmax(nn.Module):
@@ -129,7 +145,7 @@ class Policy(nn.Module):
                 features += self.encoders[camera].out_dim
             proprio = self.state_width
         else:
-            proprio = self.state_width + c.env_dim + 3 * len(c.object_indices)
+            proprio = self.privileged_width
         self.proprio = nn.Sequential(
             nn.Linear(proprio, c.hidden), nn.LayerNorm(c.hidden), nn.ReLU()
         )
@@ -148,6 +164,24 @@ class Policy(nn.Module):
     def state_width(self) -> int:
         return len(self.config.state_inputs) or self.config.state_dim
 
+    @property
+    def relative_width(self) -> int:
+        """Per object: a position offset (3), plus a relative orientation (6) if relative."""
+        per_object = 9 if self.config.inputs == "relative" else 3
+        return per_object * len(self.config.object_indices)
+
+    @property
+    def privileged_width(self) -> int:
+        """Width of the state policy's input vector (:meth:`privileged_inputs`)."""
+        absolute = self.config.env_dim if self.config.inputs == "absolute" else 0
+        return self.state_width + absolute + self.relative_width
+
+    def privileged_inputs(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
+        """What the state policy reads of a normalised batch."""
+        if self.config.inputs == "relative":
+            return [batch["state"], batch["relative"]]
+        return [batch["state"], batch["env"], batch["relative"]]
+
     # ------------------------------------------------------------------ core
     def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Trunk features of a normalised batch (the critic reuses them later)."""
@@ -158,9 +192,7 @@ class Policy(nn.Module):
                 parts.append(encoder(batch[f"image.{camera}"], text))
             parts.append(self.proprio(batch["state"]))
         else:
-            parts.append(
-                self.proprio(torch.cat([batch["state"], batch["env"], batch["relative"]], dim=-1))
-            )
+            parts.append(self.proprio(torch.cat(self.privileged_inputs(batch), dim=-1)))
         parts.append(text)
         return self.trunk(torch.cat(parts, dim=-1))
 
@@ -175,7 +207,7 @@ class Policy(nn.Module):
                     parts.append(encoder(batch[f"image.{camera}"], batch["text"]))
             parts.append(batch["state"])
         else:
-            parts += [batch["state"], batch["env"], batch["relative"]]
+            parts += self.privileged_inputs(batch)
         parts.append(batch["text"])
         return torch.cat(parts, dim=-1)
 
@@ -185,7 +217,7 @@ class Policy(nn.Module):
         if c.kind == "vla":
             width = sum(e.out_dim for e in self.encoders.values()) + self.state_width
         else:
-            width = self.state_width + c.env_dim + 3 * len(c.object_indices)
+            width = self.privileged_width
         return width + EMBEDDING_DIM
 
     def distribution(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -268,15 +300,22 @@ class Policy(nn.Module):
         data_low, data_high = self._stats["action"]["min"], self._stats["action"]["max"]
         return torch.minimum(torch.maximum(physical, data_low), data_high)
 
-    def relative_positions(self, state: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
-        """Each object's position relative to the TCP (m x 10): what a reaching policy
-        needs, invariant to where on the table things are."""
+    def relative_poses(self, state: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
+        """Each object's position relative to the TCP (m x 10, base axes): what a reaching
+        policy needs, invariant to where on the table things are. With ``relative`` inputs
+        also its orientation in the tool frame (the first two columns of R_tool^T R_object,
+        a continuous rotation code): how far the tool must still turn to grasp it."""
         if not self.config.object_indices:
             return state.new_zeros((state.shape[0], 0))
-        tcp = state[:, self.config.tcp_index : self.config.tcp_index + 3]
-        return torch.cat(
-            [(env[:, i : i + 3] - tcp) * 10.0 for i in self.config.object_indices], dim=-1
-        )
+        start = self.config.tcp_index
+        tcp = state[:, start : start + 3]
+        parts = [(env[:, i : i + 3] - tcp) * 10.0 for i in self.config.object_indices]
+        if self.config.inputs == "relative":
+            tool = quat_matrix(state[:, start + 3 : start + 7])
+            for i in self.config.object_indices:
+                rotation = tool.transpose(1, 2) @ quat_matrix(env[:, i + 3 : i + 7])
+                parts.append(rotation[:, :, :2].reshape(len(rotation), 6))
+        return torch.cat(parts, dim=-1)
 
     def prepare_images(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 (B, H, W, 3) -> float (B, 3, S, S) in [0, 1] at the policy's image size."""
@@ -309,7 +348,7 @@ class Policy(nn.Module):
                 raise ValueError("the state policy needs observation.environment_state")
             env = torch.as_tensor(np.asarray(environment_state, np.float32))
             batch["env"] = self.normalize("env", env)
-            batch["relative"] = self.relative_positions(state, env)
+            batch["relative"] = self.relative_poses(state, env)
         return batch
 
     def augment(
@@ -426,3 +465,14 @@ def _random_shift(images: torch.Tensor, generator: torch.Generator) -> torch.Ten
     return torch.stack(
         [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
     )
+
+
+def quat_matrix(quat: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4) in (w, x, y, z) order."""
+    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-9)).unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
+    return torch.stack(rows, dim=-1).view(*quat.shape[:-1], 3, 3)

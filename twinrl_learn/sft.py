@@ -47,6 +47,7 @@ class SFTConfig:
     batch_size: int | None = None
     lr: float | None = None
     chunk: int = 8
+    inputs: str = "absolute"  # the state policy's inputs: absolute or relative (policy.py)
     image_size: int = 64
     seed: int = 0
     checkpoint_every: int = 500
@@ -122,6 +123,8 @@ def train_sft(
     """Train (or continue training) a policy; ``progress(step, metrics)`` is called every
     ``log_every`` steps with ``loss`` and ``steps_per_s``."""
     config = config.resolved()
+    if config.inputs != "absolute" and config.policy != "state":
+        raise ValueError("--inputs applies to --policy state only (the vla policy sees images)")
     out = Path(config.out)
     state_file = out / "training_state.pt"
     if out.exists() and any(out.iterdir()) and not resume:
@@ -137,6 +140,9 @@ def train_sft(
     if (weights < 0).any() or weights.sum() == 0:
         raise ValueError("--weights must be non-negative and not all zero")
     weights = weights / weights.sum()
+    # Joint velocities are a clock in demonstrations that a rollout does not keep; relative
+    # inputs also leave out joint angles, which would tell the policy where it is.
+    ignored_state = ("qd.", "q.") if config.inputs == "relative" else ("qd.",)
     torch.manual_seed(config.seed)
     policy_config = PolicyConfig(
         kind=config.policy,
@@ -145,10 +151,13 @@ def train_sft(
         chunk=config.chunk,
         image_size=config.image_size,
         tcp_index=frames.state_names.index("tcp.x") if "tcp.x" in frames.state_names else -1,
-        state_inputs=[i for i, n in enumerate(frames.state_names) if not n.startswith("qd.")],
+        state_inputs=[
+            i for i, n in enumerate(frames.state_names) if not n.startswith(ignored_state)
+        ],
         object_indices=[i for i, n in enumerate(frames.environment_names) if n.endswith(".x")]
         if "tcp.x" in frames.state_names
         else [],
+        inputs=config.inputs,
         seed=config.seed,
         stats={k: {s: v.tolist() for s, v in d.items()} for k, d in frames.stats.items()},
     )

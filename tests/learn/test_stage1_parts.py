@@ -13,6 +13,8 @@ from twinrl_learn.evaluate import evaluate, grid_cells
 from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, Policy, PolicyConfig
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_sim.build import yaw_quat
+from twinrl_sim.tasks.expert import tool_quat
 
 
 @pytest.fixture(scope="module")
@@ -20,13 +22,16 @@ def dataset(tmp_path_factory):
     return record_demos(tmp_path_factory.mktemp("demos"), episodes=2, seed=1)
 
 
-@pytest.mark.parametrize("kind", ["state", "vla"])
-def test_sft_loss_decreases_and_checkpoints_round_trip(dataset, tmp_path, kind):
+@pytest.mark.parametrize(
+    ("kind", "inputs"), [("state", "absolute"), ("state", "relative"), ("vla", "absolute")]
+)
+def test_sft_loss_decreases_and_checkpoints_round_trip(dataset, tmp_path, kind, inputs):
     result = train_sft(
         SFTConfig(
             datasets=[str(dataset)],
             out=str(tmp_path / kind),
             policy=kind,
+            inputs=inputs,
             steps=60,
             batch_size=16,
             checkpoint_every=30,
@@ -51,6 +56,32 @@ def test_sft_loss_decreases_and_checkpoints_round_trip(dataset, tmp_path, kind):
         again.act(observation, "put the banana on the plate"),
     )
     assert policy.act(observation, "put the banana on the plate").shape == (7,)
+    assert policy.config.inputs == inputs
+    names = episode.meta.names["observation.state"]
+    read = {names[i].split(".")[0] for i in policy.config.state_inputs}
+    assert read == ({"tcp", "gripper"} if inputs == "relative" else {"q", "tcp", "gripper"})
+
+
+def test_relative_inputs_are_the_same_reach_anywhere_on_the_table():
+    config = PolicyConfig(
+        kind="state", state_dim=8, env_dim=7, tcp_index=0, object_indices=[0], inputs="relative"
+    )
+    policy = Policy(config)
+
+    def poses(shift, tool_yaw, object_yaw):
+        state = torch.tensor([[0.4 + shift[0], shift[1], 0.2, *tool_quat(tool_yaw), 0.08]])
+        env = torch.tensor([[0.5 + shift[0], 0.1 + shift[1], 0.02, *yaw_quat(object_yaw)]])
+        return policy.relative_poses(state.float(), env.float())
+
+    here = poses((0.0, 0.0), 0.3, 0.9)
+    assert here.shape == (1, 9) == (1, policy.relative_width)
+    torch.testing.assert_close(poses((-0.2, 0.35), 0.3, 0.9), here)  # moved across the table
+    torch.testing.assert_close(poses((0.0, 0.0), 0.5, 1.1)[:, 3:], here[:, 3:])  # both turned
+    assert not torch.allclose(poses((0.0, 0.0), 0.3, 1.4)[:, 3:], here[:, 3:])
+    with pytest.raises(ValueError, match="relative inputs need the state policy"):
+        PolicyConfig(kind="vla", state_dim=8, inputs="relative")
+    with pytest.raises(ValueError, match="--inputs applies to --policy state only"):
+        train_sft(SFTConfig(datasets=["nowhere"], out="x", policy="vla", inputs="relative"))
 
 
 def test_resume_continues_exactly(dataset, tmp_path):
