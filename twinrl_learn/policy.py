@@ -63,8 +63,9 @@ class PolicyConfig:
     image_size: int = 64
     hidden: int = 256
     tcp_index: int = -1  # where tcp.x is in observation.state (-1: unknown)
-    # Entries of observation.state the policy reads (default: all). Joint velocities are
-    # left out by SFT: in demonstrations they are a clock that a rollout does not keep.
+    # Entries of observation.state the policy reads (default: all). SFT leaves out joint
+    # velocities (in demonstrations a clock that a rollout does not keep) and, for
+    # relative inputs, joint angles (which tell where on the table the arm is).
     state_inputs: list[int] = field(default_factory=list)
     object_indices: list[int] = field(default_factory=list)  # where each <object>.x is in env
     inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
