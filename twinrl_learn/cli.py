@@ -15,7 +15,7 @@ from twinrl_data import cli as data_cli
 from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import load_targets, mine
-from twinrl_learn.pipeline import PRESETS, run_demo
+from twinrl_learn.pipeline import PRESETS, RunProgress, run_demo
 from twinrl_learn.policy import INPUTS, is_checkpoint
 from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.runners import load_runner
@@ -469,6 +469,16 @@ def demo_command(
     seeds: Annotated[
         str | None, typer.Option(help="Comma-separated seeds (default: the preset's three).")
     ] = None,
+    inputs: Annotated[
+        str | None,
+        typer.Option(
+            help="State policy's inputs: absolute or relative (see train sft; default: the "
+            "preset's, absolute)."
+        ),
+    ] = None,
+    workers: Annotated[
+        int, typer.Option(help="Real-RL runs side by side, one process each.", min=1)
+    ] = 2,
     resume: Annotated[
         bool, typer.Option(help="Continue a stopped run in --out (finished stages are kept).")
     ] = False,
@@ -485,15 +495,16 @@ def demo_command(
         jobs: dict[tuple[str, int], int] = {}
         steps = PRESETS[preset].plant_steps
 
-        def on_episode(method: str, seed: int, real: RealRL) -> None:
-            key = (method, seed)
+        def on_progress(run: RunProgress) -> None:
+            key = (run.method, run.seed)
             if key not in jobs:
-                jobs[key] = bar.add_task(f"{method}, seed {seed}", total=steps, ID="-", OOD="-")
-            rates = real.evaluations[-1].success_rate
+                jobs[key] = bar.add_task(
+                    f"{run.method}, seed {run.seed}", total=steps, ID="-", OOD="-"
+                )
             bar.update(
                 jobs[key],
-                completed=min(real.run_state.agent.env_steps, steps),
-                **{r: f"{100 * v:.0f} %" for r, v in rates.items()},
+                completed=min(run.plant_steps, steps),
+                **{r: f"{100 * v:.0f} %" for r, v in run.success_rate.items()},
             )
 
         report = run_demo(
@@ -501,9 +512,11 @@ def demo_command(
             preset,
             out,
             seeds=chosen,
+            inputs=inputs,
+            workers=workers,
             resume=resume,
             log=lambda text: bar.console.print(text),
-            on_episode=on_episode,
+            on_progress=on_progress,
         )
     table = Table("method", "min to 95 % ID", "min to 95 % OOD", "final ID", "final OOD", "interv.")
     for name, m in report["methods"].items():

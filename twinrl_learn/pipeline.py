@@ -29,28 +29,36 @@ Outputs: ``report.md`` (curves, tables), ``report.json``, ``curves.png``, every
 episode log (each stage's ``session/`` folders), ``catalog.parquet`` over all of them
 and ``representative.rrd`` (a TwinRL episode with an intervention and its last one).
 With ``resume`` a stopped pipeline continues: finished stages are skipped and an
-interrupted real-RL run resumes from its last checkpoint.
+interrupted real-RL run resumes from its last checkpoint. The real-RL runs are
+independent (each has its own seed, folder and plant), so ``workers`` processes run
+them side by side; the results do not depend on how many.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import multiprocessing
+import queue
 import shutil
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from twinrl_data.catalog import build_index
+from twinrl_data.cli import quiet_encoders
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.view import save_rrd
 from twinrl_learn.agent import RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
+from twinrl_learn.policy import INPUTS
 from twinrl_learn.real_rl import EvalPoint, RealRL, RealRLSettings, load_evaluations, minutes_to
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.sft import SFTConfig, train_sft
@@ -83,6 +91,7 @@ class Preset:
     refresh_every: int
     seeds: tuple[int, ...]
     sft_steps: int | None = None  # None: the SFT defaults of the policy kind
+    inputs: str = "absolute"  # the state policy's inputs (twinrl_learn.policy)
 
 
 PRESETS = {
@@ -107,6 +116,8 @@ PRESETS = {
     ),
     "quick": Preset(
         policy="state",
+        # Objects seen from the TCP: measured better at every stage than absolute poses.
+        inputs="relative",
         real_demos=30,
         twin_id=30,
         twin_ood=30,
@@ -170,31 +181,60 @@ def run_demo(
     out: str | Path = "out/twinrl_demo",
     *,
     seeds: tuple[int, ...] | None = None,
+    inputs: str | None = None,
+    workers: int = 2,
     resume: bool = False,
     log: Log = print,
-    on_episode: Callable[[str, int, RealRL], None] | None = None,
+    on_progress: Callable[[RunProgress], None] | None = None,
 ) -> dict[str, Any]:
-    """Run the pipeline and write the report; returns ``report.json``'s content."""
+    """Run the pipeline and write the report; returns ``report.json``'s content.
+    ``inputs`` overrides the preset's state-policy inputs (``absolute``/``relative``);
+    ``on_progress`` hears from every real-RL run after each of its episodes."""
     make_task(task)
+    if workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
     if preset not in PRESETS:
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     p = PRESETS[preset]
+    if inputs is not None:
+        if inputs not in INPUTS:
+            raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
+        if inputs != "absolute" and p.policy != "state":
+            raise ValueError(f"--inputs {inputs} needs the state policy; preset {preset} uses vla")
+        p = replace(p, inputs=inputs)
     seeds = tuple(seeds) if seeds else p.seeds
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not resume:
         raise ValueError(f"{out} exists and is not empty; pass --resume or choose another --out")
+    _check_same_run(out / "run.json", {"task": task, "preset": preset, "inputs": p.inputs})
     out.mkdir(parents=True, exist_ok=True)
     stage1 = _stage1(task, p, out / "stage1", log)
     stage2 = _stage2(task, p, out, stage1, log)
     targets = _mining(task, p, out, stage2, log)
     runs: dict[str, dict[int, Path]] = {}
+    jobs = []
     for method in METHOD_TABLE:
         for seed in seeds:
             folder = out / "real_rl" / method.slug / f"seed{seed}"
             runs.setdefault(method.name, {})[seed] = folder
-            _real_rl(task, p, method, seed, folder, stage1, stage2, targets, log, on_episode)
+            jobs.append(RealRLJob(task, p, method, seed, folder, stage1, stage2, targets))
+    _run_jobs(jobs, workers, log, on_progress)
     log("writing the report")
     return write_report(task, preset, p, out, stage1, runs, seeds)
+
+
+def _check_same_run(path: Path, settings: dict[str, str]) -> None:
+    """Record what a run is; a resumed run must be the same one (nothing mixed)."""
+    if path.is_file():
+        recorded = json.loads(path.read_text())
+        for key, value in settings.items():
+            if recorded.get(key) != value:
+                raise ValueError(
+                    f"--resume: {path.parent} is a run with {key} {recorded.get(key)!r}, "
+                    f"not {value!r}; resume it with the same options or choose another --out"
+                )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(settings, indent=1))
 
 
 # ------------------------------------------------------------------ stages
@@ -238,6 +278,7 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
                 out=str(paths[name]),
                 policy=p.policy,
                 steps=p.sft_steps,
+                inputs=p.inputs,
             )
         )
         evaluate(
@@ -294,18 +335,86 @@ def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log) -> Path:
     return path
 
 
-def _real_rl(
-    task: str,
-    p: Preset,
-    method: Method,
-    seed: int,
-    folder: Path,
-    stage1: dict[str, Path],
-    stage2: Path,
-    targets: Path,
+@dataclass(frozen=True)
+class RunProgress:
+    """Where one real-RL run stands after an episode (sent from its worker process)."""
+
+    method: str
+    seed: int
+    plant_steps: int
+    success_rate: dict[str, float]  # of its latest evaluation
+
+
+@dataclass(frozen=True)
+class RealRLJob:
+    """One method and seed of real RL: everything a worker process needs."""
+
+    task: str
+    p: Preset
+    method: Method
+    seed: int
+    folder: Path
+    stage1: dict[str, Path]
+    stage2: Path
+    targets: Path
+
+
+def _run_jobs(
+    jobs: list[RealRLJob],
+    workers: int,
     log: Log,
-    on_episode: Callable[[str, int, RealRL], None] | None,
+    on_progress: Callable[[RunProgress], None] | None,
 ) -> None:
+    """Run the jobs, ``workers`` at a time in spawned processes (1: in this one), passing
+    their log lines and progress on to ``log`` and ``on_progress`` as they come."""
+    pending = [job for job in jobs if not _done(job.folder)]
+    if workers == 1 or len(pending) <= 1:
+        for job in pending:
+            _real_rl(job, log, on_progress or (lambda _: None))
+        return
+    context = multiprocessing.get_context("spawn")
+    messages = context.Queue()
+    with ProcessPoolExecutor(
+        min(workers, len(pending)),
+        mp_context=context,
+        initializer=_start_worker,
+        initargs=(messages,),
+    ) as pool:
+        futures = [pool.submit(_real_rl_in_worker, job) for job in pending]
+        while not all(f.done() for f in futures) or not messages.empty():
+            if any(f.done() and f.exception() is not None for f in futures):
+                pool.shutdown(wait=False, cancel_futures=True)  # runs under way finish
+                break
+            try:
+                message = messages.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(message, RunProgress):
+                if on_progress is not None:
+                    on_progress(message)
+            else:
+                log(message)
+        for future in futures:
+            future.result()  # a worker's error is raised here, as if run in this process
+
+
+_worker_messages = None
+
+
+def _start_worker(messages) -> None:
+    global _worker_messages
+    _worker_messages = messages
+    torch.set_num_threads(1)
+    quiet_encoders()
+
+
+def _real_rl_in_worker(job: RealRLJob) -> None:
+    _real_rl(job, _worker_messages.put, _worker_messages.put)
+
+
+def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None]) -> None:
+    task, p, method, seed, folder = job.task, job.p, job.method, job.seed, job.folder
+    stage1, stage2, targets = job.stage1, job.stage2, job.targets
     if _done(folder):
         return
     twin_buffer = stage2 / "twin_buffer"
@@ -336,8 +445,12 @@ def _real_rl(
         folder.parent.mkdir(parents=True, exist_ok=True)
         _fresh(folder)  # what an attempt stopped before its first checkpoint left
         real = RealRL.start(settings)
-    callback = (lambda record, r: on_episode(method.name, seed, r)) if on_episode else None
-    real.run(on_episode=callback)
+
+    def report(record, real: RealRL) -> None:
+        rates = real.evaluations[-1].success_rate if real.evaluations else {}
+        on_progress(RunProgress(method.name, seed, real.run_state.agent.env_steps, rates))
+
+    real.run(on_episode=report)
     _mark_done(folder)
 
 
@@ -431,6 +544,7 @@ def write_report(
         "task": task,
         "preset": preset_name,
         "policy": p.policy,
+        "inputs": p.inputs,
         "seeds": list(seeds),
         "methods": methods,
     }
@@ -444,7 +558,11 @@ def write_report(
         f"# TwinRL in the plant: {task}, preset `{preset_name}`",
         "",
         f"Policy: **{p.policy}**"
-        + (" (privileged object poses instead of images)" if p.policy == "state" else "")
+        + (
+            f" (privileged object poses instead of images; {p.inputs} inputs)"
+            if p.policy == "state"
+            else ""
+        )
         + f". Seeds: {', '.join(map(str, seeds))}. Real RL: {p.plant_steps} robot steps "
         f"({p.plant_steps / 600:.1f} plant minutes) per run; evaluation every {p.eval_every} "
         f"steps on a {p.eval_grid[0]}x{p.eval_grid[1]} grid in a separate plant "

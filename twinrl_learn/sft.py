@@ -169,6 +169,7 @@ def train_sft(
     step, losses = 0, []
     if resume:
         saved = torch.load(state_file, weights_only=False)
+        _check_same_network(saved["config"], config, out)
         policy.load_state_dict(saved["model"])
         optimizer.load_state_dict(saved["optimizer"])
         generator.set_state(saved["generator"])
@@ -198,6 +199,18 @@ def train_sft(
     policy.save_pretrained(out)
     plot_losses(losses, out / "loss.png")
     return SFTResult(out=out, steps=step, losses=losses, seconds=time.perf_counter() - start)
+
+
+def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
+    """A resumed run must build the network it saved (else its weights do not fit)."""
+    for key in ("policy", "chunk", "inputs", "image_size"):
+        before = saved.get(key, SFTConfig.__dataclass_fields__[key].default)
+        if before != getattr(config, key):
+            flag = "--" + key.replace("_", "-")
+            raise ValueError(
+                f"--resume: {out} was trained with {flag} {before}, not {getattr(config, key)}; "
+                "resume it with the same options"
+            )
 
 
 def _checkpoint(policy, optimizer, generator, step, losses, out: Path, config: SFTConfig) -> None:

@@ -13,6 +13,7 @@ from twinrl_data.session import Session
 from twinrl_learn.agent import RLConfig
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
+from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
@@ -206,10 +207,19 @@ def test_real_rl_refuses_bad_input(demos, tmp_path):
 
 def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
     out = tmp_path / "demo"
-    report = run_demo("pick_place", "smoke", out, log=lambda _: None)
+    with pytest.raises(ValueError, match="--inputs must be one of absolute, relative"):
+        run_demo("pick_place", "smoke", out, inputs="sideways")
+    assert not out.exists()
+    report = run_demo("pick_place", "smoke", out, inputs="relative", log=lambda _: None)
     on_disk = json.loads((out / "report.json").read_text())
     assert on_disk == report
-    assert (report["task"], report["preset"], report["policy"]) == ("pick_place", "smoke", "state")
+    assert (report["task"], report["preset"], report["policy"], report["inputs"]) == (
+        "pick_place",
+        "smoke",
+        "state",
+        "relative",
+    )
+    assert Policy.from_pretrained(out / "stage1" / "state_real_twin").config.inputs == "relative"
     assert set(report["methods"]) == {m.name for m in METHOD_TABLE}
     for summary in report["methods"].values():
         assert set(summary) == {
@@ -239,3 +249,6 @@ def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
     # A finished pipeline is never overwritten by accident.
     with pytest.raises(ValueError, match="not empty"):
         run_demo("pick_place", "smoke", out)
+    # Nor resumed as a different run: its stages would mix two kinds of policy.
+    with pytest.raises(ValueError, match="is a run with inputs 'relative', not 'absolute'"):
+        run_demo("pick_place", "smoke", out, resume=True)

@@ -101,6 +101,12 @@ def test_resume_continues_exactly(dataset, tmp_path):
         torch.testing.assert_close(value, b.state_dict()[key], rtol=0, atol=0)
     with pytest.raises(ValueError, match="already holds a run"):
         train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=40, **common))
+    with pytest.raises(ValueError, match="trained with --inputs absolute, not relative"):
+        train_sft(
+            SFTConfig(out=str(tmp_path / "split"), steps=60, inputs="relative", **common),
+            resume=True,
+        )
+    assert Policy.from_pretrained(tmp_path / "split").config.inputs == "absolute"
 
 
 def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
