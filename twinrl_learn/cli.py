@@ -16,7 +16,7 @@ from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import load_targets, mine
 from twinrl_learn.pipeline import PRESETS, RunProgress, run_demo
-from twinrl_learn.policy import INPUTS, is_checkpoint
+from twinrl_learn.policy import is_checkpoint
 from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.runners import load_runner
 from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
@@ -91,13 +91,8 @@ def train_sft_command(
     """Supervised fine-tuning on demonstrations (real and twin), with a loss curve."""
     if policy not in DEFAULTS:
         raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
-    if inputs not in INPUTS:
-        raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
-    missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
-    if missing:
-        raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     parsed = [float(w) for w in weights.split(",")] if weights else None
-    config = SFTConfig(
+    config = SFTConfig(  # checks --inputs against --policy
         datasets=[str(d) for d in dataset],
         out=str(out),
         policy=policy,
@@ -109,6 +104,9 @@ def train_sft_command(
         inputs=inputs,
         seed=seed,
     ).resolved()
+    missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
+    if missing:
+        raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     with data_cli.progress("loss", "rate") as bar:
         job = bar.add_task(f"SFT {policy}", total=config.steps, loss="-", rate="-")
 

@@ -58,7 +58,7 @@ from twinrl_data.view import save_rrd
 from twinrl_learn.agent import RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
-from twinrl_learn.policy import INPUTS
+from twinrl_learn.policy import check_inputs
 from twinrl_learn.real_rl import EvalPoint, RealRL, RealRLSettings, load_evaluations, minutes_to
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.sft import SFTConfig, train_sft
@@ -197,10 +197,7 @@ def run_demo(
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     p = PRESETS[preset]
     if inputs is not None:
-        if inputs not in INPUTS:
-            raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
-        if inputs != "absolute" and p.policy != "state":
-            raise ValueError(f"--inputs {inputs} needs the state policy; preset {preset} uses vla")
+        check_inputs(inputs, p.policy)
         p = replace(p, inputs=inputs)
     seeds = tuple(seeds) if seeds else p.seeds
     out = Path(out)

@@ -43,6 +43,20 @@ from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 
 KINDS = ("vla", "state")
 INPUTS = ("absolute", "relative")
+
+
+def check_inputs(inputs: str, kind: str) -> None:
+    """Refuse ``inputs`` that are unknown or that the policy ``kind`` cannot have: the
+    one check behind SFT, its CLI and the pipeline, made before any work starts."""
+    if inputs not in INPUTS:
+        raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
+    if inputs != "absolute" and kind != "state":
+        raise ValueError(
+            f"--inputs applies to --policy state only: {inputs} inputs need the state policy "
+            "(the vla policy sees images)"
+        )
+
+
 LOG_STD_RANGE = (-5.0, 1.0)
 ACTION_MARGIN = 0.9
 EPS = 1e-4
@@ -63,9 +77,7 @@ class PolicyConfig:
     image_size: int = 64
     hidden: int = 256
     tcp_index: int = -1  # where tcp.x is in observation.state (-1: unknown)
-    # Entries of observation.state the policy reads (default: all). SFT leaves out joint
-    # velocities (in demonstrations a clock that a rollout does not keep) and, for
-    # relative inputs, joint angles (which tell where on the table the arm is).
+    # Entries of observation.state the policy reads (default: all; SFT chooses them).
     state_inputs: list[int] = field(default_factory=list)
     object_indices: list[int] = field(default_factory=list)  # where each <object>.x is in env
     inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
@@ -78,14 +90,11 @@ class PolicyConfig:
             raise ValueError(f"policy kind must be one of {', '.join(KINDS)}, got '{self.kind}'")
         if self.kind == "state" and self.env_dim == 0:
             raise ValueError("the state policy needs observation.environment_state (env_dim > 0)")
-        if self.inputs not in INPUTS:
-            raise ValueError(f"inputs must be one of {', '.join(INPUTS)}, got '{self.inputs}'")
-        if self.inputs == "relative" and (
-            self.kind != "state" or self.tcp_index < 0 or not self.object_indices
-        ):
+        check_inputs(self.inputs, self.kind)
+        if self.inputs == "relative" and (self.tcp_index < 0 or not self.object_indices):
             raise ValueError(
-                "relative inputs need the state policy and a dataset whose state has the TCP "
-                "pose (tcp.x ...) and whose environment state has object poses (<name>.x ...)"
+                "relative inputs need a dataset whose state has the TCP pose (tcp.x ...) "
+                "and whose environment state has object poses (<name>.x ...)"
             )
 
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from twinrl_data.training import FrameTable, load_frames
-from twinrl_learn.policy import Policy, PolicyConfig
+from twinrl_learn.policy import Policy, PolicyConfig, check_inputs
 
 DEFAULTS = {
     # steps, batch size, learning rate: enough for 30-120 episodes in a few minutes on 2 cores
@@ -52,6 +52,9 @@ class SFTConfig:
     seed: int = 0
     checkpoint_every: int = 500
     log_every: int = 25
+
+    def __post_init__(self) -> None:
+        check_inputs(self.inputs, self.policy)
 
     def resolved(self) -> SFTConfig:
         steps, batch, lr = DEFAULTS[self.policy]
@@ -123,8 +126,6 @@ def train_sft(
     """Train (or continue training) a policy; ``progress(step, metrics)`` is called every
     ``log_every`` steps with ``loss`` and ``steps_per_s``."""
     config = config.resolved()
-    if config.inputs != "absolute" and config.policy != "state":
-        raise ValueError("--inputs applies to --policy state only (the vla policy sees images)")
     out = Path(config.out)
     state_file = out / "training_state.pt"
     if out.exists() and any(out.iterdir()) and not resume:
