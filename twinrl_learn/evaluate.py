@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_data.session import Session
@@ -133,6 +134,9 @@ def evaluate(
         plant = Plant(task_name, effects=effects, seed=seed, images=runner.cameras)
         task = plant.task
     rng = np.random.default_rng(seed)
+    # Runners re-seed torch for every episode; a caller that is training (real RL,
+    # mining between its episodes) gets its random stream back as it was.
+    torch_state = torch.get_rng_state()
     try:
         for cell in cells:
             for _ in range(episodes):
@@ -185,6 +189,7 @@ def evaluate(
                     on_episode(cell, success)
     finally:
         (env if world == "twin" else plant).close()
+        torch.set_rng_state(torch_state)
     report = EvalReport(task=task_name, world=world, policy=runner.name, cells=cells)
     (out / "eval.json").write_text(json.dumps(report.to_json(), indent=1))
     plot_heatmap(report, grid, out / "heatmap.png")

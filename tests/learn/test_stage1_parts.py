@@ -143,6 +143,22 @@ def test_runner_selection(dataset, tmp_path):
         load_runner(tmp_path)
 
 
+def test_evaluation_leaves_the_callers_random_stream_alone(dataset, tmp_path):
+    """A runner re-seeds torch per episode; training that evaluates (real RL, mining)
+    must draw the same noise afterwards whatever the evaluation did."""
+    train_sft(
+        SFTConfig(
+            datasets=[str(dataset)], out=str(tmp_path / "p"), policy="state", steps=5, batch_size=8
+        )
+    )
+    runner = TwinrlRunner(tmp_path / "p")
+    torch.manual_seed(123)
+    expected = torch.rand(4)
+    torch.manual_seed(123)
+    evaluate(runner, "pick_place", grid=(1, 2), out=tmp_path / "eval")
+    assert torch.equal(torch.rand(4), expected)
+
+
 @pytest.mark.slow
 def test_a_lerobot_policy_is_evaluated_through_the_adapter(dataset, tmp_path):
     run = lerobot_train(dataset, tmp_path / "act", "--save_freq=2")
