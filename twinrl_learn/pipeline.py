@@ -263,7 +263,14 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
     log(f"Stage I: recording {p.real_demos} teleop-like demos in the plant (ID)")
     kept, recorded = record_real_demos(task, p.real_demos, folder)
     log(f"Stage I: kept {kept} of {recorded}; synthesizing {p.twin_id} ID + {p.twin_ood} OOD")
-    expand(task, id_count=p.twin_id, ood_count=p.twin_ood, out=folder / "twin", seed=1)
+    expand(
+        task,
+        id_count=p.twin_id,
+        ood_count=p.twin_ood,
+        out=folder / "twin",
+        seed=1,
+        images=p.policy == "vla",  # a state policy never reads them
+    )
     for name, datasets in (
         ("sft_real", [paths["real"]]),
         ("sft_twin", [paths["real"], paths["twin"]]),

@@ -139,6 +139,7 @@ def run_stage1(
             scene=scene,
             seed=settings.seed,
             export=False,
+            images="vla" in settings.policies,
         )
         expand(
             task,
@@ -148,6 +149,7 @@ def run_stage1(
             scene=scene,
             seed=settings.seed + 1,
             export=False,
+            images="vla" in settings.policies,
         )
         twin_id = Session(base / "twin_id" / "session").episode_paths()
         twin_ood = Session(base / "twin_ood" / "session").episode_paths()

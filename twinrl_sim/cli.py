@@ -193,6 +193,13 @@ def expand_command(
         int, typer.Option(help="Seed (attempt k always gets the same configuration).")
     ] = 0,
     workers: Annotated[int, typer.Option(help="Worker processes (default: 2).", min=1)] = 2,
+    images: Annotated[
+        bool,
+        typer.Option(
+            help="Render and record the front and wrist cameras; --no-images for demos a "
+            "state policy learns from (several times faster)."
+        ),
+    ] = True,
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
 ) -> None:
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
@@ -221,6 +228,7 @@ def expand_command(
             scene=scene,
             seed=seed,
             workers=workers,
+            images=images,
             force=force,
             on_demo=advance,
         )

@@ -2,8 +2,9 @@
 
 ``expand(...)`` samples configurations per region, makes each demonstration with the
 planner or by re-targeting one recorded demo, executes it in twin physics (both cameras
-rendered, optionally visually randomised), keeps the successes as ``twin_demo``
-episodes in a session and exports them as a LeRobotDataset::
+rendered, optionally visually randomised; or no cameras at all for a policy that reads
+the state only, several times faster), keeps the successes as ``twin_demo`` episodes
+in a session and exports them as a LeRobotDataset::
 
     OUT/
       session/      manifest.json + episodes/*.mcap   (every kept demonstration)
@@ -77,9 +78,10 @@ class _Job:
     demo_path: str | None
     episode_dir: str
     scene: SceneSpec | None = None  # the twin to synthesize in (None: the task's cell)
+    images: bool = True  # render and record the cameras
 
 
-_WORKER_CACHE: dict[str, Any] = {}
+_WORKER_CACHE: dict[tuple, Any] = {}  # per worker: twin envs by scene, demos by path
 
 
 def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
@@ -90,14 +92,15 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
     scene, record = task.scene, {}
     if job.randomize:
         scene, record = randomize_scene(task.scene, rng, job.randomize)
-    key = scene.digest
+    key = (scene.digest, job.images)
     env = _WORKER_CACHE.get(key)
     if env is None:
         if len(_WORKER_CACHE) > 8:
             for old in _WORKER_CACHE.values():
-                old.close()
+                if isinstance(old, TwinEnv):  # the cache also holds the demo to re-target
+                    old.close()
             _WORKER_CACHE.clear()
-        env = TwinEnv(job.task, scene=scene, images=True)
+        env = TwinEnv(job.task, scene=scene, images=job.images)
         _WORKER_CACHE[key] = env
     if job.method == "plan":
         plan = plan_demo(env.task, env.cell, config, rng)
@@ -158,6 +161,7 @@ def expand(
     seed: int = 0,
     workers: int | None = None,
     export: bool = True,
+    images: bool = True,
     force: bool = False,
     on_demo: Callable[[str, bool], None] | None = None,
 ) -> ExpandReport:
@@ -166,8 +170,9 @@ def expand(
     ``method`` is ``plan`` (grasp sampling + collision-checked waypoints) or ``augment``
     (re-target the episode ``from_demo``, an .mcap file). ``scene`` is the twin to
     synthesize in (e.g. one fitted by ``twinrl gap diagnose``: its physics and its look);
-    ``None`` is the task's built-in cell. ``on_demo(region, kept)`` is called after each
-    attempt (for progress bars).
+    ``None`` is the task's built-in cell. ``images=False`` records no camera frames
+    (demos for a state policy: no rendering, no video encoding). ``on_demo(region,
+    kept)`` is called after each attempt (for progress bars).
     """
     make_task(task, scene)
     if method not in METHODS:
@@ -185,6 +190,10 @@ def expand(
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
         raise ValueError("ask for at least one demonstration (--id N and/or --ood M)")
     check_kinds(randomize)
+    if randomize and not images:
+        raise ValueError(
+            "--randomize changes only what the cameras see; drop it or drop --no-images"
+        )
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not force:
@@ -199,6 +208,7 @@ def expand(
         "demo_path": str(from_demo) if from_demo else None,
         "episode_dir": str(session.path / "episodes"),
         "scene": scene,
+        "images": images,
     }
     workers = workers or min(2, os.cpu_count() or 1)
     start = time.perf_counter()

@@ -151,20 +151,37 @@ def test_expand_writes_episodes_dataset_and_report(tmp_path):
     assert (
         saved["yield"]["ID"] > 0 and (tmp_path / "out" / "dataset" / "meta" / "info.json").is_file()
     )
-    expand(
-        "pick_place",
-        id_count=2,
-        ood_count=1,
-        out=tmp_path / "again",
-        workers=2,
-        seed=5,
-        export=False,
+    # Two workers and no cameras (for a state policy): the same demonstrations.
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+
+    args = ["expand", "pick_place", "--id", "2", "--ood", "1", "--seed", "5", "--workers", "2"]
+    result = CliRunner().invoke(app, [*args, "--no-images", "--out", str(tmp_path / "again")])
+    assert result.exit_code == 0, result.output
+    again = sorted(
+        (read_episode(p) for p in Session(tmp_path / "again" / "session").episode_paths()),
+        key=lambda e: json.dumps(e.meta.config),
     )
-    configs = sorted(
-        json.dumps(read_episode(p).meta.config)
-        for p in Session(tmp_path / "again" / "session").episode_paths()
-    )
-    assert configs == sorted(json.dumps(e.meta.config) for e in episodes)
+    assert all(e.cameras == [] for e in again)
+    by_config = sorted(episodes, key=lambda e: json.dumps(e.meta.config))
+    for mine, theirs in zip(again, by_config, strict=True):
+        assert mine.meta.config == theirs.meta.config
+        np.testing.assert_array_equal(
+            mine.data["observation.state"], theirs.data["observation.state"]
+        )
+    info = json.loads((tmp_path / "again" / "dataset" / "meta" / "info.json").read_text())
+    assert not [k for k in info["features"] if k.startswith("observation.images")]
+    with pytest.raises(ValueError, match="drop --no-images"):
+        expand(
+            "pick_place",
+            id_count=1,
+            ood_count=0,
+            out=tmp_path / "y",
+            randomize=("lighting",),
+            images=False,
+        )
+    assert not (tmp_path / "y").exists()
     with pytest.raises(ValueError, match="not empty"):
         expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "out")
     with pytest.raises(ValueError, match="needs --from-demo"):
