@@ -5,7 +5,7 @@
 - Export to LeRobot: twinrl's export from MCAP episodes next to lerobot's own
   ``create``/``add_frame``/``save_episode``/``finalize`` loop on the same frames held in
   memory; seconds of work per second of episode, and the ratio.
-- Import: a LeRobotDataset back into episodes.
+- Import: a LeRobotDataset back into episodes, with and without decoding the videos.
 - Catalog: a filtered query over 10 000 synthetic episode rows.
 
 Camera frames are real twin renders (cycled), so compression sees realistic images.
@@ -170,6 +170,10 @@ def main(
     imported = sum(len(e) for e in iter_dataset_episodes(work / "ours"))
     import_time = time.perf_counter() - start
     assert imported == episodes * steps
+    start = time.perf_counter()  # what a state policy's SFT and replay buffers read
+    imported = sum(len(e) for e in iter_dataset_episodes(work / "ours", cameras=[]))
+    state_import_time = time.perf_counter() - start
+    assert imported == episodes * steps
 
     synthetic_catalog(work / "catalog.parquet", catalog_rows)
     timings = []
@@ -202,6 +206,10 @@ def main(
         (
             "import LeRobot -> episodes: s per episode-second",
             f"{import_time / episode_seconds:.3f}",
+        ),
+        (
+            "import without cameras (state policies): s per episode-second",
+            f"{state_import_time / episode_seconds:.4f}",
         ),
         (
             f"catalog query over {catalog_rows:,} rows (median of 7)",
