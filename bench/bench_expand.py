@@ -1,8 +1,9 @@
-"""Twin demo synthesis speed: N demonstrations with both cameras rendered, end to end.
+"""Twin demo synthesis speed: N demonstrations end to end, with both cameras rendered
+and, side by side, without cameras (the demos a state policy learns from).
 
-The paper builds a twin demo set in about a minute; the target here is 90 demos in at
-most 2 minutes on 2 cores (synthesis in worker processes, then LeRobot export).
-Usage::
+The paper builds a twin demo set in about a minute; the target here is 90 demos with
+cameras in at most 2 minutes on 2 cores (synthesis in worker processes, then LeRobot
+export). Usage::
 
     python bench/bench_expand.py --task insert_hexagon --demos 90
 """
@@ -18,7 +19,23 @@ from typing import Annotated
 
 import typer
 
-from twinrl_sim.expand import expand
+from twinrl_sim.expand import ExpandReport, expand
+
+
+def timed_expand(task: str, demos: int, workers: int, images: bool) -> tuple[ExpandReport, float]:
+    out = Path(tempfile.mkdtemp(prefix="twinrl-expand-")) / "run"
+    start = time.perf_counter()
+    report = expand(
+        task,
+        id_count=demos // 2,
+        ood_count=demos - demos // 2,
+        out=out,
+        workers=workers,
+        images=images,
+    )
+    total = time.perf_counter() - start
+    shutil.rmtree(out.parent)
+    return report, total
 
 
 def main(
@@ -32,23 +49,23 @@ def main(
     import datasets
 
     datasets.disable_progress_bars()
-    out = Path(tempfile.mkdtemp(prefix="twinrl-expand-")) / "run"
-    start = time.perf_counter()
-    report = expand(
-        task, id_count=demos // 2, ood_count=demos - demos // 2, out=out, workers=workers
-    )
-    total = time.perf_counter() - start
-    shutil.rmtree(out.parent)
-    kept = sum(report.kept.values())
-    attempts = sum(report.attempts.values())
+    cameras, with_total = timed_expand(task, demos, workers, images=True)
+    states, without_total = timed_expand(task, demos, workers, images=False)
+    assert states.kept == cameras.kept, "the same seed must give the same demonstrations"
+    kept = sum(cameras.kept.values())
+    attempts = sum(cameras.attempts.values())
+    print(f"{task}: {kept} demos from {attempts} attempts, {workers} workers\n")
+    print("| what | 2 cameras, 128x128 (s) | no cameras (s) |\n|---|---|---|")
     print(
-        f"{task}: {kept} demos (2 cameras, 128x128) from {attempts} attempts, {workers} workers\n"
+        "| synthesis (plan + execute + record) "
+        f"| {cameras.seconds_synthesis:.1f} | {states.seconds_synthesis:.1f} |"
     )
-    print("| what | seconds |\n|---|---|")
-    print(f"| synthesis (plan + execute + record) | {report.seconds_synthesis:.1f} |")
-    print(f"| LeRobot export | {report.seconds_export:.1f} |")
-    print(f"| end to end | {total:.1f} |")
-    print(f"\nper demo: {total / max(kept, 1):.2f} s; target for 90 demos: 120 s")
+    print(f"| LeRobot export | {cameras.seconds_export:.1f} | {states.seconds_export:.1f} |")
+    print(f"| end to end | {with_total:.1f} | {without_total:.1f} |")
+    print(
+        f"\nper demo with cameras: {with_total / max(kept, 1):.2f} s; target for 90 demos: "
+        f"120 s; without cameras {with_total / without_total:.1f}x faster"
+    )
 
 
 if __name__ == "__main__":
