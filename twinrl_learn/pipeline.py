@@ -419,10 +419,9 @@ def _real_rl_in_worker(job: RealRLJob) -> None:
 
 
 def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None]) -> None:
+    """Start or resume one unfinished run (``_run_jobs`` skips the finished ones)."""
     task, p, method, seed, folder = job.task, job.p, job.method, job.seed, job.folder
     stage1, stage2, targets = job.stage1, job.stage2, job.targets
-    if _done(folder):
-        return
     twin_buffer = stage2 / "twin_buffer"
     # HiL-SERL has no offline phase (RLConfig.for_method); the others get the preset's.
     offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}

@@ -22,6 +22,16 @@ def dataset(tmp_path_factory):
     return record_demos(tmp_path_factory.mktemp("demos"), episodes=2, seed=1)
 
 
+@pytest.fixture(scope="module")
+def state_checkpoint(dataset, tmp_path_factory):
+    """A few SFT steps of the state policy: something a runner can load and act with."""
+    out = tmp_path_factory.mktemp("state") / "p"
+    train_sft(
+        SFTConfig(datasets=[str(dataset)], out=str(out), policy="state", steps=5, batch_size=8)
+    )
+    return out
+
+
 @pytest.mark.parametrize(
     ("kind", "inputs"), [("state", "absolute"), ("state", "relative"), ("vla", "absolute")]
 )
@@ -131,27 +141,17 @@ def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
     assert all(c.region in ("ID", "OOD") for c in grid_cells("pick_place", (8, 8)))
 
 
-def test_runner_selection(dataset, tmp_path):
+def test_runner_selection(state_checkpoint, tmp_path):
     assert isinstance(load_runner("expert"), ExpertRunner)
-    train_sft(
-        SFTConfig(
-            datasets=[str(dataset)], out=str(tmp_path / "p"), policy="state", steps=5, batch_size=8
-        )
-    )
-    assert isinstance(load_runner(tmp_path / "p"), TwinrlRunner)
+    assert isinstance(load_runner(state_checkpoint), TwinrlRunner)
     with pytest.raises(ValueError, match="is not a policy checkpoint"):
         load_runner(tmp_path)
 
 
-def test_evaluation_leaves_the_callers_random_stream_alone(dataset, tmp_path):
+def test_evaluation_leaves_the_callers_random_stream_alone(state_checkpoint, tmp_path):
     """A runner re-seeds torch per episode; training that evaluates (real RL, mining)
     must draw the same noise afterwards whatever the evaluation did."""
-    train_sft(
-        SFTConfig(
-            datasets=[str(dataset)], out=str(tmp_path / "p"), policy="state", steps=5, batch_size=8
-        )
-    )
-    runner = TwinrlRunner(tmp_path / "p")
+    runner = TwinrlRunner(state_checkpoint)
     torch.manual_seed(123)
     expected = torch.rand(4)
     torch.manual_seed(123)
