@@ -17,6 +17,7 @@ from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
 from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
+from twinrl_sim.reconstruct.segment import TablePlane, describe_cluster
 from twinrl_sim.reconstruct.synthetic import (
     THREE_TAGS,
     WalkthroughSettings,
@@ -90,9 +91,7 @@ def test_objects_are_found_named_and_measured(built):
     assert objects["banana"].role == "manipulated" and objects["plate"].role == "target"
     plate, banana = objects["plate"], objects["banana"]
     truth = template_sizes(SCENE)  # footprint centre; long, short, height
-    # The issue's targets (1 cm, 10 %) are met on the benchmark's 60 s clip; this 6 s
-    # one has a third of the points, and the plate's pale rim few of them.
-    for obj, size_tolerance in ((plate, 0.15), (banana, 0.1)):
+    for obj, size_tolerance in ((plate, 0.1), (banana, 0.1)):
         centre, extent = truth[obj.name]
         size = np.array([*sorted(obj.cluster.size[:2], reverse=True), obj.cluster.size[2]])
         print(obj.name, obj.position - centre, size / extent - 1)
@@ -110,6 +109,27 @@ def test_objects_are_found_named_and_measured(built):
     assert abs(banana.shape.volume - banana_volume) < 0.3 * banana_volume
     assert banana.mass == pytest.approx(700 * banana.shape.volume)
     assert 1 <= len(banana.shape.parts) <= 8 and banana.shape.surface.is_watertight()
+
+
+def _disc_points(rng, radius, n, *, stretch=1.0, covered=np.pi):
+    """Points over a disc (or an ellipse ``stretch`` times longer in x) 2 cm high, the
+    rim covered only in the angles within ``covered`` of +x, as a short clip sees it."""
+    angle = rng.uniform(-np.pi, np.pi, n)
+    reach = np.where(np.abs(angle) < covered, 1.0, 0.7) * np.sqrt(rng.uniform(0, 1, n))
+    xy = radius * reach[:, None] * np.c_[stretch * np.cos(angle), np.sin(angle)]
+    return np.c_[xy, rng.uniform(0.01, 0.02, n)]
+
+
+def test_a_round_footprint_has_one_diameter_however_unevenly_its_rim_is_seen():
+    rng = np.random.default_rng(0)
+    table = TablePlane(0.0, np.zeros(2), np.ones(2), 0.0, np.ones(3), 0.0, 100)
+    # Half the rim seen: across that side the trimmed box spans about 0.79 of the 17 cm
+    # diameter, along it 0.87 (full coverage: 0.93, the trim of a uniform disc).
+    plate = describe_cluster(_disc_points(rng, 0.085, 400, covered=np.pi / 2), np.ones(3), table)
+    assert plate.size[0] == plate.size[1] and 0.85 < plate.size[0] / 0.17 < 1.0
+    # An elongated footprint keeps its two extents.
+    bar = describe_cluster(_disc_points(rng, 0.03, 400, stretch=3.0), np.ones(3), table)
+    assert 0.85 < bar.size[0] / 0.18 < 1.0 and 0.85 < bar.size[1] / 0.06 < 1.0
 
 
 def test_the_front_camera_is_placed_from_its_photo(built):

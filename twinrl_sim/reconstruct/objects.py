@@ -31,14 +31,13 @@ from scipy.spatial import ConvexHull
 
 from twinrl_sim.build import compile_scene
 from twinrl_sim.reconstruct.frames import CaptureError
-from twinrl_sim.reconstruct.segment import ObjectCluster
+from twinrl_sim.reconstruct.segment import ROUND_ASPECT, ObjectCluster
 from twinrl_sim.spec import SceneSpec
 
 DEFAULT_DENSITY = 700.0  # kg/m^3: fruit, wood, filled plastic; override per object
 ALPHA = 0.03  # m: alpha-shape radius, about the spacing of sparse SfM points
 CONVEXITY = 0.05  # CoACD concavity threshold
 MAX_PARTS = 8
-ROUND_ASPECT = 1.25  # footprints rounder than this have no heading
 SCALE_MISMATCH = 1.3  # objects this much larger/smaller than the task's: a wrong tag size
 ICP_DISTANCE = 0.01  # m: correspondences farther apart are outliers
 

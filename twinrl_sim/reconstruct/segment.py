@@ -29,6 +29,7 @@ TOP_CELL_POINTS = 3  # points a cell needs for its median height to count
 TOP_CELLS = 4  # cells needed; fewer, and the top is a high percentile of the points
 TOP_PERCENTILE = 90  # over the cells' median heights
 FOOTPRINT_TRIM = 1.0  # percent of the points left out at each end of a footprint
+ROUND_ASPECT = 1.25  # footprints rounder than this have no heading and one diameter
 
 
 def planar_axes(yaw: float) -> np.ndarray:
@@ -88,7 +89,10 @@ def describe_cluster(
     heading, height.
 
     A carved footprint is taken whole (it is dense and has no strays); the points' is
-    the 1st-99th percentile box, as a few stray matches fringe every object."""
+    the 1st-99th percentile box, as a few stray matches fringe every object. A round
+    footprint (aspect under ``ROUND_ASPECT``) has one diameter, its long extent: the
+    long axis is where the points spread most, so uneven coverage of the rim (a pale
+    plate's, from a short clip) shortens the other one, never the long one."""
     if carved is None:
         footprint, trim = points[:, :2], FOOTPRINT_TRIM
     else:
@@ -98,9 +102,12 @@ def describe_cluster(
     low, high = np.percentile(footprint @ axes.T, [trim, 100 - trim], axis=0)
     centre_xy = ((low + high) / 2) @ axes
     height = top_height(points) - table.height
+    extent = high - low
+    if extent.max() < ROUND_ASPECT * extent.min():
+        extent = np.full(2, extent.max())
     return ObjectCluster(
         center=np.array([centre_xy[0], centre_xy[1], table.height + height / 2]),
-        size=np.array([high[0] - low[0], high[1] - low[1], height]),
+        size=np.array([extent[0], extent[1], height]),
         yaw=yaw,
         color=color,
         points=points,
