@@ -62,6 +62,29 @@ def test_chunked_transitions_sum_rewards_and_stop_at_success():
     assert not batch.demo.any()
 
 
+def test_a_takeover_ends_the_policys_stretch_with_its_reward():
+    episode = synthetic_episode(8, success=True)
+    episode.data["intervention"][[3, 4]] = True  # the operator holds steps 3-4, hands back
+    gamma = 0.5
+    for takeover, ends in ((-2.0, True), (None, False)):
+        buffer = ReplayBuffer(rewards=RewardSettings(success=10.0, step=-1.0, takeover=takeover))
+        buffer.add(episode)
+        batch = buffer.transitions(np.array([1, 3, 5]), chunk=3, gamma=gamma)
+        if ends:  # steps 1, 2 and the takeover: terminal, the operator's actions not in it
+            assert batch.reward[0] == pytest.approx(-1 + 0.5 * (-1 - 2))
+            assert batch.discount[0] == 0
+            np.testing.assert_array_equal(batch.actions[0, :, 0], [1, 2, 2])
+            assert batch.mc_return[0] == pytest.approx(batch.reward[0])
+        else:  # the stretch runs on into the operator's steps
+            assert batch.reward[0] == pytest.approx(-1 - 0.5 - 0.25)
+            assert batch.discount[0] == pytest.approx(0.125)
+            np.testing.assert_array_equal(batch.actions[0, :, 0], [1, 2, 3])
+        # The operator's stretch and the policy's after the hand-back run to the success.
+        assert batch.reward[1] == pytest.approx(-1 - 0.5 - 0.25) and batch.discount[1] > 0
+        assert batch.reward[2] == pytest.approx(-1 - 0.5 + 0.25 * 10) and batch.discount[2] == 0
+        assert buffer.valid_starts(3, gamma).tolist() == list(range(8))
+
+
 def test_buffers_are_sampled_in_the_configured_ratio():
     demo = ReplayBuffer(episodes=[synthetic_episode(20, True, source="teleop")])
     online = ReplayBuffer(episodes=[synthetic_episode(20, False, offset=100)])
