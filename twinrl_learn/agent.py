@@ -268,6 +268,25 @@ class Agent:
         return metrics | actor_metrics | {"online": float(online)}
 
     # -------------------------------------------------------------- checkpoints
+    def adopt_critic(self, folder: str | Path) -> bool:
+        """Take the critic and its target from the RL checkpoint in ``folder`` (Stage
+        II's agent, to go on judging with what it learnt in the twin), when it is one;
+        optimizers and counters start afresh. Returns whether there was one."""
+        path = Path(folder) / "agent.pt"
+        if not path.is_file():
+            return False
+        state = torch.load(path, weights_only=False)
+        try:
+            self.critic.load_state_dict(state["critic"])
+            self.target.load_state_dict(state["target"])
+        except RuntimeError as error:
+            raise ValueError(
+                f"the critic in {folder} does not fit {self.config.critics} critics of width "
+                f"{self.config.hidden} on this policy's inputs; use the settings it was "
+                "trained with, or start a fresh critic"
+            ) from error
+        return True
+
     def state_dict(self) -> dict:
         return {
             "policy": self.policy.state_dict(),

@@ -317,6 +317,13 @@ def train_real_rl_command(
         Path | None,
         typer.Option(help="Policy to start from: SFT checkpoint or a twin-rl run's agent/."),
     ] = None,
+    keep_critic: Annotated[
+        bool,
+        typer.Option(
+            help="Keep the critic of the twin-rl agent given as --init (default: a new "
+            "critic, which measured better)."
+        ),
+    ] = False,
     robot: Annotated[str, typer.Option(help="Robot to learn on: plant.")] = "plant",
     effects: Annotated[
         Path | None, typer.Option(help="The plant's hidden effects (YAML; default built in).")
@@ -402,6 +409,7 @@ def train_real_rl_command(
     settings = RealRLSettings(
         task=task,
         init=str(init or ""),
+        keep_critic=keep_critic,
         out=str(out),
         robot=robot,
         effects=str(effects) if effects else None,

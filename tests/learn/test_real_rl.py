@@ -5,12 +5,13 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.agent import RLConfig
+from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
 from twinrl_learn.policy import Policy
@@ -189,6 +190,31 @@ def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tm
     resumed.run()
     assert resumed.run_state.agent.env_steps >= 120
     assert len(load_evaluations(tmp_path / "run")) == 3
+
+
+def test_real_rl_keeps_the_twin_agents_critic_when_asked(demos, tmp_path):
+    twin_agent = Agent(Policy.from_pretrained(demos[1]), RLConfig(seed=11))
+    twin_agent.save(tmp_path / "agent")
+    saved = twin_agent.critic.state_dict()
+
+    def critic_of(name, **overrides):
+        settings = real_settings(demos, tmp_path / name, init=str(tmp_path / "agent"), **overrides)
+        real = RealRL.start(settings)
+        real.close()
+        return real.run_state.agent.critic.state_dict()
+
+    taken, fresh = critic_of("taken", keep_critic=True), critic_of("fresh")
+    for key, value in saved.items():
+        torch.testing.assert_close(taken[key], value, rtol=0, atol=0)
+    assert any(not torch.equal(fresh[key], value) for key, value in saved.items())
+    Agent(Policy.from_pretrained(demos[1]), RLConfig(hidden=32)).save(tmp_path / "narrow")
+    with pytest.raises(ValueError, match="does not fit 2 critics of width 256"):
+        RealRL.start(
+            real_settings(demos, tmp_path / "c", init=str(tmp_path / "narrow"), keep_critic=True)
+        )
+    with pytest.raises(ValueError, match="--keep-critic: .* is not an RL agent"):
+        RealRL.start(real_settings(demos, tmp_path / "c", keep_critic=True))  # an SFT policy
+    assert not (tmp_path / "c").exists()
 
 
 def test_real_rl_refuses_bad_input(demos, tmp_path):
