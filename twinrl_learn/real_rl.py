@@ -67,7 +67,7 @@ class RealRLSettings:
     out: str
     # Start from the critic of ``init`` when it is a Stage II agent. Off by default: over
     # 4 plant minutes (seeds 0-2) runs ended at 69 / 70 % (ID / OOD, mean) with it and at
-    # 66 / 76 % without; over 12 (seed 1) it fell to 52 / 77 %, a new critic held 78 / 77 %.
+    # 66 / 77 % without; over 12 (seed 1) it fell to 52 / 77 %, a new critic held 78 / 77 %.
     keep_critic: bool = False
     robot: str = "plant"
     effects: str | None = None  # the plant's hidden effects (None: the built-in plant)
