@@ -283,7 +283,7 @@ class Agent:
             raise ValueError(
                 f"the critic in {folder} does not fit {self.config.critics} critics of width "
                 f"{self.config.hidden} on this policy's inputs; use the settings it was "
-                "trained with, or start a fresh critic"
+                "trained with, or a new critic"
             ) from error
         return True
 

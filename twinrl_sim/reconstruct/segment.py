@@ -92,7 +92,7 @@ def describe_cluster(
     the 1st-99th percentile box, as a few stray matches fringe every object. A round
     footprint (aspect under ``ROUND_ASPECT``) has one diameter, its long extent: the
     long axis is where the points spread most, so uneven coverage of the rim (a pale
-    plate's, from a short clip) shortens the other one, never the long one."""
+    plate's, from a short clip) shortens the other one more."""
     if carved is None:
         footprint, trim = points[:, :2], FOOTPRINT_TRIM
     else:
