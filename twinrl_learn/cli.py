@@ -18,6 +18,7 @@ from twinrl_learn.mining import load_targets, mine
 from twinrl_learn.pipeline import PRESETS, RunProgress, run_demo
 from twinrl_learn.policy import is_checkpoint
 from twinrl_learn.real_rl import RealRL, RealRLSettings
+from twinrl_learn.replay import RewardSettings
 from twinrl_learn.runners import load_runner
 from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
 from twinrl_learn.stage1 import Stage1Settings, run_stage1
@@ -377,6 +378,13 @@ def train_real_rl_command(
             min=0.0,
         ),
     ] = OperatorRule.correct_within,
+    takeover_reward: Annotated[
+        float | None,
+        typer.Option(
+            help="Reward of the policy's last step before a takeover, which ends its "
+            "stretch for the critic (default 0; a success earns 10)."
+        ),
+    ] = None,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
     resume: ResumeOption = False,
 ) -> None:
@@ -403,6 +411,7 @@ def train_real_rl_command(
             offline_steps=offline_steps,
             exploration=exploration,
             actor_lr=actor_lr,
+            rewards=None if takeover_reward is None else RewardSettings(takeover=takeover_reward),
             seed=seed,
         )
     )
