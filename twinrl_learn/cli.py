@@ -474,7 +474,7 @@ def demo_command(
     preset: Annotated[
         str,
         typer.Option(
-            help="smoke (every stage, minutes), quick (state policy, ~14 min) or paper "
+            help="smoke (every stage, minutes), quick (state policy, ~16 min) or paper "
             "(image policy, hours)."
         ),
     ] = "quick",
