@@ -379,12 +379,12 @@ def train_real_rl_command(
         ),
     ] = OperatorRule.correct_within,
     takeover_reward: Annotated[
-        float | None,
+        float,
         typer.Option(
             help="Reward of the policy's last step before a takeover, which ends its "
-            "stretch for the critic (default 0; a success earns 10)."
+            "stretch for the critic (a success earns 10)."
         ),
-    ] = None,
+    ] = RewardSettings.takeover,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
     resume: ResumeOption = False,
 ) -> None:
@@ -411,7 +411,7 @@ def train_real_rl_command(
             offline_steps=offline_steps,
             exploration=exploration,
             actor_lr=actor_lr,
-            rewards=None if takeover_reward is None else RewardSettings(takeover=takeover_reward),
+            rewards=RewardSettings(takeover=takeover_reward),
             seed=seed,
         )
     )
