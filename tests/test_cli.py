@@ -149,6 +149,10 @@ def test_train_and_eval_commands(tmp_path):
             ["train", "sft", "--dataset", "nowhere", "--out", "x", "--inputs", "sideways"],
             "--inputs must be one of absolute, relative",
         ),
+        (
+            ["train", "sft", "--dataset", "nowhere", "--out", "x", "--image-size", "96"],
+            "--image-size must be one of 64, 128, got 96",
+        ),
         (["eval", "nowhere", "--task", "pick_place", "--out", "x"], "is not a policy checkpoint"),
         (
             ["eval", "expert", "--task", "pick_place", "--grid", "8by8", "--out", "x"],
@@ -162,3 +166,4 @@ def test_stage1_bad_input(args, message, tmp_path):
     result = twinrl(*args, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "x").exists()  # nothing written

@@ -84,6 +84,17 @@ def train_sft_command(
             "from few demos)."
         ),
     ] = "absolute",
+    image_size: Annotated[
+        int, typer.Option(help="vla only: image size the cameras are resized to, 64 or 128.")
+    ] = SFTConfig.image_size,
+    locate_weight: Annotated[
+        float,
+        typer.Option(
+            help="vla only: weight of the auxiliary loss that locates the objects relative to "
+            "the TCP from the images (needs object poses in the data; 0 turns it off).",
+            min=0.0,
+        ),
+    ] = SFTConfig.locate_weight,
     seed: Annotated[int, typer.Option(help="Seed (initialisation, sampling, augmentation).")] = 0,
     resume: Annotated[
         bool, typer.Option(help="Continue the run in --out exactly where it stopped.")
@@ -103,6 +114,8 @@ def train_sft_command(
         lr=lr,
         chunk=chunk,
         inputs=inputs,
+        image_size=image_size,
+        locate_weight=locate_weight,
         seed=seed,
     ).resolved()
     missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
@@ -125,6 +138,11 @@ def train_sft_command(
         f"{result.out}: {result.steps} steps in {result.seconds:.0f} s, final loss "
         f"{sum(tail) / max(len(tail), 1):.3f}; curve {result.out / 'loss.png'}"
     )
+    if policy == "vla" and locate_weight > 0 and not result.locating:
+        console.print(
+            "note: the datasets hold no object poses (observation.environment_state), "
+            "so the policy learnt from the actions alone, without locating the objects"
+        )
 
 
 def _grid(text: str, flag: str = "--grid") -> tuple[int, int]:

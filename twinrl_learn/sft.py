@@ -31,8 +31,11 @@ from twinrl_learn.policy import Policy, PolicyConfig, check_inputs
 DEFAULTS = {
     # steps, batch size, learning rate: enough for 30-120 episodes in a few minutes on 2 cores
     "state": (3000, 256, 1e-3),
-    "vla": (2500, 64, 5e-4),
+    "vla": (5000, 64, 5e-4),
 }
+IMAGE_SIZES = (64, 128)  # the image policy's input sizes (the cameras record 128 px)
+# What a run saved before an option existed had: it did not locate objects.
+SAVED_BEFORE_OPTION = {"locate_weight": 0.0}
 
 
 @dataclass
@@ -48,13 +51,21 @@ class SFTConfig:
     lr: float | None = None
     chunk: int = 8
     inputs: str = "absolute"  # the state policy's inputs: absolute or relative (policy.py)
-    image_size: int = 64
+    image_size: int = 128  # vla: images are resized to this on load (64 or 128)
+    locate_weight: float = 1.0  # vla: weight of the auxiliary object-locating loss (0: off)
     seed: int = 0
     checkpoint_every: int = 500
     log_every: int = 25
 
     def __post_init__(self) -> None:
         check_inputs(self.inputs, self.policy)
+        if self.image_size not in IMAGE_SIZES:
+            raise ValueError(
+                f"--image-size must be one of {', '.join(map(str, IMAGE_SIZES))}, "
+                f"got {self.image_size}"
+            )
+        if self.locate_weight < 0:
+            raise ValueError(f"--locate-weight must be >= 0, got {self.locate_weight}")
 
     def resolved(self) -> SFTConfig:
         steps, batch, lr = DEFAULTS[self.policy]
@@ -74,6 +85,7 @@ class SFTResult:
     steps: int
     losses: list[float] = field(default_factory=list)
     seconds: float = 0.0
+    locating: bool = False  # whether the image policy learnt to locate the objects
 
 
 def _frames(config: SFTConfig) -> FrameTable:
@@ -144,6 +156,20 @@ def train_sft(
     # Joint velocities are a clock in demonstrations that a rollout does not keep; relative
     # inputs also leave out joint angles, which would tell the policy where it is.
     ignored_state = ("qd.", "q.") if config.inputs == "relative" else ("qd.",)
+    tcp_index = frames.state_names.index("tcp.x") if "tcp.x" in frames.state_names else -1
+    object_indices = (
+        [i for i, n in enumerate(frames.environment_names) if n.endswith(".x")]
+        if tcp_index >= 0
+        else []
+    )
+    # Locating needs the objects' true poses in every frame (twin and plant data have
+    # them; a real cell's demos may not): without them the image policy trains on actions.
+    locating = (
+        config.policy == "vla"
+        and config.locate_weight > 0
+        and frames.environment_state is not None
+        and bool(object_indices)
+    )
     torch.manual_seed(config.seed)
     policy_config = PolicyConfig(
         kind=config.policy,
@@ -151,13 +177,13 @@ def train_sft(
         env_dim=0 if frames.environment_state is None else frames.environment_state.shape[1],
         chunk=config.chunk,
         image_size=config.image_size,
-        tcp_index=frames.state_names.index("tcp.x") if "tcp.x" in frames.state_names else -1,
+        stem_stride=config.image_size // 32,
+        locate_weight=config.locate_weight if locating else 0.0,
+        tcp_index=tcp_index,
         state_inputs=[
             i for i, n in enumerate(frames.state_names) if not n.startswith(ignored_state)
         ],
-        object_indices=[i for i, n in enumerate(frames.environment_names) if n.endswith(".x")]
-        if "tcp.x" in frames.state_names
-        else [],
+        object_indices=object_indices,
         inputs=config.inputs,
         seed=config.seed,
         stats={k: {s: v.tolist() for s, v in d.items()} for k, d in frames.stats.items()},
@@ -181,7 +207,7 @@ def train_sft(
     while step < config.steps:
         rows = _sample_rows(frames, weights, config.batch_size, generator)
         batch, actions = _batch(policy, frames, rows, generator, config.chunk)
-        loss = policy.imitation_loss(batch, actions)
+        loss = policy.sft_loss(batch, actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
@@ -199,13 +225,22 @@ def train_sft(
     policy.eval()
     policy.save_pretrained(out)
     plot_losses(losses, out / "loss.png")
-    return SFTResult(out=out, steps=step, losses=losses, seconds=time.perf_counter() - start)
+    return SFTResult(
+        out=out,
+        steps=step,
+        losses=losses,
+        seconds=time.perf_counter() - start,
+        locating=policy.locates,
+    )
 
 
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
     """A resumed run must build the network it saved (else its weights do not fit)."""
-    for key in ("policy", "chunk", "inputs", "image_size"):
-        before = saved.get(key, SFTConfig.__dataclass_fields__[key].default)
+    image_only = ("image_size", "locate_weight") if config.policy == "vla" else ()
+    for key in ("policy", "chunk", "inputs", *image_only):
+        before = saved.get(
+            key, SAVED_BEFORE_OPTION.get(key, SFTConfig.__dataclass_fields__[key].default)
+        )
         if before != getattr(config, key):
             flag = "--" + key.replace("_", "-")
             raise ValueError(

@@ -9,8 +9,9 @@ import torch
 from tests.conftest import lerobot_train, record_demos
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
+from twinrl_data.training import load_frames
 from twinrl_learn.evaluate import evaluate, grid_cells
-from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, Policy, PolicyConfig
+from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, FiLMConvEncoder, Policy, PolicyConfig
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_sim.build import yaw_quat
@@ -92,6 +93,59 @@ def test_relative_inputs_are_the_same_reach_anywhere_on_the_table():
         PolicyConfig(kind="vla", state_dim=8, inputs="relative")
     with pytest.raises(ValueError, match="--inputs applies to --policy state only"):
         train_sft(SFTConfig(datasets=["nowhere"], out="x", policy="vla", inputs="relative"))
+
+
+def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
+    """The auxiliary head says where the objects are relative to the TCP; SFT teaches it
+    (the error falls), and 0 weight leaves the head out."""
+    frames = load_frames([str(dataset)], cameras=["front", "wrist"], image_size=128)
+    rows = np.arange(0, len(frames), 3)
+
+    def locating_error(steps: int) -> float:
+        out = tmp_path / f"vla_{steps}"
+        result = train_sft(
+            SFTConfig(datasets=[str(dataset)], out=str(out), policy="vla", steps=steps,
+                      batch_size=16, log_every=1)
+        )  # fmt: skip
+        policy = Policy.from_pretrained(out)
+        assert result.locating and policy.locates and policy.config.stem_stride == 4
+        images = {c: frames.images[c][rows] for c in frames.images}
+        instructions = [frames.instruction[r] for r in rows]
+        batch = policy.inputs(
+            frames.state[rows], frames.environment_state[rows], images, instructions
+        )
+        with torch.no_grad():
+            return torch.nn.functional.mse_loss(policy.locate(batch), batch["objects"]).item()
+
+    assert locating_error(80) < 0.5 * locating_error(1)
+    plain = train_sft(
+        SFTConfig(datasets=[str(dataset)], out=str(tmp_path / "plain"), policy="vla", steps=2,
+                  batch_size=4, locate_weight=0.0, image_size=64)
+    )  # fmt: skip
+    policy = Policy.from_pretrained(plain.out)
+    assert not plain.locating and not hasattr(policy, "locator") and policy.config.stem_stride == 2
+    with pytest.raises(ValueError, match="no locating head"):
+        policy.locate({})
+    with pytest.raises(ValueError, match="--image-size must be one of 64, 128, got 96"):
+        SFTConfig(datasets=["d"], out="x", image_size=96)
+    with pytest.raises(ValueError, match="locating the objects needs"):
+        PolicyConfig(kind="vla", state_dim=8, locate_weight=1.0)
+
+
+def test_a_128_pixel_image_costs_what_a_64_pixel_one_does_and_old_checkpoints_load(tmp_path):
+    """The 8x8 stride-4 stem brings 128 px to the 32x32 maps that the 3x3 stride-2 stem
+    makes of 64 px; a checkpoint saved before the stem and the locator existed loads as
+    it was (stride 2, no locating head)."""
+    wide = FiLMConvEncoder(stem_stride=4).blocks[0](torch.zeros(1, 3, 128, 128))
+    narrow = FiLMConvEncoder(stem_stride=2).blocks[0](torch.zeros(1, 3, 64, 64))
+    assert wide.shape == narrow.shape == (1, 32, 32, 32)
+    saved = Policy(PolicyConfig(kind="vla", state_dim=6)).save_pretrained(tmp_path / "old")
+    config = json.loads((saved / "config.json").read_text())
+    for key in ("stem_stride", "locate_weight"):
+        del config[key]
+    (saved / "config.json").write_text(json.dumps(config))
+    old = Policy.from_pretrained(saved)
+    assert old.config.stem_stride == 2 and not old.locates
 
 
 def test_resume_continues_exactly(dataset, tmp_path):
