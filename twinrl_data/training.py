@@ -94,7 +94,10 @@ class FrameTable:
 
     Arrays have one row per frame; ``episode_end[i]`` is the exclusive end row of frame
     ``i``'s episode (for action chunks), ``source[i]`` the index of its dataset in
-    ``roots``. Images are uint8 (N, S, S, 3) at ``image_size``.
+    ``roots``. Images are uint8 (N, S, S, 3) at ``image_size``. ``environment_state``
+    is None when no episode holds object poses, and NaN in the rows of episodes that do
+    not (a real cell's demos mixed with the twin's); :attr:`environment_complete` says
+    whether every row has them.
     """
 
     roots: list[Path]
@@ -111,6 +114,12 @@ class FrameTable:
 
     def __len__(self) -> int:
         return len(self.state)
+
+    @property
+    def environment_complete(self) -> bool:
+        """Whether every frame holds observation.environment_state."""
+        env = self.environment_state
+        return env is not None and not np.isnan(env).any()
 
     def action_chunks(self, rows: np.ndarray, chunk: int) -> np.ndarray:
         """Actions rows..rows+chunk-1 of each row's episode, the last repeated past its end."""
@@ -145,8 +154,7 @@ def load_frames(
                 raise DataError(f"{root} has no camera(s) {missing}; it has {episode.cameras}")
             n = len(episode)
             states.append(episode.data[STATE])
-            if ENVIRONMENT_STATE in episode.data:
-                envs.append(episode.data[ENVIRONMENT_STATE])
+            envs.append(episode.data.get(ENVIRONMENT_STATE))
             actions.append(episode.data[ACTION])
             instructions.extend([episode.meta.instruction or episode.meta.task] * n)
             total += n
@@ -170,13 +178,21 @@ def load_frames(
         raise DataError(f"the datasets {list(map(str, roots))} hold no frames")
     state = np.concatenate(states).astype(np.float32)
     action = np.concatenate(actions).astype(np.float32)
-    env = np.concatenate(envs).astype(np.float32) if len(envs) == len(states) else None
+    width = next((e.shape[1] for e in envs if e is not None), None)
+    env = None
+    if width is not None:
+        env = np.concatenate(
+            [
+                np.full((len(s), width), np.nan) if e is None else e
+                for s, e in zip(states, envs, strict=True)
+            ]
+        ).astype(np.float32)
     stats = {
         "state": {"mean": state.mean(0), "std": state.std(0) + 1e-3},
         "action": {"min": action.min(0), "max": action.max(0)},
     }
     if env is not None:
-        stats["env"] = {"mean": env.mean(0), "std": env.std(0) + 1e-3}
+        stats["env"] = {"mean": np.nanmean(env, 0), "std": np.nanstd(env, 0) + 1e-3}
     return FrameTable(
         roots=[Path(r) for r in roots],
         state=state,

@@ -140,8 +140,9 @@ def train_sft_command(
     )
     if policy == "vla" and locate_weight > 0 and not result.locating:
         console.print(
-            "note: the datasets hold no object poses (observation.environment_state), "
-            "so the policy learnt from the actions alone, without locating the objects"
+            "note: no dataset holds both the object poses (observation.environment_state) "
+            "and the TCP pose (tcp.x), so the policy learnt from the actions alone, "
+            "without locating the objects"
         )
 
 

@@ -6,9 +6,9 @@ Two variants share one head and one checkpoint format:
   feature maps FiLM-conditioned on the instruction's sentence embedding
   (all-MiniLM-L6-v2), fused with the proprio state. Where the training data hold the
   object poses (the twin's demos always do), an auxiliary head learns to say where each
-  object is relative to the TCP from the same features (``locate_weight``): at 30-120
-  demonstrations the action loss alone leaves the banana's position about 1.5 cm
-  uncertain in the images, which is a missed grasp;
+  object is relative to the TCP from the same features (``locate_weight``): from 30-120
+  demonstrations at 64 px a locating head placed the banana 1.2-1.8 cm off while the
+  gripper approached it, which is a missed grasp;
 - ``state`` (**privileged**): proprio + ``observation.environment_state`` (object poses
   known only in the twin and the plant), for fast experiments. Its ``inputs`` are either
   ``absolute`` (joint angles, TCP pose, gripper, the objects' poses in the base frame and
@@ -65,7 +65,7 @@ LOG_STD_RANGE = (-5.0, 1.0)
 ACTION_MARGIN = 0.9
 EPS = 1e-4
 IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
-STEM_KERNELS = {2: (3, 1), 4: (8, 2)}  # first-convolution stride -> (kernel, padding)
+CONV_KERNELS = {2: (3, 1), 4: (8, 2)}  # convolution stride -> (kernel, padding)
 STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
 
 
@@ -81,7 +81,8 @@ class PolicyConfig:
     cameras: list[str] = field(default_factory=lambda: ["front", "wrist"])
     image_size: int = 64
     # Stride of each encoder's first convolution: 2 (3x3) for 64 px images, 4 (8x8) for
-    # 128 px, which reaches the same 32x32 maps at the same cost from 4x the pixels.
+    # 128 px, which reaches the same 32x32 maps from 4x the pixels in about the same
+    # training time (sft.STEM_STRIDES).
     stem_stride: int = 2
     # Weight of the auxiliary loss that locates the objects relative to the TCP (vla;
     # 0: no locating head). Trained where the data hold observation.environment_state.
@@ -102,12 +103,16 @@ class PolicyConfig:
         if self.kind == "state" and self.env_dim == 0:
             raise ValueError("the state policy needs observation.environment_state (env_dim > 0)")
         check_inputs(self.inputs, self.kind)
-        if self.stem_stride not in STEM_KERNELS:
+        if self.stem_stride not in CONV_KERNELS:
             raise ValueError(
-                f"stem_stride must be one of {sorted(STEM_KERNELS)}, got {self.stem_stride}"
+                f"stem_stride must be one of {sorted(CONV_KERNELS)}, got {self.stem_stride}"
             )
         if self.locate_weight < 0:
             raise ValueError(f"locate_weight must be >= 0, got {self.locate_weight}")
+        if self.locate_weight > 0 and self.kind != "vla":
+            raise ValueError(
+                "locate_weight applies to the vla policy (the state policy reads poses)"
+            )
         if self.locate_weight > 0 and (self.tcp_index < 0 or not self.object_indices):
             raise ValueError(
                 "locating the objects needs a dataset whose state has the TCP pose (tcp.x ...) "
@@ -134,7 +139,7 @@ class SpatialSoftmax(nn.Module):
 class FiLMConvEncoder(nn.Module):
     """Four conv blocks; each block's channels are scaled and shifted by the instruction
     embedding (FiLM); a spatial softmax turns the last maps into keypoints. The first
-    block strides by ``stem_stride`` (:data:`STEM_KERNELS`), the others by 2."""
+    block strides by ``stem_stride`` (:data:`CONV_KERNELS`), the others by 2."""
 
     def __init__(self, channels: tuple[int, ...] = (32, 64, 64, 128), stem_stride: int = 2) -> None:
         super().__init__()
@@ -142,7 +147,7 @@ class FiLMConvEncoder(nn.Module):
         previous = 3
         for i, width in enumerate(channels):
             stride = stem_stride if i == 0 else 2
-            kernel, padding = STEM_KERNELS[stride]
+            kernel, padding = CONV_KERNELS[stride]
             blocks.append(
                 nn.Sequential(
                     nn.Conv2d(previous, width, kernel, stride=stride, padding=padding),
@@ -310,13 +315,29 @@ class Policy(nn.Module):
 
     def sft_loss(self, batch: dict[str, torch.Tensor], actions: torch.Tensor) -> torch.Tensor:
         """What SFT minimises: the imitation loss, plus ``locate_weight`` times the
-        locating loss where the batch has the objects' true offsets (``objects``)."""
+        locating loss on the rows whose true object offsets the batch holds
+        (:meth:`locating_targets`)."""
         features = self.features(batch)
         loss = self.imitation_loss(batch, actions, features=features)
-        if self.locates and "objects" in batch:
-            locating = F.mse_loss(self.locator(features), batch["objects"])
-            loss = loss + self.config.locate_weight * locating
+        known = batch.get("objects_known")
+        if self.locates and known is not None and bool(known.any()):
+            located = self.locator(features[known])
+            loss = loss + self.config.locate_weight * F.mse_loss(located, batch["objects"][known])
         return loss
+
+    def locating_targets(
+        self, state: np.ndarray, environment_state: np.ndarray
+    ) -> dict[str, torch.Tensor]:
+        """The locating head's targets for raw rows: ``objects``, each object's offset
+        from the TCP (:meth:`relative_poses`), and ``objects_known``, the rows whose
+        environment state is not NaN (:class:`~twinrl_data.training.FrameTable`)."""
+        env = torch.as_tensor(np.asarray(environment_state, np.float32))
+        known = ~torch.isnan(env).any(dim=-1)
+        state = torch.as_tensor(np.asarray(state, np.float32))
+        return {
+            "objects": self.relative_poses(state, torch.nan_to_num(env)),
+            "objects_known": known,
+        }
 
     def locate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
         """Where the image policy sees each object relative to the TCP: (B, 3 x objects)
@@ -414,9 +435,6 @@ class Policy(nn.Module):
         if self.config.kind == "vla":
             for camera in self.config.cameras:
                 batch[f"image.{camera}"] = self.prepare_images(torch.as_tensor(images[camera]))
-            if self.locates and environment_state is not None:
-                env = torch.as_tensor(np.asarray(environment_state, np.float32))
-                batch["objects"] = self.relative_poses(state, env)  # the locating targets
         else:
             if environment_state is None:
                 raise ValueError("the state policy needs observation.environment_state")

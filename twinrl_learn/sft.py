@@ -2,7 +2,9 @@
 
 Loss: the negative log-likelihood of the demonstrated (normalised) actions under the
 policy's tanh-squashed Gaussian, i.e. TwinRL's L_IL = -E[log pi(a|s)] on D_human and
-D_twin. Datasets are mixed by ``weights`` (per-dataset sampling probability).
+D_twin. Datasets are mixed by ``weights`` (per-dataset sampling probability). The image
+policy also learns to locate the objects relative to the TCP (``locate_weight`` times
+the squared error of :meth:`Policy.locate`, on the frames that hold object poses).
 
 Outputs, in the folder ``out``::
 
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,10 @@ DEFAULTS = {
     "state": (3000, 256, 1e-3),
     "vla": (5000, 64, 5e-4),
 }
-IMAGE_SIZES = (64, 128)  # the image policy's input sizes (the cameras record 128 px)
+# The image policy's input sizes (the cameras record 128 px) and the stride of its
+# encoders' first convolution for each: both reach 32x32 feature maps.
+STEM_STRIDES = {64: 2, 128: 4}
+IMAGE_SIZES = tuple(STEM_STRIDES)
 # What a run saved before an option existed had: it did not locate objects.
 SAVED_BEFORE_OPTION = {"locate_weight": 0.0}
 
@@ -108,7 +113,10 @@ def _batch(
         [frames.instruction[r] for r in rows],
     )
     actions = policy.normalize("action", torch.from_numpy(frames.action_chunks(rows, chunk)))
-    return policy.augment(batch, generator), actions
+    batch = policy.augment(batch, generator)
+    if policy.locates:
+        batch |= policy.locating_targets(frames.state[rows], frames.environment_state[rows])
+    return batch, actions
 
 
 def _sample_rows(
@@ -136,8 +144,8 @@ def train_sft(
     frames: FrameTable | None = None,
 ) -> SFTResult:
     """Train (or continue training) a policy; ``progress(step, metrics)`` is called every
-    ``log_every`` steps with ``loss`` and ``steps_per_s``."""
-    config = config.resolved()
+    ``log_every`` steps with ``loss`` and ``steps_per_s``. A resumed run without
+    ``steps`` trains to the steps it was started with."""
     out = Path(config.out)
     state_file = out / "training_state.pt"
     if out.exists() and any(out.iterdir()) and not resume:
@@ -146,6 +154,11 @@ def train_sft(
         )
     if resume and not state_file.is_file():
         raise ValueError(f"--resume: {state_file} does not exist (nothing to continue)")
+    saved = torch.load(state_file, weights_only=False) if resume else None
+    if saved is not None:
+        _check_same_network(saved["config"], config.resolved(), out)
+        config = replace(config, steps=config.steps or saved["config"]["steps"])
+    config = config.resolved()
     frames = frames or _frames(config)
     if len(config.datasets) > 1 and config.weights and len(config.weights) != len(config.datasets):
         raise ValueError(f"--weights needs {len(config.datasets)} values, one per --dataset")
@@ -162,8 +175,14 @@ def train_sft(
         if tcp_index >= 0
         else []
     )
-    # Locating needs the objects' true poses in every frame (twin and plant data have
-    # them; a real cell's demos may not): without them the image policy trains on actions.
+    if config.policy == "state" and not frames.environment_complete:
+        raise ValueError(
+            "the state policy reads object poses (observation.environment_state), which "
+            "some --dataset lacks; train --policy vla on it, or leave that dataset out"
+        )
+    # Locating learns from the frames that hold the objects' true poses (twin and plant
+    # data do; a real cell's demos may not); with none, the image policy learns from the
+    # actions alone.
     locating = (
         config.policy == "vla"
         and config.locate_weight > 0
@@ -177,7 +196,7 @@ def train_sft(
         env_dim=0 if frames.environment_state is None else frames.environment_state.shape[1],
         chunk=config.chunk,
         image_size=config.image_size,
-        stem_stride=config.image_size // 32,
+        stem_stride=STEM_STRIDES[config.image_size],
         locate_weight=config.locate_weight if locating else 0.0,
         tcp_index=tcp_index,
         state_inputs=[
@@ -194,9 +213,7 @@ def train_sft(
     optimizer = torch.optim.AdamW(policy.parameters(), lr=config.lr, weight_decay=1e-4)
     generator = torch.Generator().manual_seed(config.seed)
     step, losses = 0, []
-    if resume:
-        saved = torch.load(state_file, weights_only=False)
-        _check_same_network(saved["config"], config, out)
+    if saved is not None:
         policy.load_state_dict(saved["model"])
         optimizer.load_state_dict(saved["optimizer"])
         generator.set_state(saved["generator"])
@@ -224,7 +241,8 @@ def train_sft(
             _checkpoint(policy, optimizer, generator, step, losses, out, config)
     policy.eval()
     policy.save_pretrained(out)
-    plot_losses(losses, out / "loss.png")
+    ylabel = "-log pi(a|s) + locating" if policy.locates else "-log pi(a|s)"
+    plot_losses(losses, out / "loss.png", ylabel)
     return SFTResult(
         out=out,
         steps=step,
@@ -237,16 +255,19 @@ def train_sft(
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
     """A resumed run must build the network it saved (else its weights do not fit)."""
     image_only = ("image_size", "locate_weight") if config.policy == "vla" else ()
+    differ = []
     for key in ("policy", "chunk", "inputs", *image_only):
         before = saved.get(
             key, SAVED_BEFORE_OPTION.get(key, SFTConfig.__dataclass_fields__[key].default)
         )
         if before != getattr(config, key):
             flag = "--" + key.replace("_", "-")
-            raise ValueError(
-                f"--resume: {out} was trained with {flag} {before}, not {getattr(config, key)}; "
-                "resume it with the same options"
-            )
+            differ.append((f"{flag} {before}", str(getattr(config, key))))
+    if differ:
+        raise ValueError(
+            f"--resume: {out} was trained with {', '.join(d[0] for d in differ)}, not "
+            f"{', '.join(d[1] for d in differ)}; resume it with the same options"
+        )
 
 
 def _checkpoint(policy, optimizer, generator, step, losses, out: Path, config: SFTConfig) -> None:
@@ -265,7 +286,7 @@ def _checkpoint(policy, optimizer, generator, step, losses, out: Path, config: S
     )
 
 
-def plot_losses(losses: list[float], path: Path) -> None:
+def plot_losses(losses: list[float], path: Path, ylabel: str = "-log pi(a|s)") -> None:
     """The loss curve (and its running mean) as a PNG."""
     import matplotlib
 
@@ -280,7 +301,7 @@ def plot_losses(losses: list[float], path: Path) -> None:
         smooth = np.convolve(losses, np.ones(window) / window, mode="valid")
         ax.plot(steps[window - 1 :], smooth, lw=1.5, label=f"mean of {window}")
     ax.set_xlabel("step")
-    ax.set_ylabel("-log pi(a|s)")
+    ax.set_ylabel(ylabel)
     ax.set_title("SFT loss")
     ax.legend()
     fig.tight_layout()

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from tests.conftest import lerobot_train, record_demos
+from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.training import load_frames
@@ -111,11 +112,10 @@ def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
         assert result.locating and policy.locates and policy.config.stem_stride == 4
         images = {c: frames.images[c][rows] for c in frames.images}
         instructions = [frames.instruction[r] for r in rows]
-        batch = policy.inputs(
-            frames.state[rows], frames.environment_state[rows], images, instructions
-        )
+        batch = policy.inputs(frames.state[rows], None, images, instructions)
+        targets = policy.locating_targets(frames.state[rows], frames.environment_state[rows])
         with torch.no_grad():
-            return torch.nn.functional.mse_loss(policy.locate(batch), batch["objects"]).item()
+            return torch.nn.functional.mse_loss(policy.locate(batch), targets["objects"]).item()
 
     assert locating_error(80) < 0.5 * locating_error(1)
     plain = train_sft(
@@ -128,8 +128,37 @@ def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
         policy.locate({})
     with pytest.raises(ValueError, match="--image-size must be one of 64, 128, got 96"):
         SFTConfig(datasets=["d"], out="x", image_size=96)
+    with pytest.raises(ValueError, match="--locate-weight must be >= 0, got -1"):
+        SFTConfig(datasets=["d"], out="x", locate_weight=-1)
     with pytest.raises(ValueError, match="locating the objects needs"):
         PolicyConfig(kind="vla", state_dim=8, locate_weight=1.0)
+    with pytest.raises(ValueError, match="stem_stride must be one of"):
+        PolicyConfig(kind="vla", state_dim=8, stem_stride=3)
+    with pytest.raises(ValueError, match="locate_weight applies to the vla policy"):
+        PolicyConfig(kind="state", state_dim=8, env_dim=7, locate_weight=1.0)
+
+
+def test_locating_learns_from_the_datasets_that_hold_object_poses(dataset, tmp_path):
+    """A real cell's demos without object poses mixed with the twin's: the image policy
+    locates on the twin's frames only; the state policy, which reads poses, refuses."""
+    episode = read_episode(Session(dataset.parent / "session").episode_paths()[0])
+    del episode.data["observation.environment_state"]
+    export_dataset([episode], tmp_path / "no_poses")
+    frames = load_frames([str(dataset), str(tmp_path / "no_poses")])
+    known = ~np.isnan(frames.environment_state).any(axis=1)
+    assert not frames.environment_complete and known[frames.source == 0].all()
+    assert not known[frames.source == 1].any()
+    mixed = [str(dataset), str(tmp_path / "no_poses")]
+    common = {"policy": "vla", "steps": 3, "batch_size": 8, "image_size": 64}
+    result = train_sft(SFTConfig(datasets=mixed, out=str(tmp_path / "mixed"), **common))
+    assert result.locating and np.isfinite(result.losses).all()
+    alone = train_sft(
+        SFTConfig(datasets=[str(tmp_path / "no_poses")], out=str(tmp_path / "alone"), **common)
+    )
+    assert not alone.locating and not Policy.from_pretrained(alone.out).locates
+    with pytest.raises(ValueError, match="the state policy reads object poses"):
+        train_sft(SFTConfig(datasets=mixed, out=str(tmp_path / "state"), policy="state"))
+    assert not (tmp_path / "state").exists()
 
 
 def test_a_128_pixel_image_costs_what_a_64_pixel_one_does_and_old_checkpoints_load(tmp_path):
@@ -171,6 +200,20 @@ def test_resume_continues_exactly(dataset, tmp_path):
             resume=True,
         )
     assert Policy.from_pretrained(tmp_path / "split").config.inputs == "absolute"
+
+
+def test_an_image_run_resumes_to_its_own_steps_and_names_every_option_that_differs(
+    dataset, tmp_path
+):
+    common = {"datasets": [str(dataset)], "policy": "vla", "batch_size": 4, "image_size": 64}
+    out = str(tmp_path / "vla")
+    train_sft(SFTConfig(out=out, steps=4, **common))
+    with pytest.raises(ValueError, match="--image-size 64, --locate-weight 1.0, not 128, 0.0"):
+        train_sft(
+            SFTConfig(out=out, **common | {"image_size": 128}, locate_weight=0.0), resume=True
+        )
+    resumed = train_sft(SFTConfig(out=out, **common), resume=True)  # no --steps
+    assert resumed.steps == 4  # the run's own steps, not the default 5000
 
 
 def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
