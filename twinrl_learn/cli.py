@@ -62,7 +62,11 @@ def train_sft_command(
         str, typer.Option(help="vla (cameras + language + proprio) or state (privileged).")
     ] = "vla",
     weights: Annotated[
-        str | None, typer.Option(help="Sampling weight per --dataset, e.g. 1,2.")
+        str | None,
+        typer.Option(
+            help="Sampling weight per --dataset, e.g. 1,2 (default: by their frames, as if "
+            "they were one dataset)."
+        ),
     ] = None,
     steps: Annotated[
         int | None,

@@ -2,7 +2,8 @@
 
 Loss: the negative log-likelihood of the demonstrated (normalised) actions under the
 policy's tanh-squashed Gaussian, i.e. TwinRL's L_IL = -E[log pi(a|s)] on D_human and
-D_twin. Datasets are mixed by ``weights`` (per-dataset sampling probability). The image
+D_twin. Datasets are mixed by ``weights`` (per-dataset sampling probability; by default
+in proportion to their frames, as if they were one dataset). The image
 policy also learns to locate the objects relative to the TCP (``locate_weight`` times
 the squared error of :meth:`Policy.locate`, on the frames that hold object poses).
 
@@ -160,12 +161,8 @@ def train_sft(
         config = replace(config, steps=config.steps or saved["config"]["steps"])
     config = config.resolved()
     frames = frames or _frames(config)
-    if len(config.datasets) > 1 and config.weights and len(config.weights) != len(config.datasets):
-        raise ValueError(f"--weights needs {len(config.datasets)} values, one per --dataset")
-    weights = np.asarray(config.weights or [1.0] * len(config.datasets), np.float64)
-    if (weights < 0).any() or weights.sum() == 0:
-        raise ValueError("--weights must be non-negative and not all zero")
-    weights = weights / weights.sum()
+    weights = _resolve_weights(config, frames, saved)
+    config = replace(config, weights=weights.tolist())
     # Joint velocities are a clock in demonstrations that a rollout does not keep; relative
     # inputs also leave out joint angles, which would tell the policy where it is.
     ignored_state = ("qd.", "q.") if config.inputs == "relative" else ("qd.",)
@@ -250,6 +247,33 @@ def train_sft(
         seconds=time.perf_counter() - start,
         locating=policy.locates,
     )
+
+
+def _resolve_weights(config: SFTConfig, frames: FrameTable, saved: dict | None) -> np.ndarray:
+    """Each dataset's sampling probability: ``--weights`` normalised, or by default in
+    proportion to its frames, as if the datasets were one. Mixing 30 noisy plant demos
+    half and half with 210 twin demos held the state policy to 55 / 46 % (ID / OOD, mean
+    of SFT seeds 0-2, 64 plant episodes per region each) against 58 / 66 % by frames. A
+    resumed run keeps the weights it was trained with (equal, for runs saved before
+    they were recorded) and refuses others."""
+    count = len(config.datasets)
+    if config.weights is not None and len(config.weights) != count:
+        raise ValueError(f"--weights needs {count} values, one per --dataset")
+    given = None if config.weights is None else np.asarray(config.weights, np.float64)
+    if given is not None and ((given < 0).any() or given.sum() == 0):
+        raise ValueError("--weights must be non-negative and not all zero")
+    if saved is not None:
+        before = np.asarray(saved["config"].get("weights") or [1.0] * count, np.float64)
+        before = before / before.sum()
+        if given is not None and not np.allclose(given / given.sum(), before):
+            raise ValueError(
+                f"--resume: {config.out} was trained with --weights "
+                f"{','.join(f'{w:.4g}' for w in before)}; resume it without --weights"
+            )
+        return before
+    if given is None:
+        given = np.bincount(frames.source, minlength=count).astype(np.float64)
+    return given / given.sum()
 
 
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:

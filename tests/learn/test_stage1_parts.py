@@ -202,6 +202,41 @@ def test_resume_continues_exactly(dataset, tmp_path):
     assert Policy.from_pretrained(tmp_path / "split").config.inputs == "absolute"
 
 
+def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weights(
+    dataset, tmp_path
+):
+    one = read_episode(Session(dataset.parent / "session").episode_paths()[0])
+    export_dataset([one], tmp_path / "one")
+    mixed = [str(dataset), str(tmp_path / "one")]
+    frames = load_frames(mixed)
+    by_frames = np.bincount(frames.source) / len(frames.source)
+    assert by_frames[0] > by_frames[1]  # two episodes against one
+
+    def saved_weights(out):
+        return torch.load(out / "training_state.pt", weights_only=False)["config"]["weights"]
+
+    common = {"datasets": mixed, "policy": "state", "batch_size": 8}
+    train_sft(SFTConfig(out=str(tmp_path / "default"), steps=2, **common))
+    np.testing.assert_allclose(saved_weights(tmp_path / "default"), by_frames)
+    train_sft(SFTConfig(out=str(tmp_path / "given"), steps=2, weights=[1, 3], **common))
+    np.testing.assert_allclose(saved_weights(tmp_path / "given"), [0.25, 0.75])
+    with pytest.raises(ValueError, match="was trained with --weights 0.25,0.75"):
+        train_sft(
+            SFTConfig(out=str(tmp_path / "given"), steps=4, weights=[1, 1], **common), resume=True
+        )
+    assert train_sft(SFTConfig(out=str(tmp_path / "given"), steps=4, **common), resume=True)
+    np.testing.assert_allclose(saved_weights(tmp_path / "given"), [0.25, 0.75])
+    # A run saved before the weights were recorded mixed its datasets equally.
+    state = torch.load(tmp_path / "default" / "training_state.pt", weights_only=False)
+    state["config"]["weights"] = None
+    torch.save(state, tmp_path / "default" / "training_state.pt")
+    train_sft(SFTConfig(out=str(tmp_path / "default"), steps=4, **common), resume=True)
+    np.testing.assert_allclose(saved_weights(tmp_path / "default"), [0.5, 0.5])
+    with pytest.raises(ValueError, match="--weights needs 2 values"):
+        train_sft(SFTConfig(out=str(tmp_path / "bad"), steps=2, weights=[1], **common))
+    assert not (tmp_path / "bad").exists()
+
+
 def test_an_image_run_resumes_to_its_own_steps_and_names_every_option_that_differs(
     dataset, tmp_path
 ):
