@@ -124,6 +124,19 @@ def test_train_and_eval_commands(tmp_path):
     )
     assert evaluated.returncode == 0, evaluated.stderr
     assert (tmp_path / "eval" / "heatmap.png").is_file() and "ID" in evaluated.stdout
+    again = twinrl(  # no --steps: the run's own 20, not the default
+        "train",
+        "sft",
+        "--dataset",
+        str(tmp_path / "ds"),
+        "--policy",
+        "state",
+        "--out",
+        str(tmp_path / "policy"),
+        "--resume",
+    )
+    assert again.returncode == 0, again.stderr
+    assert "20 steps" in again.stdout
     resumed = twinrl(
         "train",
         "sft",
@@ -152,6 +165,10 @@ def test_train_and_eval_commands(tmp_path):
         (
             ["train", "sft", "--dataset", "nowhere", "--out", "x", "--image-size", "96"],
             "--image-size must be one of 64, 128, got 96",
+        ),
+        (
+            ["train", "sft", "--dataset", "nowhere", "--out", "x", "--lr-schedule", "linear"],
+            "--lr-schedule must be one of cosine, constant",
         ),
         (["eval", "nowhere", "--task", "pick_place", "--out", "x"], "is not a policy checkpoint"),
         (

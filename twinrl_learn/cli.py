@@ -77,6 +77,13 @@ def train_sft_command(
     ] = None,
     batch_size: Annotated[int | None, typer.Option(help="Batch size (default by policy).")] = None,
     lr: Annotated[float | None, typer.Option(help="Learning rate (default by policy).")] = None,
+    lr_schedule: Annotated[
+        str | None,
+        typer.Option(
+            help="cosine (the rate decays to zero at the last step) or constant "
+            "(default: cosine; a resumed run keeps its own)."
+        ),
+    ] = None,
     chunk: Annotated[
         int, typer.Option(help="Actions predicted and executed per look (action chunking).", min=1)
     ] = 8,
@@ -116,22 +123,25 @@ def train_sft_command(
         steps=steps,
         batch_size=batch_size,
         lr=lr,
+        lr_schedule=lr_schedule,
         chunk=chunk,
         inputs=inputs,
         image_size=image_size,
         locate_weight=locate_weight,
         seed=seed,
-    ).resolved()
+    )
     missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
     if missing:
         raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     with data_cli.progress("loss", "rate") as bar:
-        job = bar.add_task(f"SFT {policy}", total=config.steps, loss="-", rate="-")
+        total = config.steps or DEFAULTS[policy][0]  # a resumed run reports its own
+        job = bar.add_task(f"SFT {policy}", total=total, loss="-", rate="-")
 
         def report(step: int, metrics: dict[str, float]) -> None:
             bar.update(
                 job,
                 completed=step,
+                total=metrics["steps"],
                 loss=f"{metrics['loss']:.3f}",
                 rate=f"{metrics['steps_per_s']:.0f}/s",
             )

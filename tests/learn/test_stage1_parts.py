@@ -1,6 +1,7 @@
 """Policy, SFT, evaluation and the lerobot adapter on a small recorded dataset."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from twinrl_data.training import load_frames
 from twinrl_learn.evaluate import evaluate, grid_cells
 from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, FiLMConvEncoder, Policy, PolicyConfig
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.sft import SFTConfig, learning_rate, train_sft
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.tasks.expert import tool_quat
 
@@ -186,9 +187,15 @@ def test_resume_continues_exactly(dataset, tmp_path):
         "log_every": 10,
     }
     straight = train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=40, **common))
-    train_sft(SFTConfig(out=str(tmp_path / "split"), steps=20, **common))
-    resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), steps=40, **common), resume=True)
-    assert resumed.losses == straight.losses
+
+    def interrupt(step, metrics):
+        if step == 30:  # ten steps after the checkpoint at step 20
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_sft(SFTConfig(out=str(tmp_path / "split"), steps=40, **common), progress=interrupt)
+    resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), **common), resume=True)
+    assert resumed.losses == straight.losses  # the cosine went on where it stopped
     a, b = Policy.from_pretrained(tmp_path / "straight"), Policy.from_pretrained(tmp_path / "split")
     for key, value in a.state_dict().items():
         torch.testing.assert_close(value, b.state_dict()[key], rtol=0, atol=0)
@@ -235,6 +242,33 @@ def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weig
     with pytest.raises(ValueError, match="--weights needs 2 values"):
         train_sft(SFTConfig(out=str(tmp_path / "bad"), steps=2, weights=[1], **common))
     assert not (tmp_path / "bad").exists()
+
+
+def test_the_learning_rate_decays_along_a_cosine_and_a_resumed_run_keeps_its_schedule(
+    dataset, tmp_path
+):
+    config = SFTConfig(datasets=[], out="", policy="state", steps=100).resolved()
+    assert config.lr_schedule == "cosine"
+    rates = [learning_rate(config, step) for step in (0, 50, 99)]
+    assert rates[0] == config.lr and rates[1] == pytest.approx(config.lr / 2)
+    assert 0 < rates[2] < 1e-3 * config.lr
+    constant = replace(config, lr_schedule="constant")
+    assert learning_rate(constant, 0) == learning_rate(constant, 99) == config.lr
+    with pytest.raises(ValueError, match="--lr-schedule must be one of cosine, constant"):
+        SFTConfig(datasets=[], out="", lr_schedule="linear")
+    common = {"datasets": [str(dataset)], "policy": "state", "batch_size": 8}
+    out = tmp_path / "run"
+    train_sft(SFTConfig(out=str(out), steps=2, **common))
+    with pytest.raises(ValueError, match="trained with --lr-schedule cosine"):
+        train_sft(SFTConfig(out=str(out), steps=4, lr_schedule="constant", **common), resume=True)
+    # A run saved before the schedule existed kept its rate constant, and goes on so.
+    state = torch.load(out / "training_state.pt", weights_only=False)
+    del state["config"]["lr_schedule"]
+    torch.save(state, out / "training_state.pt")
+    train_sft(SFTConfig(out=str(out), steps=4, **common), resume=True)
+    saved = torch.load(out / "training_state.pt", weights_only=False)
+    assert saved["config"]["lr_schedule"] == "constant"
+    assert [g["lr"] for g in saved["optimizer"]["param_groups"]] == [config.lr]
 
 
 def test_an_image_run_resumes_to_its_own_steps_and_names_every_option_that_differs(
