@@ -81,7 +81,7 @@ def train_sft_command(
         str | None,
         typer.Option(
             help="cosine (the rate decays to zero at the last step) or constant "
-            "(default: cosine; a resumed run keeps its own)."
+            "(default: cosine for state, constant for vla; a resumed run keeps its own)."
         ),
     ] = None,
     chunk: Annotated[

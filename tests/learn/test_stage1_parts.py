@@ -249,6 +249,7 @@ def test_the_learning_rate_decays_along_a_cosine_and_a_resumed_run_keeps_its_sch
 ):
     config = SFTConfig(datasets=[], out="", policy="state", steps=100).resolved()
     assert config.lr_schedule == "cosine"
+    assert SFTConfig(datasets=[], out="", policy="vla").resolved().lr_schedule == "constant"
     rates = [learning_rate(config, step) for step in (0, 50, 99)]
     assert rates[0] == config.lr and rates[1] == pytest.approx(config.lr / 2)
     assert 0 < rates[2] < 1e-3 * config.lr
