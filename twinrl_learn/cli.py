@@ -65,22 +65,27 @@ def train_sft_command(
         str | None,
         typer.Option(
             help="Sampling weight per --dataset, e.g. 1,2 (default: by their frames, as if "
-            "they were one dataset)."
+            "they were one dataset; a resumed run keeps its own)."
         ),
     ] = None,
     steps: Annotated[
         int | None,
         typer.Option(
-            help=f"Training steps (default: {DEFAULTS['vla'][0]} vla, "
-            f"{DEFAULTS['state'][0]} state)."
+            help=f"Training steps (default: {DEFAULTS['vla'].steps} vla, "
+            f"{DEFAULTS['state'].steps} state; a resumed run: its own, more extends it)."
         ),
     ] = None,
-    batch_size: Annotated[int | None, typer.Option(help="Batch size (default by policy).")] = None,
-    lr: Annotated[float | None, typer.Option(help="Learning rate (default by policy).")] = None,
+    batch_size: Annotated[
+        int | None, typer.Option(help="Batch size (default by policy; a resumed run: its own).")
+    ] = None,
+    lr: Annotated[
+        float | None,
+        typer.Option(help="Learning rate (default by policy; a resumed run: its own)."),
+    ] = None,
     lr_schedule: Annotated[
         str | None,
         typer.Option(
-            help="cosine (the rate decays to zero at the last step) or constant "
+            help="cosine (the rate decays towards zero at the end of the run) or constant "
             "(default: cosine for state, constant for vla; a resumed run keeps its own)."
         ),
     ] = None,
@@ -134,7 +139,8 @@ def train_sft_command(
     if missing:
         raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     with data_cli.progress("loss", "rate") as bar:
-        total = config.steps or DEFAULTS[policy][0]  # a resumed run reports its own
+        # A resumed run without --steps reports its own length.
+        total = None if resume and steps is None else steps or DEFAULTS[policy].steps
         job = bar.add_task(f"SFT {policy}", total=total, loss="-", rate="-")
 
         def report(step: int, metrics: dict[str, float]) -> None:

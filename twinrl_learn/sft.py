@@ -15,7 +15,7 @@ Outputs, in the folder ``out``::
     out/loss.png                               the loss curve
 
 ``resume=True`` continues from ``training_state.pt`` exactly: the weights after N steps
-are the same whether or not the run was interrupted.
+are the same whether or not the run was interrupted (given the same ``steps``).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -32,21 +33,28 @@ import torch
 from twinrl_data.training import FrameTable, load_frames
 from twinrl_learn.policy import Policy, PolicyConfig, check_inputs
 
+
+class Defaults(NamedTuple):
+    """The SFT settings of a policy kind that no option overrides."""
+
+    steps: int
+    batch_size: int
+    lr: float
+    lr_schedule: str  # one of LR_SCHEDULES
+
+
+# Enough for 30-120 episodes in a few minutes on 2 cores. The state policy's final
+# weights were a noisy iterate at a constant rate; the image policy's were better at one
+# (the README's SFT section has the figures).
 DEFAULTS = {
-    # steps, batch size, learning rate and its schedule (LR_SCHEDULES): enough for 30-120
-    # episodes in a few minutes on 2 cores
-    "state": (3000, 256, 1e-3, "cosine"),
-    "vla": (5000, 64, 5e-4, "constant"),
+    "state": Defaults(steps=3000, batch_size=256, lr=1e-3, lr_schedule="cosine"),
+    "vla": Defaults(steps=5000, batch_size=64, lr=5e-4, lr_schedule="constant"),
 }
 # The image policy's input sizes (the cameras record 128 px) and the stride of its
 # encoders' first convolution for each: both reach 32x32 feature maps.
 STEM_STRIDES = {64: 2, 128: 4}
 IMAGE_SIZES = tuple(STEM_STRIDES)
-# How the learning rate runs over the steps. With a constant rate the state policy's
-# final weights are one noisy iterate: three SFT seeds on a quick run's demos ended at
-# 58 / 86, 62 / 78 and 53 / 34 % (ID / OOD, 64 plant episodes per region each); decayed
-# to zero along a cosine, at 70 / 81, 75 / 70 and 72 / 73 %. The image policy did not
-# gain: on the fitted-look 30 / 60 mix the cosine gave 3 / 3 % against 19 / 16 %.
+# How the learning rate runs over the steps (see learning_rate).
 LR_SCHEDULES = ("cosine", "constant")
 # What a run saved before an option existed had: it did not locate objects, and it kept
 # its learning rate constant.
@@ -55,7 +63,8 @@ SAVED_BEFORE_OPTION = {"locate_weight": 0.0, "lr_schedule": "constant"}
 
 @dataclass
 class SFTConfig:
-    """What to train on and how. ``None`` fields take the defaults of the policy kind."""
+    """What to train on and how. ``None`` fields take the defaults of the policy kind, or
+    in a resumed run the run's own settings."""
 
     datasets: list[str]
     out: str
@@ -88,14 +97,14 @@ class SFTConfig:
             )
 
     def resolved(self) -> SFTConfig:
-        steps, batch, lr, schedule = DEFAULTS[self.policy]
+        defaults = DEFAULTS[self.policy]
         return SFTConfig(
             **{
                 **asdict(self),
-                "steps": self.steps or steps,
-                "batch_size": self.batch_size or batch,
-                "lr": self.lr or lr,
-                "lr_schedule": self.lr_schedule or schedule,
+                "steps": self.steps or defaults.steps,
+                "batch_size": self.batch_size or defaults.batch_size,
+                "lr": self.lr or defaults.lr,
+                "lr_schedule": self.lr_schedule or defaults.lr_schedule,
             }
         )
 
@@ -173,16 +182,12 @@ def train_sft(
     saved = torch.load(state_file, weights_only=False) if resume else None
     if saved is not None:
         _check_same_network(saved["config"], config.resolved(), out)
-        before = saved["config"].get("lr_schedule", SAVED_BEFORE_OPTION["lr_schedule"])
-        if config.lr_schedule not in (None, before):
-            raise ValueError(
-                f"--resume: {out} was trained with --lr-schedule {before}; resume it without "
-                "--lr-schedule"
-            )
-        config = replace(config, steps=config.steps or saved["config"]["steps"], lr_schedule=before)
+        config = _own_settings(config, saved["config"], out)
     config = config.resolved()
+    weights = _given_weights(config, saved)
     frames = frames or _frames(config)
-    weights = _resolve_weights(config, frames, saved)
+    if weights is None:  # as if the datasets were one
+        weights = np.bincount(frames.source, minlength=len(config.datasets)) / len(frames.source)
     config = replace(config, weights=weights.tolist())
     # Joint velocities are a clock in demonstrations that a rollout does not keep; relative
     # inputs also leave out joint angles, which would tell the policy where it is.
@@ -272,39 +277,58 @@ def train_sft(
 
 
 def learning_rate(config: SFTConfig, step: int) -> float:
-    """The learning rate of update ``step`` (from 0): along a cosine from ``lr`` to zero at
-    the run's last step, or constant. A run resumed with more ``steps`` than it started
-    with goes on along the cosine of its new length."""
+    """The learning rate of update ``step`` (from 0): constant, or along a cosine from
+    ``lr`` towards zero at the end of the run. A finished run resumed with more ``steps``
+    jumps back up onto the longer cosine, so it does not end where a run of that length
+    from scratch would."""
     if config.lr_schedule == "constant":
         return config.lr
     return config.lr * 0.5 * (1 + math.cos(math.pi * step / config.steps))
 
 
-def _resolve_weights(config: SFTConfig, frames: FrameTable, saved: dict | None) -> np.ndarray:
-    """Each dataset's sampling probability: ``--weights`` normalised, or by default in
-    proportion to its frames, as if the datasets were one. Mixing 30 noisy plant demos
-    half and half with 210 twin demos held the state policy to 55 / 46 % (ID / OOD, mean
-    of SFT seeds 0-2, 64 plant episodes per region each) against 58 / 66 % by frames. A
-    resumed run keeps the weights it was trained with (equal, for runs saved before
-    they were recorded) and refuses others."""
+def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
+    """A resumed run's own steps, batch size and learning rate where none are given. Other
+    values, or other datasets, would not continue it exactly and are refused (only
+    ``steps`` may differ: it extends the run)."""
+    if len(config.datasets) != len(saved["datasets"]):
+        raise ValueError(
+            f"--resume: {out} was trained on {len(saved['datasets'])} --dataset folders, not "
+            f"{len(config.datasets)}; resume it with the same ones"
+        )
+    own, differ = {}, []
+    for key in ("batch_size", "lr", "lr_schedule"):
+        saved_value = saved.get(key, SAVED_BEFORE_OPTION.get(key))
+        given = getattr(config, key)
+        if given is not None and given != saved_value:
+            differ.append(f"--{key.replace('_', '-')} {saved_value}")
+        own[key] = saved_value
+    if differ:
+        raise ValueError(
+            f"--resume: {out} was trained with {', '.join(differ)}; resume it without those options"
+        )
+    return replace(config, steps=config.steps or saved["steps"], **own)
+
+
+def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
+    """Each dataset's sampling probability from ``--weights`` (normalised), or in a resumed
+    run the run's own (equal, for runs saved before they were recorded; other weights are
+    refused); ``None``: in proportion to the datasets' frames."""
     count = len(config.datasets)
     if config.weights is not None and len(config.weights) != count:
         raise ValueError(f"--weights needs {count} values, one per --dataset")
     given = None if config.weights is None else np.asarray(config.weights, np.float64)
     if given is not None and ((given < 0).any() or given.sum() == 0):
         raise ValueError("--weights must be non-negative and not all zero")
-    if saved is not None:
-        before = np.asarray(saved["config"].get("weights") or [1.0] * count, np.float64)
-        before = before / before.sum()
-        if given is not None and not np.allclose(given / given.sum(), before):
-            raise ValueError(
-                f"--resume: {config.out} was trained with --weights "
-                f"{','.join(f'{w:.4g}' for w in before)}; resume it without --weights"
-            )
-        return before
-    if given is None:
-        given = np.bincount(frames.source, minlength=count).astype(np.float64)
-    return given / given.sum()
+    if saved is None:
+        return None if given is None else given / given.sum()
+    saved_weights = np.asarray(saved["config"].get("weights") or [1.0] * count, np.float64)
+    saved_weights = saved_weights / saved_weights.sum()
+    if given is not None and not np.allclose(given / given.sum(), saved_weights):
+        raise ValueError(
+            f"--resume: {config.out} was trained with --weights "
+            f"{','.join(f'{w:.4g}' for w in saved_weights)}; resume it without --weights"
+        )
+    return saved_weights
 
 
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:

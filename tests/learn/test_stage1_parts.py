@@ -231,8 +231,12 @@ def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weig
         train_sft(
             SFTConfig(out=str(tmp_path / "given"), steps=4, weights=[1, 1], **common), resume=True
         )
-    assert train_sft(SFTConfig(out=str(tmp_path / "given"), steps=4, **common), resume=True)
+    assert train_sft(SFTConfig(out=str(tmp_path / "given"), **common), resume=True).steps == 2
     np.testing.assert_allclose(saved_weights(tmp_path / "given"), [0.25, 0.75])
+    with pytest.raises(ValueError, match="trained on 2 --dataset folders, not 1"):
+        train_sft(
+            SFTConfig(**common | {"datasets": mixed[:1]}, out=str(tmp_path / "given")), resume=True
+        )
     # A run saved before the weights were recorded mixed its datasets equally.
     state = torch.load(tmp_path / "default" / "training_state.pt", weights_only=False)
     state["config"]["weights"] = None
@@ -242,6 +246,26 @@ def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weig
     with pytest.raises(ValueError, match="--weights needs 2 values"):
         train_sft(SFTConfig(out=str(tmp_path / "bad"), steps=2, weights=[1], **common))
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_resumed_run_keeps_its_own_learning_rate_and_batch_size(dataset, tmp_path):
+    common = {"datasets": [str(dataset)], "policy": "state", "checkpoint_every": 4}
+    own = {"lr": 3e-4, "batch_size": 16}
+    straight = train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=8, **common, **own))
+
+    def interrupt(step, metrics):
+        if step == 6:
+            raise KeyboardInterrupt
+
+    split = SFTConfig(out=str(tmp_path / "split"), steps=8, log_every=2, **common, **own)
+    with pytest.raises(KeyboardInterrupt):
+        train_sft(split, progress=interrupt)
+    resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), **common), resume=True)
+    assert resumed.losses == straight.losses
+    with pytest.raises(ValueError, match="trained with --batch-size 16, --lr 0.0003; resume"):
+        train_sft(
+            SFTConfig(out=str(tmp_path / "split"), lr=1e-3, batch_size=8, **common), resume=True
+        )
 
 
 def test_the_learning_rate_decays_along_a_cosine_and_a_resumed_run_keeps_its_schedule(
