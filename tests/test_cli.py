@@ -98,18 +98,14 @@ def test_train_and_eval_commands(tmp_path):
         twinrl("data", "export", str(tmp_path / "session"), "--to", str(tmp_path / "ds")).returncode
         == 0
     )
-    trained = twinrl(
-        "train",
-        "sft",
-        "--dataset",
-        str(tmp_path / "ds"),
-        "--policy",
-        "state",
-        "--steps",
-        "20",
-        "--out",
-        str(tmp_path / "policy"),
-    )
+
+    def sft(*options):
+        return twinrl(
+            "train", "sft", "--dataset", str(tmp_path / "ds"), "--policy", "state",
+            "--out", str(tmp_path / "policy"), *options,
+        )  # fmt: skip
+
+    trained = sft("--steps", "20")
     assert trained.returncode == 0, trained.stderr
     assert "20 steps" in trained.stdout
     evaluated = twinrl(
@@ -124,32 +120,10 @@ def test_train_and_eval_commands(tmp_path):
     )
     assert evaluated.returncode == 0, evaluated.stderr
     assert (tmp_path / "eval" / "heatmap.png").is_file() and "ID" in evaluated.stdout
-    again = twinrl(  # no --steps: the run's own 20, not the default
-        "train",
-        "sft",
-        "--dataset",
-        str(tmp_path / "ds"),
-        "--policy",
-        "state",
-        "--out",
-        str(tmp_path / "policy"),
-        "--resume",
-    )
+    again = sft("--resume")  # no --steps: the run's own 20, not the default
     assert again.returncode == 0, again.stderr
     assert "20 steps" in again.stdout
-    resumed = twinrl(
-        "train",
-        "sft",
-        "--dataset",
-        str(tmp_path / "ds"),
-        "--policy",
-        "state",
-        "--steps",
-        "30",
-        "--out",
-        str(tmp_path / "policy"),
-        "--resume",
-    )
+    resumed = sft("--steps", "30", "--resume")
     assert resumed.returncode == 0, resumed.stderr
     assert "30 steps" in resumed.stdout
 

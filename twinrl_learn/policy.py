@@ -113,16 +113,15 @@ class PolicyConfig:
             raise ValueError(
                 "locate_weight applies to the vla policy (the state policy reads poses)"
             )
-        if self.locate_weight > 0 and (self.tcp_index < 0 or not self.object_indices):
-            raise ValueError(
-                "locating the objects needs a dataset whose state has the TCP pose (tcp.x ...) "
-                "and whose environment state has object poses (<name>.x ...)"
-            )
-        if self.inputs == "relative" and (self.tcp_index < 0 or not self.object_indices):
-            raise ValueError(
-                "relative inputs need a dataset whose state has the TCP pose (tcp.x ...) "
-                "and whose environment state has object poses (<name>.x ...)"
-            )
+        for needs, use in (
+            (self.locate_weight > 0, "locating the objects needs"),
+            (self.inputs == "relative", "relative inputs need"),
+        ):
+            if needs and (self.tcp_index < 0 or not self.object_indices):
+                raise ValueError(
+                    f"{use} a dataset whose state has the TCP pose (tcp.x ...) and whose "
+                    "environment state has object poses (<name>.x ...)"
+                )
 
 
 class SpatialSoftmax(nn.Module):

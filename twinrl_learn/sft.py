@@ -184,7 +184,7 @@ def train_sft(
         _check_same_network(saved["config"], config.resolved(), out)
         config = _own_settings(config, saved["config"], out)
     config = config.resolved()
-    weights = _given_weights(config, saved)
+    weights = _given_weights(config, None if saved is None else saved["config"])
     frames = frames or _frames(config)
     if weights is None:  # as if the datasets were one
         weights = np.bincount(frames.source, minlength=len(config.datasets)) / len(frames.source)
@@ -297,7 +297,7 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
         )
     own, differ = {}, []
     for key in ("batch_size", "lr", "lr_schedule"):
-        saved_value = saved.get(key, SAVED_BEFORE_OPTION.get(key))
+        saved_value = _saved_option(saved, key)
         given = getattr(config, key)
         if given is not None and given != saved_value:
             differ.append(f"--{key.replace('_', '-')} {saved_value}")
@@ -311,8 +311,8 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
 
 def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
     """Each dataset's sampling probability from ``--weights`` (normalised), or in a resumed
-    run the run's own (equal, for runs saved before they were recorded; other weights are
-    refused); ``None``: in proportion to the datasets' frames."""
+    run (``saved``: its config) the run's own (equal, for runs saved before they were
+    recorded; other weights are refused); ``None``: in proportion to the datasets' frames."""
     count = len(config.datasets)
     if config.weights is not None and len(config.weights) != count:
         raise ValueError(f"--weights needs {count} values, one per --dataset")
@@ -321,7 +321,7 @@ def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
         raise ValueError("--weights must be non-negative and not all zero")
     if saved is None:
         return None if given is None else given / given.sum()
-    saved_weights = np.asarray(saved["config"].get("weights") or [1.0] * count, np.float64)
+    saved_weights = np.asarray(saved.get("weights") or [1.0] * count, np.float64)
     saved_weights = saved_weights / saved_weights.sum()
     if given is not None and not np.allclose(given / given.sum(), saved_weights):
         raise ValueError(
@@ -331,14 +331,19 @@ def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
     return saved_weights
 
 
+def _saved_option(saved: dict, key: str):
+    """Option ``key`` of a saved run's config; a run saved before the option existed had
+    its SAVED_BEFORE_OPTION value, or else the field's default."""
+    default = SFTConfig.__dataclass_fields__[key].default
+    return saved.get(key, SAVED_BEFORE_OPTION.get(key, default))
+
+
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
     """A resumed run must build the network it saved (else its weights do not fit)."""
     image_only = ("image_size", "locate_weight") if config.policy == "vla" else ()
     differ = []
     for key in ("policy", "chunk", "inputs", *image_only):
-        before = saved.get(
-            key, SAVED_BEFORE_OPTION.get(key, SFTConfig.__dataclass_fields__[key].default)
-        )
+        before = _saved_option(saved, key)
         if before != getattr(config, key):
             flag = "--" + key.replace("_", "-")
             differ.append((f"{flag} {before}", str(getattr(config, key))))
