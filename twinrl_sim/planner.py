@@ -21,13 +21,14 @@ import numpy as np
 
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
-from twinrl_sim.control import MAX_ROTATION, quat_conj, quat_mul, quat_to_rotvec
+from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.grasping import Grasp, sample_antipodal_grasps
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.tasks.base import Task, TaskConfig
 from twinrl_sim.tasks.expert import tool_quat
 
 TRANSPORT_HEIGHTS = (0.10, 0.18, 0.28)  # m above the higher of pick-up and goal
+EASE_PEAK = 1.5  # peak rate of the speed profile's ease over its mean
 APPROACH = 0.08  # m: straight vertical approach and retreat
 CHECK_SPACING = 0.01  # m between collision checks along a segment
 PENETRATION = 0.001  # m: deeper contacts count as collisions
@@ -49,7 +50,8 @@ class PlannerSettings:
     speed: float = 0.3
     slow_speed: float = 0.08
     acceleration: float = 1.0
-    max_yaw_rate: float = 1.5  # rad/s
+    # Peak turning rate (rad/s); None: what the wrist follows (TRACKED_ROTATION a step).
+    max_yaw_rate: float | None = None
     grasps_to_try: int = 8
     grasp_samples: int = 200
     close_steps: int = 5
@@ -284,8 +286,10 @@ def time_parameterize(
         a, ya, _ = poses[-1]
         distance = float(np.linalg.norm(wp.position - a))
         turn = abs(wp.yaw - ya)
+        yaw_rate = settings.max_yaw_rate or TRACKED_ROTATION / dt
         duration = max(
-            _trapezoid_time(distance, wp.speed, settings.acceleration), turn / settings.max_yaw_rate
+            _trapezoid_time(distance, wp.speed, settings.acceleration),
+            EASE_PEAK * turn / yaw_rate,
         )
         steps = max(1, math.ceil(duration / dt))
         for k in range(1, steps + 1):
@@ -309,5 +313,6 @@ def _trapezoid_time(distance: float, speed: float, acceleration: float) -> float
 
 
 def _trapezoid_fraction(u: float) -> float:
-    """Smooth 0..1 progress (cubic ease in/out) standing in for the trapezoid's shape."""
+    """Smooth 0..1 progress (cubic ease in/out) standing in for the trapezoid's shape;
+    its rate peaks at ``EASE_PEAK`` times the mean."""
     return u * u * (3.0 - 2.0 * u)

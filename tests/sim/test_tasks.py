@@ -1,11 +1,16 @@
 """Tasks: configurations, regions, success, rewards and the scripted experts' success."""
 
+import math
+
 import numpy as np
 import pytest
 
 from tests.conftest import TASK_NAMES
 from twinrl_robot.scripted import run_scripted_expert
+from twinrl_sim.env import TwinEnv
+from twinrl_sim.planner import plan_demo
 from twinrl_sim.tasks import TaskConfig, make_task, task_class
+from twinrl_sim.tasks.expert import ObsView
 
 
 @pytest.mark.parametrize("name", TASK_NAMES)
@@ -33,8 +38,6 @@ def test_scripted_expert_solves_both_regions_of_the_twin(name):
 
 @pytest.mark.parametrize("name", TASK_NAMES)
 def test_a_fresh_episode_is_not_a_success_and_rewards_follow_the_paper(name):
-    from twinrl_sim.env import TwinEnv
-
     env = TwinEnv(name, reward="sparse")
     _, info = env.reset(seed=0)
     assert not info["success"]
@@ -56,3 +59,31 @@ def test_configs_round_trip_and_bad_ones_are_explained():
         task_class("pick_plac")
     with pytest.raises(ValueError, match="unknown region 'MID'"):
         make_task("pick_place").region("MID")
+
+
+def _largest_turn_lead(env, config, act, steps: int) -> float:
+    """Largest lead (degrees) of the commanded tool yaw (the sum of the actions' rz) over
+    the measured one while ``act(obs, t)`` drives the arm."""
+    obs, _ = env.reset(options={"config": config})
+    commanded, lead = 0.0, 0.0
+    for t in range(steps):
+        action = act(obs, t)
+        commanded += float(action[5])
+        obs, *_ = env.step(action)
+        lead = max(lead, abs(math.degrees(commanded - ObsView(env.task.scene, obs).tool_yaw)))
+    return lead
+
+
+def test_demonstrators_turn_no_faster_than_the_arm_follows():
+    """A policy sees the measured pose only: demos whose command had run 50 degrees ahead
+    of the arm taught it to stop turning while the tool was still far from the grasp. The
+    expert paces its turn by the measured yaw, even where the arm travels far and turns
+    slowly; an open-loop plan turns at the rate the wrist follows."""
+    env = TwinEnv("pick_place")
+    far = TaskConfig(object=(0.45, -0.3, math.radians(85)), target=(0.45, -0.1, 0.0))
+    expert = env.task.expert(far, np.random.default_rng(0))
+    assert _largest_turn_lead(env, far, lambda obs, t: expert.act(obs), 30) < 4.0
+    near = TaskConfig(object=(0.45, 0.0, math.radians(85)), target=(0.45, -0.2, 0.0))
+    plan = plan_demo(env.task, env.cell, near, np.random.default_rng(0))
+    assert plan is not None
+    assert _largest_turn_lead(env, near, lambda obs, t: plan.actions[t], 30) < 4.0

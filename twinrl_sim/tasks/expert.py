@@ -16,14 +16,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from twinrl_sim.build import yaw_quat
-from twinrl_sim.control import MAX_ROTATION, quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.control import TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
 from twinrl_sim.spec import SceneSpec
-from twinrl_sim.tasks.base import yaw_of
+from twinrl_sim.tasks.base import wrap_angle, yaw_of
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tool z pointing at the table, tool x along base x
 # How far (m) below the approach pose an arm must be for a take-over to correct it
 # straight to the grasp rather than back it off to the approach pose.
 CORRECTION_CLEARANCE = 0.02
+# How far (rad) the expert's commanded tool yaw may run ahead of the measured one. The
+# arm turns slower while it travels far; a policy sees only the measured pose, so demos
+# whose command ran ahead would teach it to stop turning while the tool is still far off.
+TURN_LEAD = 0.1
 
 
 def tool_quat(yaw: float) -> np.ndarray:
@@ -76,6 +80,7 @@ class Phase:
     goal: Goal
     gripper: float
     speed: float = 0.04  # m per control step
+    turn_speed: float = TRACKED_ROTATION  # rad per control step
     tolerance: float = 0.004  # m
     settle: int = 0  # steps to hold at the goal (e.g. while the gripper closes)
     timeout: int = 60
@@ -148,8 +153,12 @@ class ScriptedExpert:
         step = error if distance <= phase.speed else error * (phase.speed / distance)
         rot = quat_to_rotvec(quat_mul(goal_quat, quat_conj(ref_quat)))
         angle = float(np.linalg.norm(rot))
-        if angle > MAX_ROTATION:
-            rot = rot * (MAX_ROTATION / angle)
+        limit = phase.turn_speed
+        lead = wrap_angle(yaw_of(ref_quat) - view.tool_yaw)
+        if rot[2] * lead > 0:  # turning further ahead of the arm
+            limit = min(limit, max(0.0, TURN_LEAD - abs(lead)))
+        if angle > limit:
+            rot = rot * (limit / angle)
         new_quat = quat_mul(rotvec_to_quat(rot), ref_quat)
         self._ref = (ref_pos + step, new_quat / np.linalg.norm(new_quat))
         return np.concatenate([step, rot, [phase.gripper]]).astype(np.float32)
