@@ -22,6 +22,14 @@ log-likelihood is the imitation loss now and the same network serves as the acto
 the Q-guided objective later. Actions are normalised with the dataset's min/max, states
 with its mean/std.
 
+Acting (:meth:`Policy.act`) with ``chunk > 1`` predicts a chunk at every step and
+executes the average of all predictions for that step (temporal ensembling, as ACT
+does), each weighted ``exp(-temporal_ensemble * i)`` with ``i = 0`` the oldest: a
+chunk run open-loop for ``chunk`` steps cannot correct itself, and the grasps it missed
+were off by a couple of centimetres or tens of degrees. ``temporal_ensemble = None``
+executes each chunk open-loop, as RL's exploring rollouts do (their critic scores the
+chunk it executes).
+
 A checkpoint is a folder::
 
     CKPT/
@@ -93,6 +101,11 @@ class PolicyConfig:
     state_inputs: list[int] = field(default_factory=list)
     object_indices: list[int] = field(default_factory=list)  # where each <object>.x is in env
     inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
+    # Weight decay with the age of a chunk's prediction when acting (module doc; ACT's
+    # 0.01); None: each chunk open-loop. Measured with the state policy (relative inputs,
+    # SFT seeds 0-2, 64 plant episodes per region): 95 / 86, 91 / 86 and 83 / 83 % (ID /
+    # OOD) against 80 / 83, 77 / 84 and 84 / 77 % open-loop.
+    temporal_ensemble: float | None = 0.01
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     instructions: dict[str, list[float]] = field(default_factory=dict)
@@ -109,6 +122,11 @@ class PolicyConfig:
             )
         if self.locate_weight < 0:
             raise ValueError(f"locate_weight must be >= 0, got {self.locate_weight}")
+        if self.temporal_ensemble is not None and not self.temporal_ensemble >= 0:
+            raise ValueError(
+                f"temporal_ensemble must be a number >= 0 (or None: chunks open-loop), "
+                f"got {self.temporal_ensemble}"
+            )
         if self.locate_weight > 0 and self.kind != "vla":
             raise ValueError(
                 "locate_weight applies to the vla policy (the state policy reads poses)"
@@ -199,7 +217,7 @@ class Policy(nn.Module):
         if self.locates:
             self.locator = nn.Linear(c.hidden, 3 * len(c.object_indices))
         self.instructions = InstructionCache(c.instructions)
-        self._queue: list[np.ndarray] = []
+        self._predictions: list[np.ndarray] = []  # the unexecuted rest of each chunk
         self._stats = {k: {s: torch.tensor(v) for s, v in d.items()} for k, d in c.stats.items()}
 
     @property
@@ -493,19 +511,28 @@ class Policy(nn.Module):
     ) -> np.ndarray:
         """The next action (physical units) for one observation of the episode contract.
 
-        With ``chunk > 1`` the policy predicts ``chunk`` actions and executes them in
-        turn before looking again (action chunking); :meth:`reset` starts afresh.
+        With ``chunk > 1`` and ``temporal_ensemble`` set, it predicts a chunk at every
+        step and returns the weighted average of every prediction made for this step;
+        without ``temporal_ensemble`` it executes each chunk in turn before looking again.
+        :meth:`reset` starts afresh.
         """
-        if self._queue:
-            return self._queue.pop(0)
+        coefficient = self.config.temporal_ensemble
+        # Each earlier prediction moves on by the step executed since.
+        self._predictions = [rest[1:] for rest in self._predictions if len(rest) > 1]
+        if coefficient is None and self._predictions:
+            return self._predictions[0][0]
         batch = {k: np.asarray(v)[None] for k, v in observation.items()}
         chunk = self.act_chunks(batch, [instruction], deterministic)[0]
-        self._queue = list(chunk[1:])
-        return chunk[0]
+        self._predictions.append(chunk)
+        if coefficient is None:
+            return chunk[0]
+        for_now = np.stack([rest[0] for rest in self._predictions])  # oldest first
+        weights = np.exp(-coefficient * np.arange(len(for_now)))
+        return (weights @ for_now / weights.sum()).astype(np.float32)
 
     def reset(self) -> None:
-        """Forget the rest of the current action chunk (call at each episode start)."""
-        self._queue = []
+        """Forget the predictions made so far (call at each episode start)."""
+        self._predictions = []
 
     @property
     def needs_images(self) -> bool:

@@ -97,6 +97,37 @@ def test_relative_inputs_are_the_same_reach_anywhere_on_the_table():
         train_sft(SFTConfig(datasets=["nowhere"], out="x", policy="vla", inputs="relative"))
 
 
+def test_acting_averages_every_prediction_for_a_step_or_runs_chunks_open_loop():
+    """Temporal ensembling: the action for step t is the exp(-m * i)-weighted mean of the
+    predictions made at steps t-3..t for it (i = 0 the oldest); open-loop: one prediction
+    per chunk, its actions in turn."""
+    config = PolicyConfig(kind="state", state_dim=8, env_dim=7, chunk=4, temporal_ensemble=0.5)
+    policy = Policy(config)
+    made = []
+
+    def predict(batch, instructions, deterministic=True, std_scale=1.0):
+        step = len(made)
+        made.append(step)  # step s predicts s*10 + k for the k-th step ahead
+        return np.array([[[step * 10.0 + k] * 7 for k in range(4)]], np.float32)
+
+    policy.act_chunks = predict
+    observation = {"observation.state": np.zeros(8), "observation.environment_state": np.zeros(7)}
+    actions = [policy.act(observation, "")[0] for _ in range(6)]
+    weights = np.exp(-0.5 * np.arange(4))
+    # step 5 was predicted by steps 2..5 as 2*10+3, 3*10+2, 4*10+1 and 5*10+0
+    assert actions[5] == pytest.approx(weights @ [23.0, 32.0, 41.0, 50.0] / weights.sum())
+    assert actions[0] == 0.0 and actions[1] == pytest.approx(
+        (1 + np.exp(-0.5) * 10) / (1 + np.exp(-0.5))
+    )
+    policy.reset()
+    made.clear()
+    policy.config.temporal_ensemble = None
+    actions = [policy.act(observation, "")[0] for _ in range(6)]
+    assert actions == [0.0, 1.0, 2.0, 3.0, 10.0, 11.0] and made == [0, 1]
+    with pytest.raises(ValueError, match="temporal_ensemble must be a number >= 0"):
+        PolicyConfig(kind="state", state_dim=8, env_dim=7, temporal_ensemble=-1.0)
+
+
 def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
     """The auxiliary head says where the objects are relative to the TCP; SFT teaches it
     (the error falls), and 0 weight leaves the head out."""
