@@ -115,6 +115,7 @@ def test_train_and_eval_commands(tmp_path):
         "pick_place",
         "--grid",
         "1x2",
+        "--open-loop",
         "--out",
         str(tmp_path / "eval"),
     )
@@ -148,6 +149,10 @@ def test_train_and_eval_commands(tmp_path):
         (
             ["eval", "expert", "--task", "pick_place", "--grid", "8by8", "--out", "x"],
             "--grid must look like",
+        ),
+        (
+            ["eval", "expert", "--task", "pick_place", "--open-loop", "--out", "x"],
+            "--open-loop applies to a twinrl checkpoint",
         ),
         (["expand", "pick_place", "--out", "x", "--randomize", "fog"], "unknown randomisation"),
         (["expand", "pick_place", "--out", "x", "--method", "augment"], "needs --from-demo"),

@@ -190,13 +190,20 @@ def eval_command(
     ] = "8x8",
     episodes: Annotated[int, typer.Option(help="Episodes per grid cell.", min=1)] = 1,
     seed: Annotated[int, typer.Option(help="Seed for object placement and sampling.")] = 0,
+    open_loop: Annotated[
+        bool,
+        typer.Option(
+            help="Run a twinrl policy's action chunks open-loop instead of averaging every "
+            "prediction for each step (temporal ensembling)."
+        ),
+    ] = False,
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
     if task not in TASKS:
         sim_cli.make_task(task)  # raises with the nearest task name
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
-    runner = load_runner(checkpoint)
+    runner = load_runner(checkpoint, open_loop=open_loop)
     with data_cli.progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
         done = {"n": 0, "ok": 0}

@@ -116,13 +116,23 @@ class LeRobotRunner:
         return np.asarray(action[0].cpu().numpy(), np.float32)
 
 
-def load_runner(spec: str | Path) -> Runner:
-    """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder."""
+def load_runner(spec: str | Path, *, open_loop: bool = False) -> Runner:
+    """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder.
+    ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
+    its predictions for each step (``PolicyConfig.temporal_ensemble``)."""
+    path = Path(spec)
+    if open_loop and not is_checkpoint(path):
+        raise ValueError(
+            f"--open-loop applies to a twinrl checkpoint, not {spec} (a lerobot policy "
+            "executes its chunks as its own config says)"
+        )
     if str(spec) == "expert":
         return ExpertRunner()
-    path = Path(spec)
     if is_checkpoint(path):
-        return TwinrlRunner(path)
+        runner = TwinrlRunner(path)
+        if open_loop:
+            runner.policy.config.temporal_ensemble = None
+        return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()
     ):

@@ -365,9 +365,12 @@ def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
 
 def test_runner_selection(state_checkpoint, tmp_path):
     assert isinstance(load_runner("expert"), ExpertRunner)
-    assert isinstance(load_runner(state_checkpoint), TwinrlRunner)
+    assert load_runner(state_checkpoint).policy.config.temporal_ensemble == 0.01
+    assert load_runner(state_checkpoint, open_loop=True).policy.config.temporal_ensemble is None
     with pytest.raises(ValueError, match="is not a policy checkpoint"):
         load_runner(tmp_path)
+    with pytest.raises(ValueError, match="--open-loop applies to a twinrl checkpoint"):
+        load_runner("expert", open_loop=True)
 
 
 def test_evaluation_leaves_the_callers_random_stream_alone(state_checkpoint, tmp_path):
