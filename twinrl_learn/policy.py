@@ -103,8 +103,8 @@ class PolicyConfig:
     inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
     # Weight decay with the age of a chunk's prediction when acting (module doc; ACT's
     # 0.01); None: each chunk open-loop. Measured with the state policy (relative inputs,
-    # SFT seeds 0-2, 64 plant episodes per region): 95 / 86, 91 / 86 and 83 / 83 % (ID /
-    # OOD) against 80 / 83, 77 / 84 and 84 / 77 % open-loop.
+    # SFT seeds 0-2, 64 plant episodes per region): 89 / 89, 91 / 83 and 89 / 91 % (ID /
+    # OOD) against 80 / 75, 72 / 75 and 80 / 89 % open-loop.
     temporal_ensemble: float | None = 0.01
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
