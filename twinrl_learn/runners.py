@@ -123,15 +123,17 @@ def load_runner(spec: str | Path, *, open_loop: bool = False) -> Runner:
     path = Path(spec)
     if open_loop and not is_checkpoint(path):
         raise ValueError(
-            f"--open-loop applies to a twinrl checkpoint, not {spec} (a lerobot policy "
-            "executes its chunks as its own config says)"
+            f"--open-loop applies to a twinrl checkpoint, not {spec} (the expert acts step by "
+            "step, and a lerobot policy executes its chunks as its own config says)"
         )
     if str(spec) == "expert":
         return ExpertRunner()
     if is_checkpoint(path):
-        runner = TwinrlRunner(path)
-        if open_loop:
-            runner.policy.config.temporal_ensemble = None
+        if not open_loop:
+            return TwinrlRunner(path)
+        # Named apart: mining reuses logged evaluations of a policy by its name.
+        runner = TwinrlRunner(path, name=f"twinrl:{path.name}:open-loop")
+        runner.policy.config.temporal_ensemble = None
         return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()

@@ -281,12 +281,12 @@ def time_parameterize(
     settings: PlannerSettings,
 ) -> np.ndarray:
     """10 Hz end-effector deltas through ``waypoints`` with a trapezoidal speed profile."""
+    yaw_rate = TRACKED_ROTATION / dt if settings.max_yaw_rate is None else settings.max_yaw_rate
     poses = [(np.asarray(start, float), start_yaw, 0.0)]
     for wp in waypoints:
         a, ya, _ = poses[-1]
         distance = float(np.linalg.norm(wp.position - a))
         turn = abs(wp.yaw - ya)
-        yaw_rate = settings.max_yaw_rate or TRACKED_ROTATION / dt
         duration = max(
             _trapezoid_time(distance, wp.speed, settings.acceleration),
             EASE_PEAK * turn / yaw_rate,

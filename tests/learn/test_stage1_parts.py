@@ -124,8 +124,9 @@ def test_acting_averages_every_prediction_for_a_step_or_runs_chunks_open_loop():
     policy.config.temporal_ensemble = None
     actions = [policy.act(observation, "")[0] for _ in range(6)]
     assert actions == [0.0, 1.0, 2.0, 3.0, 10.0, 11.0] and made == [0, 1]
-    with pytest.raises(ValueError, match="temporal_ensemble must be a number >= 0"):
-        PolicyConfig(kind="state", state_dim=8, env_dim=7, temporal_ensemble=-1.0)
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="temporal_ensemble must be a finite number >= 0"):
+            PolicyConfig(kind="state", state_dim=8, env_dim=7, temporal_ensemble=bad)
 
 
 def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
@@ -366,7 +367,9 @@ def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
 def test_runner_selection(state_checkpoint, tmp_path):
     assert isinstance(load_runner("expert"), ExpertRunner)
     assert load_runner(state_checkpoint).policy.config.temporal_ensemble == 0.01
-    assert load_runner(state_checkpoint, open_loop=True).policy.config.temporal_ensemble is None
+    open_loop = load_runner(state_checkpoint, open_loop=True)
+    assert open_loop.policy.config.temporal_ensemble is None
+    assert open_loop.name.endswith(":open-loop")  # its evaluations are told apart
     with pytest.raises(ValueError, match="is not a policy checkpoint"):
         load_runner(tmp_path)
     with pytest.raises(ValueError, match="--open-loop applies to a twinrl checkpoint"):

@@ -7,6 +7,7 @@ import pytest
 
 from tests.conftest import TASK_NAMES
 from twinrl_robot.scripted import run_scripted_expert
+from twinrl_sim.control import TRACKED_ROTATION
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.planner import plan_demo
 from twinrl_sim.tasks import TaskConfig, make_task, task_class
@@ -87,3 +88,5 @@ def test_demonstrators_turn_no_faster_than_the_arm_follows():
     plan = plan_demo(env.task, env.cell, near, np.random.default_rng(0))
     assert plan is not None
     assert _largest_turn_lead(env, near, lambda obs, t: plan.actions[t], 30) < 4.0
+    far_plan = plan_demo(env.task, env.cell, far, np.random.default_rng(0))
+    assert far_plan is not None and np.abs(far_plan.actions[:, 5]).max() <= TRACKED_ROTATION + 1e-6
