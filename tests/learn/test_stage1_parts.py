@@ -219,13 +219,9 @@ def test_resume_continues_exactly(dataset, tmp_path):
         "log_every": 10,
     }
     straight = train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=40, **common))
-
-    def interrupt(step, metrics):
-        if step == 30:  # ten steps after the checkpoint at step 20
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train_sft(SFTConfig(out=str(tmp_path / "split"), steps=40, **common), progress=interrupt)
+    split = SFTConfig(out=str(tmp_path / "split"), steps=40, **common)
+    with pytest.raises(KeyboardInterrupt):  # ten steps after the checkpoint at step 20
+        train_sft(split, progress=_interrupt_at(30))
     resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), **common), resume=True)
     assert resumed.losses == straight.losses  # the cosine went on where it stopped
     a, b = Policy.from_pretrained(tmp_path / "straight"), Policy.from_pretrained(tmp_path / "split")
@@ -239,6 +235,16 @@ def test_resume_continues_exactly(dataset, tmp_path):
             resume=True,
         )
     assert Policy.from_pretrained(tmp_path / "split").config.inputs == "absolute"
+
+
+def _interrupt_at(stop: int):
+    """An SFT progress callback that interrupts the run at step ``stop``."""
+
+    def interrupt(step, metrics):
+        if step == stop:
+            raise KeyboardInterrupt
+
+    return interrupt
 
 
 def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weights(
@@ -284,14 +290,9 @@ def test_a_resumed_run_keeps_its_own_learning_rate_and_batch_size(dataset, tmp_p
     common = {"datasets": [str(dataset)], "policy": "state", "checkpoint_every": 4}
     own = {"lr": 3e-4, "batch_size": 16}
     straight = train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=8, **common, **own))
-
-    def interrupt(step, metrics):
-        if step == 6:
-            raise KeyboardInterrupt
-
     split = SFTConfig(out=str(tmp_path / "split"), steps=8, log_every=2, **common, **own)
     with pytest.raises(KeyboardInterrupt):
-        train_sft(split, progress=interrupt)
+        train_sft(split, progress=_interrupt_at(6))
     resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), **common), resume=True)
     assert resumed.losses == straight.losses
     with pytest.raises(ValueError, match="trained with --batch-size 16, --lr 0.0003; resume"):

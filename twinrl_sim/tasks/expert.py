@@ -80,7 +80,6 @@ class Phase:
     goal: Goal
     gripper: float
     speed: float = 0.04  # m per control step
-    turn_speed: float = TRACKED_ROTATION  # rad per control step
     tolerance: float = 0.004  # m
     settle: int = 0  # steps to hold at the goal (e.g. while the gripper closes)
     timeout: int = 60
@@ -153,7 +152,7 @@ class ScriptedExpert:
         step = error if distance <= phase.speed else error * (phase.speed / distance)
         rot = quat_to_rotvec(quat_mul(goal_quat, quat_conj(ref_quat)))
         angle = float(np.linalg.norm(rot))
-        limit = phase.turn_speed
+        limit = TRACKED_ROTATION  # rad per control step: what the wrist follows
         lead = wrap_angle(yaw_of(ref_quat) - view.tool_yaw)
         if rot[2] * lead > 0:  # turning further ahead of the arm
             limit = min(limit, max(0.0, TURN_LEAD - abs(lead)))
