@@ -8,8 +8,11 @@ the hand-over (and after it) exactly with the target, and in between it blends f
 one frame to the other. Translations follow the planar rigid
 motion of the object (an affine map), rotations are slerped toward the same yaw change,
 so that at the keyframes the TCP keeps exactly its pose relative to the object and the
-target (up to the gripper's half-turn symmetry, which the targets here share). Gripper
-commands and timing are kept.
+target (up to the grasp's symmetry: the gripper's half turn, which the targets here
+share). Of the equivalent turns at the object the wrist takes the one that keeps the
+grasp as near the task's nominal grasp yaw as the demo's was, as the planner and the
+experts grasp, so that re-targeted demos of neighbouring configurations turn the same
+way. Gripper commands and timing are kept.
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ import numpy as np
 
 from twinrl_data.schema import ACTION, STATE, Episode
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
-from twinrl_sim.tasks.base import TaskConfig
+from twinrl_sim.tasks.base import TaskConfig, yaw_of
+from twinrl_sim.tasks.expert import grasp_yaw
 
 GRIPPER_CLOSED = 0.5
 NEAR = 0.10  # m: within this of a keyframe the path follows the object/target exactly
@@ -29,20 +33,30 @@ NEAR = 0.10  # m: within this of a keyframe the path follows the object/target e
 
 @dataclass(frozen=True)
 class PlanarMotion:
-    """Rotation about the vertical by ``yaw`` about ``pivot``, then a shift by ``shift``."""
+    """Rotation about the vertical by ``yaw`` about ``pivot``, then a shift by ``shift``;
+    the tool turns by ``tool_turn`` (an equivalent of ``yaw`` under the grasp's symmetry)."""
 
     pivot: np.ndarray
     yaw: float
     shift: np.ndarray
+    tool_turn: float
 
     @classmethod
     def between(
-        cls, source: tuple[float, float, float], target: tuple[float, float, float]
+        cls,
+        source: tuple[float, float, float],
+        target: tuple[float, float, float],
+        tool_turn: float | None = None,
     ) -> PlanarMotion:
-        """The motion taking table pose ``source`` (x, y, yaw) to ``target``."""
+        """The motion taking table pose ``source`` (x, y, yaw) to ``target``; the tool
+        turns by ``tool_turn`` (default: the half-turn equivalent of the yaw change
+        within +-90 deg, the parallel gripper being symmetric under a half turn)."""
         pivot = np.array([source[0], source[1], 0.0])
         shift = np.array([target[0] - source[0], target[1] - source[1], 0.0])
-        return cls(pivot=pivot, yaw=target[2] - source[2], shift=shift)
+        yaw = target[2] - source[2]
+        if tool_turn is None:
+            tool_turn = (yaw + math.pi / 2) % math.pi - math.pi / 2
+        return cls(pivot=pivot, yaw=yaw, shift=shift, tool_turn=tool_turn)
 
     def apply(self, point: np.ndarray) -> np.ndarray:
         c, s = math.cos(self.yaw), math.sin(self.yaw)
@@ -52,10 +66,8 @@ class PlanarMotion:
 
     @property
     def tool_quat(self) -> np.ndarray:
-        """The tool's share of the turn: the parallel gripper is symmetric under a half
-        turn, so the wrist turns by the equivalent yaw within +-90 deg."""
-        turn = (self.yaw + math.pi / 2) % math.pi - math.pi / 2
-        return rotvec_to_quat(np.array([0.0, 0.0, turn]))
+        """The tool's share of the motion: a turn by ``tool_turn`` about the vertical."""
+        return rotvec_to_quat(np.array([0.0, 0.0, self.tool_turn]))
 
 
 def commanded_path(episode: Episode) -> tuple[np.ndarray, np.ndarray]:
@@ -100,9 +112,15 @@ def retarget(
     target: TaskConfig,
     *,
     releases_object: bool = True,
+    grasp_period: float = math.pi,
+    grasp_yaw_offset: float = 0.0,
     extend_steps: int = 4,
 ) -> np.ndarray:
     """Actions (T + extend_steps, 7) that replay ``episode``'s motion for ``target``.
+
+    ``grasp_period`` and ``grasp_yaw_offset`` are the task's (``Task.grasp_period``):
+    the wrist turns from the source's nominal grasp yaw to the target's, each the
+    equivalent nearest the demo's starting tool yaw.
 
     A recorded episode stops at the first success signal, i.e. at the success threshold
     (an insertion just half way in); the last motion is continued for ``extend_steps``
@@ -111,7 +129,12 @@ def retarget(
     positions, quats = commanded_path(episode)
     grasp, handover = keyframes(episode, releases_object)
     handover = min(handover, len(positions) - 1)
-    at_object = PlanarMotion.between(source.object, target.object)
+    start_yaw = yaw_of(quats[0])
+    source_nominal, target_nominal = (
+        grasp_yaw(config.object[2], grasp_period, grasp_yaw_offset, start_yaw)
+        for config in (source, target)
+    )
+    at_object = PlanarMotion.between(source.object, target.object, target_nominal - source_nominal)
     at_target = PlanarMotion.between(source.target, target.target)
     near_grasp = np.linalg.norm(positions - positions[grasp], axis=1) < NEAR
     near_handover = np.linalg.norm(positions - positions[handover], axis=1) < NEAR

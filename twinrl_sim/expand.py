@@ -113,7 +113,15 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
             demo = read_episode(job.demo_path)
             _WORKER_CACHE[("demo", job.demo_path)] = demo
         source = TaskConfig.from_dict(demo.meta.config)
-        actions = retarget(demo, source, config, releases_object=env.task.releases_object)
+        task = env.task
+        actions = retarget(
+            demo,
+            source,
+            config,
+            releases_object=task.releases_object,
+            grasp_period=task.grasp_period,
+            grasp_yaw_offset=task.grasp_yaw_offset,
+        )
     obs, info = env.reset(options={"config": config})
     steps = []
     for t, action in enumerate(actions[: env.max_steps]):

@@ -87,8 +87,10 @@ def sample_antipodal_grasps(
 ) -> list[Grasp]:
     """Ranked antipodal top-down grasps of ``object_name`` in the cell's current state.
 
-    ``reference_yaw`` is the current tool yaw (world frame): grasps that need less wrist
-    rotation rank higher. ``min_clearance`` keeps the fingertips above the table.
+    ``reference_yaw`` is the tool yaw (world frame) to stay near, e.g. the current one
+    or the task's nominal grasp: grasps that turn the wrist less from it (up to the
+    gripper's half turn) rank higher. ``min_clearance`` keeps the fingertips above the
+    table.
     """
     model, data = cell.model, cell.data
     mujoco.mj_forward(model, data)

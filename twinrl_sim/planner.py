@@ -25,7 +25,7 @@ from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_m
 from twinrl_sim.grasping import Grasp, sample_antipodal_grasps
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.tasks.base import Task, TaskConfig
-from twinrl_sim.tasks.expert import tool_quat
+from twinrl_sim.tasks.expert import grasp_yaw, tool_quat
 
 TRANSPORT_HEIGHTS = (0.10, 0.18, 0.28)  # m above the higher of pick-up and goal
 EASE_PEAK = 1.5  # peak rate of the speed profile's ease over its mean
@@ -203,13 +203,18 @@ def plan_demo(
     object_pos, _ = cell.object_pose(task.object_name)
     object_yaw = config.object[2]
     goals = task.goal_poses(cell, config)
+    # Grasp near the task's nominal grasp yaw, as the scripted expert does: the one
+    # nearest home decides which way the wrist turns. Ranking by the turn from home alone
+    # let a grasp 20 deg off a curved banana's heading turn the other way, so that demos
+    # of neighbouring configurations disagreed and a policy imitating both stopped halfway.
+    nominal_yaw = grasp_yaw(object_yaw, task.grasp_period, task.grasp_yaw_offset, home_yaw)
     grasps = sample_antipodal_grasps(
-        cell, task.object_name, rng, samples=settings.grasp_samples, reference_yaw=home_yaw
+        cell, task.object_name, rng, samples=settings.grasp_samples, reference_yaw=nominal_yaw
     )
     up = np.array([0.0, 0.0, APPROACH])
     for candidate in grasps[: settings.grasps_to_try]:
-        # The gripper is symmetric under a half turn: take the equivalent nearest home.
-        start_yaw = _nearest_yaw(object_yaw + candidate.yaw, home_yaw)
+        # The gripper is symmetric under a half turn: the equivalent nearest the nominal.
+        start_yaw = _nearest_yaw(object_yaw + candidate.yaw, nominal_yaw)
         grasp = _grasp_with_yaw(candidate, start_yaw - object_yaw)
         start, _ = tcp_from_object(object_pos, object_yaw, grasp)
         ends = [tcp_from_object(pos, yaw, grasp) for pos, yaw in goals]

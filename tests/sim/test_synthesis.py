@@ -19,6 +19,7 @@ from twinrl_sim.planner import CollisionChecker, object_pose_from_tcp, plan_demo
 from twinrl_sim.randomize import randomize_scene
 from twinrl_sim.spec import ObjectSpec
 from twinrl_sim.tasks import TaskConfig, make_task
+from twinrl_sim.tasks.base import wrap_angle, yaw_of
 from twinrl_sim.tasks.pick_place import PickPlace
 
 
@@ -71,6 +72,22 @@ def test_plans_are_collision_free_and_succeed(rng):
     assert info["success"]
 
 
+@pytest.mark.parametrize("degrees", [-88, -84, -80, 80, 84, 88])
+def test_plans_turn_the_wrist_the_way_the_nominal_grasp_does(degrees):
+    """Near a right angle either half-turn equivalent of a grasp needs a similar turn;
+    planned demos must turn as the object's heading says (as the expert does), or demos
+    of neighbouring configurations disagree and a policy imitating both stops halfway."""
+    task = make_task("pick_place")
+    cell = Cell(compile_scene(task.scene))
+    heading = math.radians(degrees)
+    config = TaskConfig(object=(0.45, -0.3, heading), target=(0.45, -0.05, 0.0))
+    for seed in range(3):
+        plan = plan_demo(task, cell, config, np.random.default_rng(seed))
+        assert plan is not None
+        tool_yaw = heading + plan.grasp.yaw  # the grasp's yaw is relative to the heading
+        assert abs(tool_yaw - heading) < math.radians(35), (degrees, seed, math.degrees(tool_yaw))
+
+
 def test_an_obstacle_raises_the_transport_height():
     """A tall wall between object and plate: the planner must go over it."""
     base = PickPlace.default_scene()
@@ -116,6 +133,24 @@ def test_retargeted_paths_keep_their_pose_relative_to_object_and_target(tmp_path
     np.testing.assert_array_equal(actions[:, 6], demo.data["action"][:, 6])
     same = retarget(demo, source, source, extend_steps=0)
     np.testing.assert_allclose(same, demo.data["action"], atol=1e-6)
+
+
+def test_a_retargeted_demo_turns_the_wrist_toward_the_targets_nominal_grasp(tmp_path):
+    """Turning the object by more than a right angle: the wrist turns the same way (to
+    the target's nominal grasp yaw), not by the shorter equivalent the other way."""
+    session = Session.create(tmp_path / "demo")
+    run_scripted_expert("pick_place", world="twin", episodes=1, regions=("ID",), session=session)
+    demo = read_episode(session.episode_paths()[0])
+    source = TaskConfig.from_dict(demo.meta.config)
+    heading = -1.4 if source.object[2] > 0 else 1.4  # across the right angle from the source
+    target = TaskConfig(object=(0.45, -0.3, heading), target=source.target)
+    actions = retarget(demo, source, target, extend_steps=0)
+    _, quats = commanded_path(demo)
+    grasp, _ = keyframes(demo, releases_object=True)
+    source_offset = wrap_angle(yaw_of(quats[grasp]) - source.object[2], math.pi)
+    turn = np.sum(actions[:grasp, 5])  # a top-down tool turns about the vertical only
+    new_grasp_yaw = yaw_of(quats[0]) + turn
+    assert new_grasp_yaw == pytest.approx(heading + source_offset, abs=1e-3)
 
 
 def test_randomisation_is_seeded_and_recorded():

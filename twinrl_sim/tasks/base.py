@@ -117,6 +117,12 @@ class Task(ABC):
     min_separation: ClassVar[float] = 0.15  # object-target centre distance at reset (m)
     object_yaw: ClassVar[tuple[float, float]] = (-math.pi / 2, math.pi / 2)
     target_yaw: ClassVar[tuple[float, float]] = (-0.4, 0.4)
+    # Tool yaws that grasp the object alike repeat every grasp_period (the parallel
+    # gripper's half turn, or the object's own finer symmetry); the nominal grasp's tool
+    # yaw is grasp_yaw_offset from the object's heading. Experts and the planner grasp
+    # near it, so that demos of neighbouring configurations turn the wrist the same way.
+    grasp_period: ClassVar[float] = math.pi
+    grasp_yaw_offset: ClassVar[float] = 0.0
     regions: ClassVar[dict[str, Region]] = DEFAULT_REGIONS
     tracker_class: ClassVar[type[Tracker]] = Tracker
 

@@ -169,7 +169,9 @@ class EraseWhiteboard(Task):
 
         def grasp(view: ObsView) -> tuple[np.ndarray, float]:
             pos, yaw = view.position(self.object_name), view.yaw(self.object_name)
-            tool_yaw, shift = sample_grasps(rng, yaw, math.pi, 0.0, 0.01, view.tool_yaw)[0]
+            tool_yaw, shift = sample_grasps(
+                rng, yaw, self.grasp_period, self.grasp_yaw_offset, 0.01, view.tool_yaw
+            )[0]
             # Low on the sides: pads straddle the eraser's centre so it cannot roll.
             low = np.array([0.0, 0.0, -GRASP_BELOW_CENTRE])
             return pos + shift * np.array([math.cos(yaw), math.sin(yaw), 0.0]) + low, tool_yaw

@@ -31,7 +31,6 @@ class Insertion(Task):
     """Shared behaviour of the insertion tasks."""
 
     symmetry: ClassVar[float]  # rad between equivalent block yaws
-    grasp_yaw_offset: ClassVar[float]  # tool yaw relative to the block's heading
     grasp_height: ClassVar[float]  # TCP height above the block's body origin (m)
     hole_depth: ClassVar[float] = 0.025
     max_steps = 120
@@ -69,7 +68,7 @@ class Insertion(Task):
         def grasp(view: ObsView) -> tuple[np.ndarray, float]:
             pos, yaw = view.position(self.object_name), view.yaw(self.object_name)
             tool_yaw, shift = sample_grasps(
-                rng, yaw, self.symmetry, self.grasp_yaw_offset, 0.003, view.tool_yaw
+                rng, yaw, self.grasp_period, self.grasp_yaw_offset, 0.003, view.tool_yaw
             )[0]
             axis = np.array([math.cos(yaw), math.sin(yaw), 0.0])
             return pos + shift * axis + [0.0, 0.0, grasp_z], tool_yaw
@@ -96,7 +95,7 @@ class InsertHexagon(Insertion):
     instruction = "insert the hexagonal block into the hexagonal hole"
     object_name = "hex_block"
     target_name = "hex_hole"
-    symmetry = math.pi / 3
+    symmetry = grasp_period = math.pi / 3
     grasp_yaw_offset = math.pi / 6  # fingers close on two parallel flat faces
     grasp_height = 0.016
     object_yaw = (-math.pi, math.pi)
@@ -107,6 +106,6 @@ class InsertTripleColumn(Insertion):
     instruction = "insert the three-column block into the three holes"
     object_name = "column_block"
     target_name = "column_plate"
-    symmetry = math.pi
+    symmetry = grasp_period = math.pi
     grasp_yaw_offset = 0.0  # fingers close across the bar
     grasp_height = 0.014

@@ -59,7 +59,9 @@ class PickPlace(Task):
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         def grasp(view: ObsView) -> tuple[np.ndarray, float]:
             pos, yaw = view.position(self.object_name), view.yaw(self.object_name)
-            tool_yaw, shift = sample_grasps(rng, yaw, math.pi, 0.0, 0.02, view.tool_yaw)[0]
+            tool_yaw, shift = sample_grasps(
+                rng, yaw, self.grasp_period, self.grasp_yaw_offset, 0.02, view.tool_yaw
+            )[0]
             axis = np.array([math.cos(yaw), math.sin(yaw), 0.0])
             return pos + shift * axis, tool_yaw
 
