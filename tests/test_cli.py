@@ -156,6 +156,10 @@ def test_train_and_eval_commands(tmp_path):
         ),
         (["expand", "pick_place", "--out", "x", "--randomize", "fog"], "unknown randomisation"),
         (["expand", "pick_place", "--out", "x", "--method", "augment"], "needs --from-demo"),
+        (
+            ["bench", "stage1", "--out", "x", "--inputs", "sideways"],
+            "--inputs must be one of absolute, relative, got 'sideways'",
+        ),
     ],
 )
 def test_stage1_bad_input(args, message, tmp_path):

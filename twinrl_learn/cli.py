@@ -676,6 +676,13 @@ def bench_stage1(
             "(gap diagnose) and synthesize the twin demos in that look."
         ),
     ] = False,
+    inputs: Annotated[
+        str,
+        typer.Option(
+            help="The state policy's inputs: relative (objects seen from the TCP) or "
+            "absolute (poses in the base frame)."
+        ),
+    ] = "relative",
 ) -> None:
     """TwinRL's Table I in the plant: real-only SFT vs real + twin ID/OOD demos."""
     steps = {k: v for k, v in (("vla", vla_steps), ("state", state_steps)) if v}
@@ -687,6 +694,7 @@ def bench_stage1(
         episodes_per_cell=episodes,
         steps=steps,
         fit_look=fit_look,
+        state_inputs=inputs,
         seed=seed,
     )
     data_cli.quiet_encoders()
