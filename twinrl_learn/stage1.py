@@ -11,7 +11,8 @@ For each task:
    diagnose`` fitted to the real demos' images (``<task>/twin_fitted.yaml``), so that
    an image policy's twin demos look like the cell.
 3. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
-   (30, 30), (60, 30), (30, 60) (scaled by ``scale``).
+   (30, 30), (60, 30), (30, 60) (scaled by ``scale``); the state policy reads
+   ``state_inputs`` (relative by default, as in the quick pipeline).
 4. Evaluation of every policy in the plant over a grid covering ID and OOD.
 
 Writes ``out/table1.md`` (the paper's Table I shape, plus the paper's numbers for
