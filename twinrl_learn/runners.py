@@ -129,11 +129,11 @@ def load_runner(spec: str | Path, *, open_loop: bool = False) -> Runner:
     if str(spec) == "expert":
         return ExpertRunner()
     if is_checkpoint(path):
-        if not open_loop:
-            return TwinrlRunner(path)
-        # Named apart: mining reuses logged evaluations of a policy by its name.
-        runner = TwinrlRunner(path, name=f"twinrl:{path.name}:open-loop")
-        runner.policy.config.temporal_ensemble = None
+        runner = TwinrlRunner(path)
+        if open_loop:
+            # Named apart: mining reuses logged evaluations of a policy by its name.
+            runner.name += ":open-loop"
+            runner.policy.config.temporal_ensemble = None
         return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()

@@ -24,7 +24,7 @@ import numpy as np
 
 from twinrl_data.schema import ACTION, STATE, Episode
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
-from twinrl_sim.tasks.base import TaskConfig, yaw_of
+from twinrl_sim.tasks.base import TaskConfig, wrap_angle, yaw_of
 from twinrl_sim.tasks.expert import grasp_yaw
 
 GRIPPER_CLOSED = 0.5
@@ -55,7 +55,7 @@ class PlanarMotion:
         shift = np.array([target[0] - source[0], target[1] - source[1], 0.0])
         yaw = target[2] - source[2]
         if tool_turn is None:
-            tool_turn = (yaw + math.pi / 2) % math.pi - math.pi / 2
+            tool_turn = wrap_angle(yaw, math.pi)
         return cls(pivot=pivot, yaw=yaw, shift=shift, tool_turn=tool_turn)
 
     def apply(self, point: np.ndarray) -> np.ndarray:

@@ -24,8 +24,8 @@ from twinrl_sim.cell import Cell
 from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.grasping import Grasp, sample_antipodal_grasps
 from twinrl_sim.robots import gripper as gripper_lib
-from twinrl_sim.tasks.base import Task, TaskConfig
-from twinrl_sim.tasks.expert import grasp_yaw, tool_quat
+from twinrl_sim.tasks.base import Task, TaskConfig, yaw_of
+from twinrl_sim.tasks.expert import grasp_yaw, nearest_equivalent, tool_quat
 
 TRANSPORT_HEIGHTS = (0.10, 0.18, 0.28)  # m above the higher of pick-up and goal
 EASE_PEAK = 1.5  # peak rate of the speed profile's ease over its mean
@@ -179,11 +179,6 @@ def _segment_clear(
     return True
 
 
-def _nearest_yaw(yaw: float, reference: float) -> float:
-    """The gripper is symmetric under a half turn: pick the equivalent yaw nearest ``reference``."""
-    return yaw + math.pi * round((reference - yaw) / math.pi)
-
-
 def plan_demo(
     task: Task,
     cell: Cell,
@@ -196,10 +191,7 @@ def plan_demo(
     settings = settings or PlannerSettings()
     task.start(cell, config)
     home, home_quat = cell.tcp_pose()
-    home_yaw = math.atan2(
-        2 * (home_quat[0] * home_quat[3] + home_quat[1] * home_quat[2]),
-        1 - 2 * (home_quat[2] ** 2 + home_quat[3] ** 2),
-    )
+    home_yaw = yaw_of(home_quat)
     object_pos, _ = cell.object_pose(task.object_name)
     object_yaw = config.object[2]
     goals = task.goal_poses(cell, config)
@@ -214,7 +206,7 @@ def plan_demo(
     up = np.array([0.0, 0.0, APPROACH])
     for candidate in grasps[: settings.grasps_to_try]:
         # The gripper is symmetric under a half turn: the equivalent nearest the nominal.
-        start_yaw = _nearest_yaw(object_yaw + candidate.yaw, nominal_yaw)
+        start_yaw = nearest_equivalent(object_yaw + candidate.yaw, math.pi, nominal_yaw)
         grasp = _grasp_with_yaw(candidate, start_yaw - object_yaw)
         start, _ = tcp_from_object(object_pos, object_yaw, grasp)
         ends = [tcp_from_object(pos, yaw, grasp) for pos, yaw in goals]
