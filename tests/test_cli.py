@@ -116,11 +116,14 @@ def test_train_and_eval_commands(tmp_path):
         "--grid",
         "1x2",
         "--open-loop",
+        "--no-grasp-hold",
         "--out",
         str(tmp_path / "eval"),
     )
     assert evaluated.returncode == 0, evaluated.stderr
     assert (tmp_path / "eval" / "heatmap.png").is_file() and "ID" in evaluated.stdout
+    policy_name = json.loads((tmp_path / "eval" / "eval.json").read_text())["policy"]
+    assert policy_name == "twinrl:policy:open-loop:no-hold"
     again = sft("--resume")  # no --steps: the run's own 20, not the default
     assert again.returncode == 0, again.stderr
     assert "20 steps" in again.stdout
@@ -153,6 +156,10 @@ def test_train_and_eval_commands(tmp_path):
         (
             ["eval", "expert", "--task", "pick_place", "--open-loop", "--out", "x"],
             "--open-loop applies to a twinrl checkpoint",
+        ),
+        (
+            ["eval", "expert", "--task", "pick_place", "--no-grasp-hold", "--out", "x"],
+            "--grasp-hold/--no-grasp-hold applies to a twinrl checkpoint",
         ),
         (["expand", "pick_place", "--out", "x", "--randomize", "fog"], "unknown randomisation"),
         (["expand", "pick_place", "--out", "x", "--method", "augment"], "needs --from-demo"),

@@ -197,13 +197,20 @@ def eval_command(
             "prediction for each step (temporal ensembling)."
         ),
     ] = False,
+    grasp_hold: Annotated[
+        bool | None,
+        typer.Option(
+            help="Hold a twinrl policy's arm while the gripper closes, or not (default: as "
+            "the checkpoint says; checkpoints hold)."
+        ),
+    ] = None,
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
     if task not in TASKS:
         sim_cli.make_task(task)  # raises with the nearest task name
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
-    runner = load_runner(checkpoint, open_loop=open_loop)
+    runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
     with data_cli.progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
         done = {"n": 0, "ok": 0}

@@ -30,6 +30,11 @@ were off by a couple of centimetres or tens of degrees. ``temporal_ensemble = No
 executes each chunk open-loop, as RL's exploring rollouts do (their critic scores the
 chunk it executes).
 
+With ``grasp_hold`` the arm waits for the gripper (:class:`GraspHold`), as a blocking
+grasp call does on a real gripper: the demonstrations dwell while the fingers close,
+but a policy's lift comes on its own clock, and the grasps it lost were lifted while
+the fingers were still 3-6 cm apart.
+
 A checkpoint is a folder::
 
     CKPT/
@@ -75,6 +80,42 @@ EPS = 1e-4
 IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
 CONV_KERNELS = {2: (3, 1), 4: (8, 2)}  # convolution stride -> (kernel, padding)
 STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
+GRIPPER_CLOSE = 0.5  # a gripper command at or above this closes the fingers
+FINGERS_STILL = 5e-4  # m per control step: fingers moving less than this have stopped
+
+
+class GraspHold:
+    """Holds the arm while the gripper closes: from the step the gripper command turns
+    to close, the arm's motion (the action's first six entries) is zeroed for ``settle``
+    steps and then for as long as the fingers keep moving, so the arm lifts only once
+    they have closed on the object.
+
+    One per episode (:meth:`reset` at its start). Call it at every control step with
+    the observation's ``observation.state`` (whose last entry is ``gripper.opening``)
+    and the action about to be executed; ``applies=False`` (an operator's action) keeps
+    track of the gripper without changing the action.
+    """
+
+    def __init__(self, settle: int = 2) -> None:
+        self.settle = settle
+        self.reset()
+
+    def reset(self) -> None:
+        self._closing_steps = 0
+        self._opening: float | None = None
+
+    def __call__(self, state: np.ndarray, action: np.ndarray, applies: bool = True) -> np.ndarray:
+        opening = float(state[-1])
+        moving = self._opening is not None and abs(opening - self._opening) >= FINGERS_STILL
+        self._opening = opening
+        if action[-1] < GRIPPER_CLOSE:
+            self._closing_steps = 0
+            return action
+        self._closing_steps += 1
+        if applies and (self._closing_steps <= self.settle or moving):
+            action = action.copy()
+            action[:6] = 0.0
+        return action
 
 
 @dataclass
@@ -107,6 +148,11 @@ class PolicyConfig:
     # per region): 89 / 89, 91 / 83 and 89 / 91 % (ID / OOD) against 80 / 75, 72 / 75 and
     # 80 / 89 % open-loop.
     temporal_ensemble: float | None = 0.01
+    # Acting, hold the arm while the gripper closes (GraspHold). Measured with four
+    # state policies of a quick run (Stage I, Stage II, two after real RL; 64 plant
+    # episodes per region each): 398 successes in 512 episodes against 387 without, and
+    # no policy lost any.
+    grasp_hold: bool = True
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     instructions: dict[str, list[float]] = field(default_factory=dict)
@@ -219,6 +265,7 @@ class Policy(nn.Module):
             self.locator = nn.Linear(c.hidden, 3 * len(c.object_indices))
         self.instructions = InstructionCache(c.instructions)
         self._predictions: list[np.ndarray] = []  # the unexecuted rest of each chunk
+        self._grasp_hold = GraspHold()
         self._stats = {k: {s: torch.tensor(v) for s, v in d.items()} for k, d in c.stats.items()}
 
     @property
@@ -515,8 +562,17 @@ class Policy(nn.Module):
         With ``chunk > 1`` and ``temporal_ensemble`` set, it predicts a chunk at every
         step and returns the weighted average of every prediction made for this step;
         without ``temporal_ensemble`` it executes each chunk in turn before looking again.
+        With ``grasp_hold`` the arm holds while the gripper closes (:class:`GraspHold`).
         :meth:`reset` starts afresh.
         """
+        action = self._next_action(observation, instruction, deterministic)
+        if self.config.grasp_hold:
+            action = self._grasp_hold(np.asarray(observation["observation.state"]), action)
+        return action
+
+    def _next_action(
+        self, observation: dict[str, Any], instruction: str, deterministic: bool
+    ) -> np.ndarray:
         coefficient = self.config.temporal_ensemble
         # Each earlier prediction moves on by the step executed since.
         self._predictions = [rest[1:] for rest in self._predictions if len(rest) > 1]
@@ -532,8 +588,10 @@ class Policy(nn.Module):
         return (weights @ for_now / weights.sum()).astype(np.float32)
 
     def reset(self) -> None:
-        """Forget the predictions made so far (call at each episode start)."""
+        """Forget the predictions made so far and the gripper's state (call at each
+        episode start)."""
         self._predictions = []
+        self._grasp_hold = GraspHold()
 
     @property
     def needs_images(self) -> bool:

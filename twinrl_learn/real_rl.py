@@ -8,7 +8,8 @@ latest weights (:func:`twinrl_learn.mining.mine`). Each reset configuration is
 rendered from the twin and logged to a Rerun recording, which shows an operator of a
 real cell where to put the object; the plant resets programmatically.
 
-While the policy acts (one sampled action chunk at a time), an :class:`Operator` may
+While the policy acts (one sampled action chunk at a time, the arm held while the
+gripper closes when the policy's ``grasp_hold`` says so), an :class:`Operator` may
 take the controls (the plant's :class:`~twinrl_robot.operator.SimulatedOperator`, a
 teleop device on a real cell); its steps are flagged ``intervention`` and the episode
 joins the demo buffer; a takeover ends the policy's stretch for the critic (see
@@ -46,7 +47,7 @@ from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import Target, load_targets, mine
 from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
-from twinrl_learn.policy import Policy
+from twinrl_learn.policy import GraspHold, Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_robot.operator import Operator, OperatorRule, SimulatedOperator
@@ -271,6 +272,7 @@ class RealRL:
         )
         queue: list[np.ndarray] = []
         intervening = False
+        hold = GraspHold() if agent.policy.config.grasp_hold else None
         metrics: dict[str, float] = {}
         with run.session.record(meta) as log:
             for t in range(task.max_steps):
@@ -294,6 +296,8 @@ class RealRL:
                             )[0]
                         )
                     action = proposed = queue.pop(0)
+                if hold is not None:
+                    action = hold(obs["observation.state"], action, applies=proposed is not None)
                 intervening = proposed is None
                 plant.act(action)
                 success = plant.success

@@ -116,24 +116,36 @@ class LeRobotRunner:
         return np.asarray(action[0].cpu().numpy(), np.float32)
 
 
-def load_runner(spec: str | Path, *, open_loop: bool = False) -> Runner:
+def load_runner(
+    spec: str | Path, *, open_loop: bool = False, grasp_hold: bool | None = None
+) -> Runner:
     """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder.
     ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
-    its predictions for each step (``PolicyConfig.temporal_ensemble``)."""
+    its predictions for each step (``PolicyConfig.temporal_ensemble``); ``grasp_hold``
+    turns the arm's hold while the gripper closes on or off (``None``: as the
+    checkpoint says; ``PolicyConfig.grasp_hold``)."""
     path = Path(spec)
-    if open_loop and not is_checkpoint(path):
-        raise ValueError(
-            f"--open-loop applies to a twinrl checkpoint, not {spec} (the expert acts step by "
-            "step, and a lerobot policy executes its chunks as its own config says)"
-        )
+    for asked, flag in (
+        (open_loop, "--open-loop"),
+        (grasp_hold is not None, "--grasp-hold/--no-grasp-hold"),
+    ):
+        if asked and not is_checkpoint(path):
+            raise ValueError(
+                f"{flag} applies to a twinrl checkpoint, not {spec} (the expert acts step by "
+                "step, and a lerobot policy acts as its own config says)"
+            )
     if str(spec) == "expert":
         return ExpertRunner()
     if is_checkpoint(path):
         runner = TwinrlRunner(path)
+        config = runner.policy.config
+        # Named apart: mining reuses logged evaluations of a policy by its name.
         if open_loop:
-            # Named apart: mining reuses logged evaluations of a policy by its name.
             runner.name += ":open-loop"
-            runner.policy.config.temporal_ensemble = None
+            config.temporal_ensemble = None
+        if grasp_hold is not None and grasp_hold != config.grasp_hold:
+            runner.name += ":hold" if grasp_hold else ":no-hold"
+            config.grasp_hold = grasp_hold
         return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()

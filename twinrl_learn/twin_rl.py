@@ -2,7 +2,8 @@
 
 Each round resets the ``envs`` batched twin environments to configurations drawn
 uniformly over the task's regions (ID and OOD), rolls the current policy out (sampling
-from its tanh-Gaussian, one action chunk at a time) and logs every rollout as an
+from its tanh-Gaussian, one action chunk at a time; the arm held while the gripper
+closes when the policy's ``grasp_hold`` says so) and logs every rollout as an
 episode (source ``twin_rl``); after every vector step the agent takes ``utd`` updates
 per new environment step on RLPD batches of demos and online rollouts. A checkpoint
 follows every round. At the end the **twin buffer** is exported: a LeRobotDataset of
@@ -27,7 +28,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
-from twinrl_learn.policy import Policy
+from twinrl_learn.policy import GraspHold, Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_sim.batch import BatchEnv
 from twinrl_sim.tasks import REGION_NAMES, Progress, make_task
@@ -118,6 +119,7 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
     active = np.ones(n, bool)
     success = np.zeros(n, bool)
     queues: list[list[np.ndarray]] = [[] for _ in range(n)]
+    holds = [GraspHold() for _ in range(n)] if agent.policy.config.grasp_hold else None
     metrics: dict[str, float] = {}
     while active.any():
         need = [i for i in range(n) if active[i] and not queues[i]]
@@ -130,10 +132,14 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
             )
             for i, chunk in zip(need, chunks, strict=True):
                 queues[i] = list(chunk)
-        actions = np.zeros((n, agent.policy.config.action_dim), np.float32)
+        proposed = np.zeros((n, agent.policy.config.action_dim), np.float32)
         stepping = np.flatnonzero(active)
         for i in stepping:
-            actions[i] = queues[i].pop(0)
+            proposed[i] = queues[i].pop(0)
+        actions = proposed.copy()
+        if holds is not None:
+            for i in stepping:
+                actions[i] = holds[i](obs["observation.state"][i], proposed[i])
         next_obs, _, terminated, truncated, info = env.step(actions)
         for i in stepping:
             done = bool(terminated[i] or truncated[i])
@@ -147,7 +153,7 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
                     reward,
                     done,
                     success[i],
-                    action_policy=actions[i],
+                    action_policy=proposed[i],
                 )
             )
             if done:

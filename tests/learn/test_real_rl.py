@@ -14,7 +14,7 @@ from twinrl_data.session import Session
 from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
-from twinrl_learn.policy import Policy
+from twinrl_learn.policy import GRIPPER_CLOSE, Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
@@ -172,10 +172,14 @@ def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tm
         assert (episode.meta.source, episode.meta.world) == ("real_rl", "plant")
         flags = episode.data["intervention"]
         assert int(flags.sum()) == episode.meta.num_interventions
-        own = ~flags  # the policy's steps execute what it proposed
-        np.testing.assert_array_equal(
-            episode.data["action"][own], episode.data["action.policy"][own]
-        )
+        # The policy's steps execute what it proposed, save the arm's motion held while
+        # the gripper closes.
+        executed = episode.data["action"][~flags]
+        proposed = episode.data["action.policy"][~flags]
+        held = ~executed[:, :6].any(axis=1) & proposed[:, :6].any(axis=1)
+        np.testing.assert_array_equal(executed[~held], proposed[~held])
+        np.testing.assert_array_equal(executed[:, 6], proposed[:, 6])
+        assert (proposed[held, 6] >= GRIPPER_CLOSE).all()
     assert len(run.demo.episodes) == recorded_demos + len(helped)
     assert len(run.online.episodes) == len(episodes) - len(helped)
     points = load_evaluations(tmp_path / "run")

@@ -13,7 +13,14 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.training import load_frames
 from twinrl_learn.evaluate import evaluate, grid_cells
-from twinrl_learn.policy import IMAGE_SHIFT, STATE_NOISE, FiLMConvEncoder, Policy, PolicyConfig
+from twinrl_learn.policy import (
+    IMAGE_SHIFT,
+    STATE_NOISE,
+    FiLMConvEncoder,
+    GraspHold,
+    Policy,
+    PolicyConfig,
+)
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.sft import SFTConfig, learning_rate, train_sft
 from twinrl_sim.build import yaw_quat
@@ -101,7 +108,9 @@ def test_acting_averages_every_prediction_for_a_step_or_runs_chunks_open_loop():
     """Temporal ensembling: the action for step t is the exp(-m * i)-weighted mean of the
     predictions made at steps t-3..t for it (i = 0 the oldest); open-loop: one prediction
     per chunk, its actions in turn."""
-    config = PolicyConfig(kind="state", state_dim=8, env_dim=7, chunk=4, temporal_ensemble=0.5)
+    config = PolicyConfig(
+        kind="state", state_dim=8, env_dim=7, chunk=4, temporal_ensemble=0.5, grasp_hold=False
+    )
     policy = Policy(config)
     made = []
 
@@ -127,6 +136,38 @@ def test_acting_averages_every_prediction_for_a_step_or_runs_chunks_open_loop():
     for bad in (-1.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="temporal_ensemble must be a finite number >= 0"):
             PolicyConfig(kind="state", state_dim=8, env_dim=7, temporal_ensemble=bad)
+
+
+def test_the_arm_holds_while_the_gripper_closes():
+    """From the close command on, the arm's motion is zeroed for two steps and then while
+    the fingers move; the gripper command passes; an operator's steps are only tracked,
+    so a policy taking over a closed gripper is not held; Policy.act applies it only
+    with grasp_hold."""
+    move_open = np.array([0.01, 0.02, -0.01, 0.0, 0.0, 0.05, 0.0], np.float32)
+    move_close = move_open.copy()
+    move_close[-1] = 1.0
+    state = lambda opening: np.array([0.3, 0.0, 0.2, opening])  # noqa: E731
+    hold = GraspHold(settle=2)
+    openings = [0.08, 0.08, 0.079, 0.06, 0.04, 0.031, 0.0308, 0.0308, 0.0308]
+    commands = [move_open] + [move_close] * 8
+    executed = [hold(state(o), a) for o, a in zip(openings, commands, strict=True)]
+    moved = [bool(np.any(a[:6])) for a in executed]
+    # onset and the next step held (settle), then while the fingers close by >= 0.5 mm
+    assert moved == [True, False, False, False, False, False, True, True, True]
+    assert all(a[-1] == c[-1] for a, c in zip(executed, commands, strict=True))
+    hold.reset()
+    for opening in (0.08, 0.06, 0.04, 0.031):  # the operator closes the gripper
+        assert hold(state(opening), move_close, applies=False) is move_close
+    assert np.any(hold(state(0.0308), move_close)[:6])  # the policy lifts at once
+
+    config = PolicyConfig(kind="state", state_dim=4, env_dim=7)
+    policy = Policy(config)
+    policy.act_chunks = lambda *a, **k: move_close[None, None]
+    observation = {"observation.state": state(0.08), "observation.environment_state": np.zeros(7)}
+    assert not np.any(policy.act(observation, "")[:6])
+    policy.config.grasp_hold = False
+    policy.reset()
+    assert np.array_equal(policy.act(observation, ""), move_close)
 
 
 def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
