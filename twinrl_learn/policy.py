@@ -57,6 +57,7 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
+from twinrl_sim.tasks.expert import FINGERS_STILL, GRIPPER_CLOSED
 
 KINDS = ("vla", "state")
 INPUTS = ("absolute", "relative")
@@ -80,8 +81,6 @@ EPS = 1e-4
 IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
 CONV_KERNELS = {2: (3, 1), 4: (8, 2)}  # convolution stride -> (kernel, padding)
 STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
-GRIPPER_CLOSE = 0.5  # a gripper command at or above this closes the fingers
-FINGERS_STILL = 5e-4  # m per control step: fingers moving less than this have stopped
 
 
 class GraspHold:
@@ -108,7 +107,7 @@ class GraspHold:
         opening = float(state[-1])
         moving = self._opening is not None and abs(opening - self._opening) >= FINGERS_STILL
         self._opening = opening
-        if action[-1] < GRIPPER_CLOSE:
+        if action[-1] < GRIPPER_CLOSED:
             self._closing_steps = 0
             return action
         self._closing_steps += 1

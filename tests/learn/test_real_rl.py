@@ -14,11 +14,12 @@ from twinrl_data.session import Session
 from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
-from twinrl_learn.policy import GRIPPER_CLOSE, Policy
+from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task
+from twinrl_sim.tasks.expert import GRIPPER_CLOSED
 
 
 @pytest.fixture(scope="module")
@@ -179,7 +180,7 @@ def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tm
         held = ~executed[:, :6].any(axis=1) & proposed[:, :6].any(axis=1)
         np.testing.assert_array_equal(executed[~held], proposed[~held])
         np.testing.assert_array_equal(executed[:, 6], proposed[:, 6])
-        assert (proposed[held, 6] >= GRIPPER_CLOSE).all()
+        assert (proposed[held, 6] >= GRIPPER_CLOSED).all()
     assert len(run.demo.episodes) == recorded_demos + len(helped)
     assert len(run.online.episodes) == len(episodes) - len(helped)
     points = load_evaluations(tmp_path / "run")

@@ -28,6 +28,8 @@ CORRECTION_CLEARANCE = 0.02
 # arm turns slower while it travels far; a policy sees only the measured pose, so demos
 # whose command ran ahead would teach it to stop turning while the tool is still far off.
 TURN_LEAD = 0.1
+GRIPPER_CLOSED = 0.5  # a gripper command at or above this closes the fingers
+FINGERS_STILL = 5e-4  # m per control step: fingers moving less than this have stopped
 
 
 def tool_quat(yaw: float) -> np.ndarray:
@@ -116,7 +118,7 @@ class ScriptedExpert:
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         view = ObsView(self.scene, obs)
-        fingers_moving = not abs(view.opening - self._last_opening) < 5e-4
+        fingers_moving = not abs(view.opening - self._last_opening) < FINGERS_STILL
         self._last_opening = view.opening
         return self._act(view, fingers_moving)
 
