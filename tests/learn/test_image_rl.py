@@ -1,0 +1,72 @@
+"""The image policy through Stages II and III: what the paper preset runs, at toy scale."""
+
+import json
+
+import pytest
+import torch
+
+from tests.conftest import record_demos
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_learn.agent import RLConfig
+from twinrl_learn.mining import mine
+from twinrl_learn.policy import Policy
+from twinrl_learn.real_rl import RealRL, RealRLSettings, load_evaluations
+from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+from twinrl_robot.operator import OperatorRule
+
+
+@pytest.mark.slow
+def test_the_image_policy_learns_in_the_twin_and_the_plant(tmp_path):
+    torch.set_num_threads(1)
+    dataset = record_demos(tmp_path / "demos", seed=5)
+    sft = tmp_path / "sft"
+    train_sft(
+        SFTConfig(
+            datasets=[str(dataset)], out=str(sft), policy="vla", steps=2, batch_size=4,
+            chunk=4, image_size=64,
+        )
+    )  # fmt: skip
+    assert Policy.from_pretrained(sft).locates
+    rl = RLConfig(offline_steps=2, batch_size=8, utd=0.02, seed=1)
+
+    twin = run_twin_rl(
+        TwinRLSettings(
+            task="pick_place", init=str(sft), out=str(tmp_path / "twin"), demos=[str(dataset)],
+            envs=1, steps=1, rl=rl, failures=1,
+        )
+    )  # fmt: skip
+    assert twin.agent.updates > rl.offline_steps
+    (episode_path,) = Session(tmp_path / "twin" / "session").episode_paths()
+    rollout = read_episode(episode_path)
+    assert rollout.meta.source == "twin_rl"
+    assert rollout.images["front"].shape == (len(rollout), 128, 128, 3)
+    buffer = tmp_path / "twin" / "twin_buffer"
+    assert json.loads((buffer / "meta" / "info.json").read_text())["total_episodes"] == 1
+
+    targets = tmp_path / "targets.json"
+    mine(TwinrlRunner(tmp_path / "twin" / "agent"), "pick_place", out=targets, grid=(1, 2),
+         episodes=1, k=2, tau=1.0)  # fmt: skip
+    assert json.loads(targets.read_text())["targets"]
+
+    real = RealRL.start(
+        RealRLSettings(
+            task="pick_place", init=str(tmp_path / "twin" / "agent"), out=str(tmp_path / "real"),
+            demos=[str(dataset)], twin_buffer=str(buffer), targets=str(targets),
+            plant_steps=20, eval_every=0, eval_grid=(1, 2), refresh_every=0,
+            operator=OperatorRule(patience=3, delay=1), rl=rl,
+        )
+    )  # fmt: skip
+    run = real.run()
+    assert run.agent.env_steps >= 20
+    episodes = [read_episode(p) for p in Session(tmp_path / "real" / "session").episode_paths()]
+    assert {e.meta.source for e in episodes} == {"real_rl"}
+    assert all(e.images["wrist"].shape[0] == len(e) for e in episodes)
+    # The buffers hold the cameras' frames, of every real-RL episode too (one the
+    # operator helped in as a demonstration).
+    assert run.online.cameras == run.demo.cameras == ("front", "wrist")
+    buffered = {e.meta.episode_id for e in run.online.episodes + run.demo.episodes}
+    assert {e.meta.episode_id for e in episodes} <= buffered
+    assert [p.plant_steps for p in load_evaluations(tmp_path / "real")] == [0, run.agent.env_steps]
