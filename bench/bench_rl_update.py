@@ -3,9 +3,10 @@
 Twin and real RL make one gradient update per environment step (``utd``), and on CPU
 the updates, not the simulation, set how long a pipeline takes. This times the TwinRL
 agent's update (critic ensemble + actor, batch 64, chunks as SFT makes them) for the
-state policy and the image policy on the same few twin demos, prints their ratio, and
-multiplies each by the number of updates a preset's pipeline makes (Stage II, then four
-methods x seeds of real RL, each with its offline phase). Usage::
+state policy and the image policy on the same few twin demos, offline (with the Cal-QL
+regulariser) and online, prints their ratio, and multiplies each by the number of
+updates a preset's pipeline makes (Stage II, then four methods x seeds of real RL, each
+with its offline phase). Usage::
 
     python bench/bench_rl_update.py --updates 20
 """
@@ -31,10 +32,12 @@ from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_sim.expand import expand
 
 
-def seconds_per_update(checkpoint: Path, dataset: str, updates: int) -> float:
-    """Mean wall time of one TwinRL update on batches drawn from ``dataset``."""
+def seconds_per_update(checkpoint: Path, dataset: str, updates: int, offline: bool) -> float:
+    """Mean wall time of one TwinRL update on batches drawn from ``dataset``: an offline
+    one (with the Cal-QL regulariser) or an online one."""
     policy = Policy.from_pretrained(checkpoint)
-    agent = Agent(policy, RLConfig.for_method("twinrl", seed=0))
+    config = RLConfig.for_method("twinrl", seed=0, offline_steps=updates + 1 if offline else 0)
+    agent = Agent(policy, config)
     cameras = policy.config.cameras if policy.needs_images else ()
     buffer = ReplayBuffer.from_datasets([dataset], cameras=cameras)
     rng = np.random.default_rng(0)
@@ -49,15 +52,16 @@ def seconds_per_update(checkpoint: Path, dataset: str, updates: int) -> float:
     return (time.perf_counter() - start) / updates
 
 
-def pipeline_updates(preset: Preset) -> int:
-    """Gradient updates of a preset's pipeline: Stage II and every real-RL run, each with
-    its offline phase (HiL-SERL has none)."""
+def pipeline_updates(preset: Preset) -> tuple[int, int]:
+    """Offline and online gradient updates of a preset's pipeline: Stage II and every
+    real-RL run (HiL-SERL has no offline phase)."""
     utd = RLConfig().utd
-    count = utd * preset.twin_rl_steps + preset.offline_steps
+    offline, online = preset.offline_steps, utd * preset.twin_rl_steps
     for method in METHOD_TABLE:
-        offline = preset.offline_steps if RLConfig.for_method(method.rl_method).offline_steps else 0
-        count += len(preset.seeds) * (utd * preset.plant_steps + offline)
-    return round(count)
+        has_offline = RLConfig.for_method(method.rl_method).offline_steps > 0
+        offline += len(preset.seeds) * (preset.offline_steps if has_offline else 0)
+        online += len(preset.seeds) * utd * preset.plant_steps
+    return offline, round(online)
 
 
 def main(
@@ -75,20 +79,26 @@ def main(
             checkpoint = root / kind
             train_sft(SFTConfig(datasets=[report.dataset], out=str(checkpoint), policy=kind,
                                 steps=1))  # fmt: skip
-            seconds[kind] = seconds_per_update(checkpoint, report.dataset, updates)
+            for phase in ("offline", "online"):
+                seconds[kind, phase] = seconds_per_update(
+                    checkpoint, report.dataset, updates, offline=phase == "offline"
+                )
     finally:
         shutil.rmtree(root)
     print(f"TwinRL update, batch 64, {torch.get_num_threads()} threads, mean of {updates}\n")
-    print("| policy | s / update |\n|---|---|")
-    for kind, value in seconds.items():
-        print(f"| {kind} | {value:.3f} |")
-    print(f"\nimage / state: {seconds['vla'] / seconds['state']:.1f}x\n")
-    print("| preset | policy | updates | hours of updates |\n|---|---|---|---|")
+    print("| policy | offline s / update | online s / update |\n|---|---|---|")
+    for kind in ("state", "vla"):
+        print(f"| {kind} | {seconds[kind, 'offline']:.3f} | {seconds[kind, 'online']:.3f} |")
+    ratio = seconds["vla", "online"] / seconds["state", "online"]
+    print(f"\nimage / state, online: {ratio:.1f}x\n")
+    print("| preset | policy | offline + online updates | hours of updates |\n|---|---|---|---|")
     for name in ("quick", "paper"):
         preset = PRESETS[name]
-        count = pipeline_updates(preset)
-        hours = count * seconds[preset.policy] / 3600
-        print(f"| {name} | {preset.policy} | {count:,} | {hours:.1f} |")
+        offline, online = pipeline_updates(preset)
+        hours = (
+            offline * seconds[preset.policy, "offline"] + online * seconds[preset.policy, "online"]
+        ) / 3600
+        print(f"| {name} | {preset.policy} | {offline:,} + {online:,} | {hours:.1f} |")
 
 
 if __name__ == "__main__":

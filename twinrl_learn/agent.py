@@ -14,6 +14,10 @@
   sampled actions and up on the data's, with the policy's Q clipped from below by the
   data's Monte-Carlo return so it stays calibrated for the online switch.
 
+An update runs an image policy's encoders once on the batch's observations and once on
+its next observations (:meth:`Policy.keypoints`) and shares the keypoints between all
+its terms; only the imitation term's shifted images are encoded anew.
+
 Three settings (``RLConfig.method``) give the methods compared in TwinRL:
 ``twinrl`` / ``conrft`` (the objective above, offline Cal-QL then online) and
 ``hil-serl`` (SAC with entropy, no imitation term, no offline phase).
@@ -163,13 +167,28 @@ class Agent:
             beta = self.config.beta_online
         return beta, self.config.eta
 
-    def _tensors(self, batch: TransitionBatch) -> dict[str, torch.Tensor | dict]:
+    def actor_reads_q(self) -> bool:
+        """Whether the actor's loss has the Q term (and so needs the critic's view)."""
+        return self.weights()[1] > 0 or self.config.entropy
+
+    def _tensors(self, batch: TransitionBatch) -> dict[str, torch.Tensor | dict | None]:
+        """The batch as normalised tensors, with the image encoders' keypoints of its
+        observations (None for the state policy) computed once for every loss: with a
+        gradient where the actor's Q term trains the encoders through them."""
         p = self.policy
+        obs = p.inputs(batch.state, batch.environment_state, batch.images, batch.instruction)
+        following = p.inputs(
+            batch.next_state, batch.next_environment_state, batch.next_images, batch.instruction
+        )
+        with torch.set_grad_enabled(self.actor_reads_q()):
+            keypoints = p.keypoints(obs)
+        with torch.no_grad():
+            next_keypoints = p.keypoints(following)
         return {
-            "obs": p.inputs(batch.state, batch.environment_state, batch.images, batch.instruction),
-            "next": p.inputs(
-                batch.next_state, batch.next_environment_state, batch.next_images, batch.instruction
-            ),
+            "obs": obs,
+            "next": following,
+            "keypoints": keypoints,
+            "next_keypoints": next_keypoints,
             "actions": p.normalize("action", torch.from_numpy(batch.actions)).clamp(-1, 1),
             "reward": torch.from_numpy(batch.reward),
             "discount": torch.from_numpy(batch.discount),
@@ -179,10 +198,11 @@ class Agent:
     # ------------------------------------------------------------------ losses
     def critic_loss(self, t: dict, online: bool) -> tuple[torch.Tensor, dict[str, float]]:
         p = self.policy
-        inputs = p.critic_inputs(t["obs"])
+        inputs = p.critic_inputs(t["obs"], t["keypoints"])
         with torch.no_grad():
-            next_inputs = p.critic_inputs(t["next"])
-            next_actions, next_log_prob = p.rsample(t["next"])
+            next_inputs = p.critic_inputs(t["next"], t["next_keypoints"])
+            next_features = p.features(t["next"], t["next_keypoints"])
+            next_actions, next_log_prob = p.rsample(t["next"], next_features)
             next_q = self.target(next_inputs, next_actions).min(0).values
             next_q = next_q - self.alpha * next_log_prob
             target = t["reward"] + t["discount"] * next_q
@@ -202,9 +222,9 @@ class Agent:
         n, (b, h, a) = self.config.cql_actions, t["actions"].shape
         repeated = inputs.repeat(n, 1)
         uniform = torch.rand((n * b, h, a), generator=self.generator) * 2 - 1
-        with torch.no_grad():
-            obs = {k: v.repeat(n, *[1] * (v.dim() - 1)) for k, v in t["obs"].items()}
-            policy_actions, _ = self.policy.rsample(obs)
+        with torch.no_grad():  # n draws per observation from its features
+            features = self.policy.features(t["obs"], t["keypoints"]).repeat(n, 1)
+            policy_actions, _ = self.policy.rsample(t["obs"], features)
         q_uniform = self.critic(repeated, uniform).view(-1, n, b)
         q_policy = self.critic(repeated, policy_actions).view(-1, n, b)
         q_policy = torch.maximum(q_policy, t["mc_return"][None, None])
@@ -217,9 +237,9 @@ class Agent:
         p = self.policy
         loss = torch.zeros(())
         metrics: dict[str, float] = {}
-        if eta > 0 or self.config.entropy:
-            actions, log_prob = p.rsample(t["obs"])
-            q = self.critic(p.critic_inputs(t["obs"]), actions).min(0).values
+        if self.actor_reads_q():
+            actions, log_prob = p.rsample(t["obs"], p.features(t["obs"], t["keypoints"]))
+            q = self.critic(p.critic_inputs(t["obs"], t["keypoints"]), actions).min(0).values
             scale = q.abs().mean().detach().clamp_min(1e-3)
             l_q = -(q / scale).mean()
             loss = loss + eta * l_q + (self.alpha * log_prob).mean() / scale
@@ -245,8 +265,8 @@ class Agent:
         """One gradient step of critic and actor on ``batch`` (the imitation term uses
         its ``demo`` rows: demonstrations and interventions)."""
         online = self.online()
-        t = self._tensors(batch)
         self.policy.train()
+        t = self._tensors(batch)
         critic_loss, metrics = self.critic_loss(t, online)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()

@@ -528,7 +528,7 @@ def demo_command(
         str,
         typer.Option(
             help="smoke (every stage, minutes), quick (state policy, ~16 min) or paper "
-            "(image policy; about 33 hours of RL updates on 2 cores: meant for a GPU)."
+            "(image policy; about 15 hours of RL updates on 2 cores: meant for a GPU)."
         ),
     ] = "quick",
     out: Annotated[Path, typer.Option(help="Folder for the report, logs and policies.")] = Path(

@@ -296,33 +296,46 @@ class Policy(nn.Module):
         return [batch["state"], batch["env"], batch["relative"]]
 
     # ------------------------------------------------------------------ core
-    def features(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Trunk features of a normalised batch (the critic reuses them later)."""
+    def keypoints(self, batch: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        """The image encoders' keypoints of a normalised batch, every camera's in turn
+        (None for the state policy). They are most of an image policy's cost, so an RL
+        update computes them once per batch and hands them to :meth:`features` and
+        :meth:`critic_inputs`."""
+        if self.config.kind != "vla":
+            return None
         text = batch["text"]
-        parts = []
+        return torch.cat(
+            [encoder(batch[f"image.{camera}"], text) for camera, encoder in self.encoders.items()],
+            dim=-1,
+        )
+
+    def features(
+        self, batch: dict[str, torch.Tensor], keypoints: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Trunk features of a normalised batch (``keypoints``: the batch's
+        :meth:`keypoints`, when already computed)."""
         if self.config.kind == "vla":
-            for camera, encoder in self.encoders.items():
-                parts.append(encoder(batch[f"image.{camera}"], text))
-            parts.append(self.proprio(batch["state"]))
+            keypoints = self.keypoints(batch) if keypoints is None else keypoints
+            parts = [keypoints, self.proprio(batch["state"])]
         else:
-            parts.append(self.proprio(torch.cat(self.privileged_inputs(batch), dim=-1)))
-        parts.append(text)
+            parts = [self.proprio(torch.cat(self.privileged_inputs(batch), dim=-1))]
+        parts.append(batch["text"])
         return self.trunk(torch.cat(parts, dim=-1))
 
-    def critic_inputs(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
+    def critic_inputs(
+        self, batch: dict[str, torch.Tensor], keypoints: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """What a critic reads: the image encoders' keypoints (no gradient: the critic
         sits on frozen encoder features, as in TwinRL) or the privileged state, plus
-        proprio and the instruction embedding."""
-        parts = []
+        proprio and the instruction embedding (``keypoints``: as for :meth:`features`)."""
         if self.config.kind == "vla":
-            with torch.no_grad():
-                for camera, encoder in self.encoders.items():
-                    parts.append(encoder(batch[f"image.{camera}"], batch["text"]))
-            parts.append(batch["state"])
+            if keypoints is None:
+                with torch.no_grad():
+                    keypoints = self.keypoints(batch)
+            parts = [keypoints.detach(), batch["state"]]
         else:
-            parts += self.privileged_inputs(batch)
-        parts.append(batch["text"])
-        return torch.cat(parts, dim=-1)
+            parts = self.privileged_inputs(batch)
+        return torch.cat([*parts, batch["text"]], dim=-1)
 
     @property
     def critic_input_dim(self) -> int:
@@ -411,9 +424,12 @@ class Policy(nn.Module):
             raise ValueError("this policy has no locating head (trained with locate_weight 0)")
         return self.locator(self.features(batch))
 
-    def rsample(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Reparameterised normalised actions (B, chunk, A) and their log-probabilities (B)."""
-        mean, log_std = self.distribution(batch)
+    def rsample(
+        self, batch: dict[str, torch.Tensor], features: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reparameterised normalised actions (B, chunk, A) and their log-probabilities (B)
+        (``features``: the batch's trunk features, when already computed)."""
+        mean, log_std = self.distribution(batch, features)
         pre_tanh = mean + log_std.exp() * torch.randn_like(mean)
         actions = torch.tanh(pre_tanh)
         z = (pre_tanh - mean) / log_std.exp()

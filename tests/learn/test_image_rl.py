@@ -2,33 +2,62 @@
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
 from tests.conftest import record_demos
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.agent import RLConfig
+from twinrl_learn.agent import Agent, RLConfig
 from twinrl_learn.mining import mine
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, load_evaluations
+from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule
 
 
-@pytest.mark.slow
-def test_the_image_policy_learns_in_the_twin_and_the_plant(tmp_path):
-    torch.set_num_threads(1)
-    dataset = record_demos(tmp_path / "demos", seed=5)
-    sft = tmp_path / "sft"
+@pytest.fixture(scope="module")
+def image_demos(tmp_path_factory):
+    """An expert demo with both cameras and an image policy briefly trained on it."""
+    folder = tmp_path_factory.mktemp("image_rl")
+    dataset = record_demos(folder / "demos", seed=5)
+    sft = folder / "sft"
     train_sft(
         SFTConfig(
             datasets=[str(dataset)], out=str(sft), policy="vla", steps=2, batch_size=4,
             chunk=4, image_size=64,
         )
     )  # fmt: skip
+    return dataset, sft
+
+
+@pytest.mark.parametrize(
+    ("method", "offline", "passes"),
+    # observations and next observations, plus the demo rows' shifted images to imitate
+    [("hil-serl", 0, 2), ("twinrl", 1, 3), ("twinrl", 0, 3)],
+)
+def test_an_update_encodes_each_image_batch_once(image_demos, method, offline, passes):
+    dataset, sft = image_demos
+    policy = Policy.from_pretrained(sft)
+    agent = Agent(policy, RLConfig.for_method(method, offline_steps=offline, batch_size=8))
+    assert agent.online() == (offline == 0)
+    buffer = ReplayBuffer.from_datasets([dataset], cameras=policy.config.cameras)
+    batch = buffer.sample(8, np.random.default_rng(0), chunk=4, gamma=0.98)
+    calls = {camera: 0 for camera in policy.config.cameras}
+    for camera, encoder in policy.encoders.items():
+        encoder.register_forward_hook(lambda *_, c=camera: calls.__setitem__(c, calls[c] + 1))
+    agent.update(batch)
+    assert calls == {camera: passes for camera in policy.config.cameras}
+
+
+@pytest.mark.slow
+def test_the_image_policy_learns_in_the_twin_and_the_plant(image_demos, tmp_path):
+    torch.set_num_threads(1)
+    dataset, sft = image_demos
     assert Policy.from_pretrained(sft).locates
     rl = RLConfig(offline_steps=2, batch_size=8, utd=0.02, seed=1)
 
