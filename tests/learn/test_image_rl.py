@@ -55,7 +55,7 @@ def test_an_update_encodes_each_image_batch_once(image_demos, method, offline, p
 
 
 @pytest.mark.slow
-def test_the_image_policy_learns_in_the_twin_and_the_plant(image_demos, tmp_path):
+def test_the_image_policy_runs_through_twin_rl_mining_and_real_rl(image_demos, tmp_path):
     torch.set_num_threads(1)
     dataset, sft = image_demos
     assert Policy.from_pretrained(sft).locates
