@@ -10,14 +10,15 @@ SYSTEM_PACKAGES := libusb-1.0-0 libegl1 libgl1 libosmesa6
 PYTHON ?= $(shell command -v python3.12 >/dev/null 2>&1 && python3.12 -c 'import sys' 2>/dev/null && echo python3.12 || echo "env PYENV_VERSION=3.12.1 python3.12")
 export MUJOCO_GL ?= egl
 
-.PHONY: help setup system-libs test demo bench lint clean
+.PHONY: help setup system-libs test test-slow demo bench lint clean
 
 help:
 	@echo "make demo   set up, run every task's scripted expert in the twin and the plant, record,"
 	@echo "            index, query, curate a LeRobot dataset and save a Rerun recording under out/demo;"
 	@echo "            then the whole TwinRL pipeline against its baselines (twinrl demo --preset quick,"
 	@echo "            about 20 min) with its report in out/twinrl_demo/report.md"
-	@echo "make test   set up, then lint and run the test suite"
+	@echo "make test   set up, then lint and run the test suite (all but the slow end-to-end runs)"
+	@echo "make test-slow  set up, then run the slow end-to-end tests (CI runs both)"
 	@echo "make bench  set up, then run the benchmarks"
 
 setup: system-libs $(STAMP)
@@ -45,7 +46,11 @@ $(STAMP): pyproject.toml
 
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -m "not slow"
+
+# The end-to-end runs marked slow (about 5 minutes more); CI runs them after `make test`.
+test-slow: setup
+	$(BIN)/pytest -q -m slow
 
 DEMO := out/demo
 demo: setup
