@@ -43,7 +43,8 @@ def seconds_per_update(checkpoint: Path, dataset: str, updates: int, offline: bo
     rng = np.random.default_rng(0)
 
     def batch():
-        return buffer.sample(agent.config.batch_size, rng, chunk=policy.config.chunk, gamma=0.98)
+        config = agent.config
+        return buffer.sample(config.batch_size, rng, chunk=policy.config.chunk, gamma=config.gamma)
 
     agent.update(batch())  # warm-up: first-call allocations
     start = time.perf_counter()
@@ -65,7 +66,7 @@ def pipeline_updates(preset: Preset) -> tuple[int, int]:
 
 
 def main(
-    updates: Annotated[int, typer.Option(help="Timed updates per policy kind.")] = 20,
+    updates: Annotated[int, typer.Option(help="Timed updates per policy kind and phase.")] = 20,
     demos: Annotated[int, typer.Option(help="Twin demos (with cameras) to sample from.")] = 4,
 ) -> None:
     quiet_encoders()
@@ -85,7 +86,8 @@ def main(
                 )
     finally:
         shutil.rmtree(root)
-    print(f"TwinRL update, batch 64, {torch.get_num_threads()} threads, mean of {updates}\n")
+    batch = RLConfig().batch_size
+    print(f"TwinRL update, batch {batch}, {torch.get_num_threads()} threads, mean of {updates}\n")
     print("| policy | offline s / update | online s / update |\n|---|---|---|")
     for kind in ("state", "vla"):
         print(f"| {kind} | {seconds[kind, 'offline']:.3f} | {seconds[kind, 'online']:.3f} |")
