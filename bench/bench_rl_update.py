@@ -25,25 +25,30 @@ import typer
 
 from twinrl_data.cli import quiet_encoders
 from twinrl_learn.agent import Agent, RLConfig
-from twinrl_learn.pipeline import METHOD_TABLE, PRESETS, Preset
+from twinrl_learn.pipeline import (
+    METHOD_TABLE,
+    PRESETS,
+    Preset,
+    real_rl_config,
+    twin_rl_config,
+)
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.sft import SFTConfig, train_sft
 from twinrl_sim.expand import expand
 
 
-def seconds_per_update(checkpoint: Path, dataset: str, updates: int, offline: bool) -> float:
-    """Mean wall time of one TwinRL update on batches drawn from ``dataset``: an offline
-    one (with the Cal-QL regulariser) or an online one."""
+def seconds_per_update(
+    checkpoint: Path, buffer: ReplayBuffer, updates: int, offline: bool
+) -> float:
+    """Mean wall time of one TwinRL update on batches drawn from ``buffer``: an offline
+    one (with the Cal-QL regulariser) or an online one, from the checkpoint afresh."""
     policy = Policy.from_pretrained(checkpoint)
     config = RLConfig.for_method("twinrl", seed=0, offline_steps=updates + 1 if offline else 0)
     agent = Agent(policy, config)
-    cameras = policy.config.cameras if policy.needs_images else ()
-    buffer = ReplayBuffer.from_datasets([dataset], cameras=cameras)
     rng = np.random.default_rng(0)
 
     def batch():
-        config = agent.config
         return buffer.sample(config.batch_size, rng, chunk=policy.config.chunk, gamma=config.gamma)
 
     agent.update(batch())  # warm-up: first-call allocations
@@ -55,14 +60,15 @@ def seconds_per_update(checkpoint: Path, dataset: str, updates: int, offline: bo
 
 def pipeline_updates(preset: Preset) -> tuple[int, int]:
     """Offline and online gradient updates of a preset's pipeline: Stage II and every
-    real-RL run (HiL-SERL has no offline phase)."""
-    utd = RLConfig().utd
-    offline, online = preset.offline_steps, utd * preset.twin_rl_steps
-    for method in METHOD_TABLE:
-        has_offline = RLConfig.for_method(method.rl_method).offline_steps > 0
-        offline += len(preset.seeds) * (preset.offline_steps if has_offline else 0)
-        online += len(preset.seeds) * utd * preset.plant_steps
-    return offline, round(online)
+    real-RL run, each with the RL settings the pipeline gives it."""
+    configs = [(twin_rl_config(preset), preset.twin_rl_steps)]
+    configs += [
+        (real_rl_config(method, preset, seed), preset.plant_steps)
+        for method in METHOD_TABLE
+        for seed in preset.seeds
+    ]
+    offline = sum(config.offline_steps for config, _ in configs)
+    return offline, round(sum(config.utd * steps for config, steps in configs))
 
 
 def main(
@@ -80,9 +86,11 @@ def main(
             checkpoint = root / kind
             train_sft(SFTConfig(datasets=[report.dataset], out=str(checkpoint), policy=kind,
                                 steps=1))  # fmt: skip
+            cameras = Policy.from_pretrained(checkpoint).config.cameras if kind == "vla" else ()
+            buffer = ReplayBuffer.from_datasets([report.dataset], cameras=cameras)
             for phase in ("offline", "online"):
                 seconds[kind, phase] = seconds_per_update(
-                    checkpoint, report.dataset, updates, offline=phase == "offline"
+                    checkpoint, buffer, updates, offline=phase == "offline"
                 )
     finally:
         shutil.rmtree(root)

@@ -182,6 +182,18 @@ METHOD_TABLE = (
 )
 
 
+def twin_rl_config(p: Preset) -> RLConfig:
+    """The RL settings of a preset's Stage II."""
+    return RLConfig.for_method("twinrl", offline_steps=p.offline_steps)
+
+
+def real_rl_config(method: Method, p: Preset, seed: int) -> RLConfig:
+    """The RL settings of one real-RL run: the method's, with the preset's offline phase
+    (HiL-SERL has none: RLConfig.for_method)."""
+    offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}
+    return RLConfig.for_method(method.rl_method, seed=seed, **offline)
+
+
 def run_demo(
     task: str = "pick_place",
     preset: str = "quick",
@@ -324,7 +336,7 @@ def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) 
                 demos=_demos(stage1, twin=True),
                 envs=p.twin_envs,
                 steps=p.twin_rl_steps,
-                rl=RLConfig.for_method("twinrl", offline_steps=p.offline_steps),
+                rl=twin_rl_config(p),
             )
         )
         _mark_done(folder)
@@ -428,8 +440,6 @@ def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None
     task, p, method, seed, folder = job.task, job.p, job.method, job.seed, job.folder
     stage1, stage2, targets = job.stage1, job.stage2, job.targets
     twin_buffer = stage2 / "twin_buffer"
-    # HiL-SERL has no offline phase (RLConfig.for_method); the others get the preset's.
-    offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}
     settings = RealRLSettings(
         task=task,
         init=str(stage2 / "agent" if method.from_twin else stage1["sft_real"]),
@@ -445,7 +455,7 @@ def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None
         eval_grid=p.eval_grid,
         eval_episodes=p.eval_episodes,
         operator=OperatorRule(),
-        rl=RLConfig.for_method(method.rl_method, seed=seed, **offline),
+        rl=real_rl_config(method, p, seed),
     )
     if (folder / "run.json").is_file():
         log(f"real RL: {method.name}, seed {seed}: resuming")
