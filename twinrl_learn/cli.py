@@ -14,6 +14,7 @@ from rich.table import Table
 from twinrl_data import cli as data_cli
 from twinrl_learn.agent import METHODS, RLConfig
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.locating import band_labels, locating_errors
 from twinrl_learn.mining import load_targets, mine
 from twinrl_learn.pipeline import PRESETS, RunProgress, run_demo
 from twinrl_learn.policy import is_checkpoint
@@ -237,6 +238,59 @@ def eval_command(
         table.add_row(region, f"{100 * rate:.0f} %", str(count))
     console.print(table)
     console.print(f"{out / 'eval.json'}, {out / 'heatmap.png'}, episodes in {out / 'session'}")
+
+
+def _sources(texts: list[str]) -> dict[str, Path]:
+    """``LABEL=PATH`` or ``PATH`` (labelled by its folder name) -> {label: path}."""
+    sources: dict[str, Path] = {}
+    for text in texts:
+        label, _, path = text.rpartition("=")
+        path = Path(path)
+        label = label or (path.parent.name if path.name == "session" else path.name)
+        if not path.exists():
+            raise ValueError(f"{path} does not exist (give a session, .mcap or LeRobot dataset)")
+        if label in sources:
+            raise ValueError(f"two sources are labelled '{label}'; name them LABEL=PATH")
+        sources[label] = path
+    return sources
+
+
+@app.command("locate")
+def locate_command(
+    checkpoint: Annotated[Path, typer.Argument(help="twinrl image-policy checkpoint.")],
+    sources: Annotated[
+        list[str],
+        typer.Argument(
+            help="Episodes to replay: session folders (e.g. an eval's OUT/session), .mcap "
+            "files or LeRobot datasets, each PATH or LABEL=PATH."
+        ),
+    ],
+    out: Annotated[Path, typer.Option(help="Folder for locating.json and locating.png.")],
+) -> None:
+    """How far off an image policy's locating head sees the objects, on logged episodes
+    (its training demos against its own rollouts, say), by the TCP's distance to them."""
+    labelled = _sources(sources)
+    with data_cli.progress() as bar:
+        job = bar.add_task("replaying episodes", total=None)
+        report = locating_errors(
+            checkpoint, labelled, out, on_episode=lambda _: bar.update(job, advance=1)
+        )
+    bands = band_labels(report["bands_cm"])
+    table = Table(
+        "source",
+        "region",
+        "object",
+        "first frame",
+        *[f"{b} cm" for b in bands],
+        title=f"median planar locating error (cm) by TCP-to-object distance: {checkpoint.name}",
+    )
+    for label, regions in report["sources"].items():
+        for region, objects in regions.items():
+            for name, errors in objects.items():
+                cells = ["–" if m is None else f"{m:.1f}" for m in errors["median_cm"]]
+                table.add_row(label, region, name, f"{errors['first_frame_cm']:.1f}", *cells)
+    console.print(table)
+    console.print(f"{out / 'locating.json'}, {out / 'locating.png'}")
 
 
 # Options shared by the RL commands (twin-rl, real-rl).
