@@ -267,8 +267,10 @@ def locate_command(
     ],
     out: Annotated[Path, typer.Option(help="Folder for locating.json and locating.png.")],
 ) -> None:
-    """How far off an image policy's locating head sees the objects, on logged episodes
-    (its training demos against its own rollouts, say), by the TCP's distance to them."""
+    """How far off an image policy's locating head sees the objects in logged episodes.
+
+    By the TCP's distance to each object, per source and region: its training demos
+    against its own rollouts, say."""
     labelled = _sources(sources)
     with data_cli.progress() as bar:
         job = bar.add_task("replaying episodes", total=None)
@@ -605,8 +607,10 @@ def demo_command(
         bool, typer.Option(help="Continue a stopped run in --out (finished stages are kept).")
     ] = False,
 ) -> None:
-    """The whole TwinRL pipeline in the plant, then HiL-SERL, ConRFT-style and TwinRL
-    without the twin buffer on the same seeds; writes report.md and report.json."""
+    """The whole TwinRL pipeline in the plant, then its baselines; report.md and .json.
+
+    The baselines (HiL-SERL, ConRFT-style and TwinRL without the twin buffer) run on
+    the same plant and seeds."""
     make_task(task)
     if preset not in PRESETS:
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
