@@ -241,10 +241,12 @@ def eval_command(
 
 
 def _sources(texts: list[str]) -> dict[str, Path]:
-    """``LABEL=PATH`` or ``PATH`` (labelled by its folder name) -> {label: path}."""
+    """``LABEL=PATH`` or ``PATH`` (labelled by its folder name, or a session's by its
+    parent's) -> {label: path}. A path that exists is a path, even with an ``=`` in it."""
     sources: dict[str, Path] = {}
     for text in texts:
-        label, _, path = text.rpartition("=")
+        named = "=" in text and not Path(text).exists()
+        label, path = text.split("=", 1) if named else ("", text)
         path = Path(path)
         label = label or (path.parent.name if path.name == "session" else path.name)
         if not path.exists():
@@ -275,7 +277,11 @@ def locate_command(
     with data_cli.progress() as bar:
         job = bar.add_task("replaying episodes", total=None)
         report = locating_errors(
-            checkpoint, labelled, out, on_episode=lambda _: bar.update(job, advance=1)
+            checkpoint,
+            labelled,
+            out,
+            on_episode=lambda _: bar.update(job, advance=1),
+            on_start=lambda total: bar.update(job, total=total),
         )
     bands = band_labels(report["bands_cm"])
     table = Table(

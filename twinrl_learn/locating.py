@@ -8,7 +8,8 @@ do: demos, evaluations, RL) through the head and reports the error of each objec
 position, by how far the TCP was from that object, per source and region::
 
     out/locating.json   {"checkpoint", "bands_cm", "sources": {label: {region: {object:
-                         {"frames": [...], "median_cm": [...], "first_frame_cm": x}}}}}
+                         {"frames": [...], "median_cm": [...], "first_frame_cm": x,
+                          "episodes": n}}}}}
     out/locating.png    median error against distance, one line per source and region
 
 The errors are in the table plane (x, y), where a grasp must land.
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -60,14 +61,17 @@ class ObjectErrors:
         }
 
 
-def episodes_from(source: Path) -> Iterable[contract.Episode]:
-    """The episodes of a session folder, an .mcap file or a LeRobot dataset folder."""
+def episodes_from(source: Path) -> tuple[Iterable[contract.Episode], int]:
+    """The episodes of a session folder, an .mcap file or a LeRobot dataset folder, and
+    how many there are."""
     if source.suffix == ".mcap" and source.is_file():
-        return [read_episode(source)]
+        return [read_episode(source)], 1
     if is_session(source):
-        return (read_episode(p) for p in Session(source).episode_paths())
-    if (source / "meta" / "info.json").is_file():
-        return iter_dataset_episodes(source)
+        paths = Session(source).episode_paths()
+        return (read_episode(p) for p in paths), len(paths)
+    info = source / "meta" / "info.json"
+    if info.is_file():
+        return iter_dataset_episodes(source), int(json.loads(info.read_text())["total_episodes"])
     raise ValueError(
         f"{source} is not a session folder, an .mcap episode or a LeRobot dataset folder"
     )
@@ -109,10 +113,13 @@ def locating_errors(
     checkpoint: str | Path,
     sources: dict[str, Path],
     out: str | Path,
-    on_episode: Any = None,
+    on_episode: Callable[[str], None] | None = None,
+    on_start: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Replay every episode of ``sources`` (label -> folder) through the checkpoint's
-    locating head; write ``locating.json`` and ``locating.png`` into ``out``."""
+    locating head; write ``locating.json`` and ``locating.png`` into ``out``.
+    ``on_start(episodes)`` is called once the sources are opened, ``on_episode(label)``
+    after each episode."""
     policy = Policy.from_pretrained(checkpoint)
     if not policy.locates:
         raise ValueError(
@@ -122,10 +129,12 @@ def locating_errors(
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
+    opened = {label: episodes_from(Path(source)) for label, source in sources.items()}
+    if on_start is not None:
+        on_start(sum(count for _, count in opened.values()))
     results: dict[str, dict[str, dict[str, ObjectErrors]]] = {}
     for label, source in sources.items():
-        episodes = episodes_from(Path(source))
-        for episode in episodes:
+        for episode in opened[label][0]:
             if contract.ENVIRONMENT_STATE not in episode.data:
                 raise ValueError(
                     f"{source}: episode {episode.meta.episode_id} has no "

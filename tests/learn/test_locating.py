@@ -11,7 +11,7 @@ from tests.conftest import record_demos
 from tests.test_cli import twinrl
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.cli import app
+from twinrl_learn.cli import _sources, app
 from twinrl_learn.locating import BANDS_CM, episode_errors
 from twinrl_learn.policy import Policy
 from twinrl_learn.sft import SFTConfig, train_sft
@@ -76,9 +76,9 @@ def test_locate_command_reports_each_source_and_refuses_bad_input(demos_and_poli
     again = twinrl("locate", str(checkpoint), str(folder / "session"), "--out", str(out))
     assert again.returncode != 0 and "exists and is not empty" in again.stderr
     assert (out / "locating.json").read_bytes() == before
-    nowhere = str(tmp_path / "nope")
-    missing = twinrl("locate", str(checkpoint), nowhere, "--out", str(tmp_path / "x"))
-    assert missing.returncode != 0 and "does not exist" in missing.stderr
+    for nowhere in (str(tmp_path / "nope"), f"label={tmp_path / 'nope'}"):
+        missing = twinrl("locate", str(checkpoint), nowhere, "--out", str(tmp_path / "x"))
+        assert missing.returncode != 0 and "nope does not exist" in missing.stderr
     plain = tmp_path / "plain"
     train_sft(
         SFTConfig(datasets=[str(folder / "dataset")], out=str(plain), policy="vla", steps=1,
@@ -87,3 +87,18 @@ def test_locate_command_reports_each_source_and_refuses_bad_input(demos_and_poli
     headless = twinrl("locate", str(plain), str(folder / "session"), "--out", str(tmp_path / "y"))
     assert headless.returncode != 0 and "has no locating head" in headless.stderr
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_sources_are_paths_or_labelled_paths(tmp_path):
+    (tmp_path / "lr=1" / "session").mkdir(parents=True)
+    (tmp_path / "data").mkdir()
+    sources = _sources(
+        [str(tmp_path / "lr=1" / "session"), f"twin demos={tmp_path / 'data'}", f"x={tmp_path}"]
+    )
+    assert sources == {
+        "lr=1": tmp_path / "lr=1" / "session",  # an existing path, '=' and all
+        "twin demos": tmp_path / "data",
+        "x": tmp_path,
+    }
+    with pytest.raises(ValueError, match="two sources are labelled 'data'"):
+        _sources([str(tmp_path / "data"), f"data={tmp_path}"])
