@@ -250,7 +250,9 @@ def _sources(texts: list[str]) -> dict[str, Path]:
         path = Path(path)
         label = label or (path.parent.name if path.name == "session" else path.name)
         if not path.exists():
-            raise ValueError(f"{path} does not exist (give a session, .mcap or LeRobot dataset)")
+            raise ValueError(
+                f"{path} does not exist (give a session, .mcap, catalog or LeRobot dataset)"
+            )
         if label in sources:
             raise ValueError(f"two sources are labelled '{label}'; name them LABEL=PATH")
         sources[label] = path
@@ -264,7 +266,7 @@ def locate_command(
         list[str],
         typer.Argument(
             help="Episodes to replay: session folders (e.g. an eval's OUT/session), .mcap "
-            "files or LeRobot datasets, each PATH or LABEL=PATH."
+            "files, catalog .parquet files or LeRobot datasets, each PATH or LABEL=PATH."
         ),
     ],
     out: Annotated[Path, typer.Option(help="Folder for locating.json and locating.png.")],

@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from twinrl_data import schema as contract
+from twinrl_data.cli import episodes_of
+from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import iter_dataset_episodes
-from twinrl_data.mcap_log import read_episode
-from twinrl_data.session import Session, is_session
 from twinrl_learn.policy import Policy
 
 # TCP-to-object distances (cm) that split the frames: grasping, approaching, reaching.
@@ -62,27 +62,25 @@ class ObjectErrors:
 
 
 def episodes_from(source: Path) -> tuple[Iterable[contract.Episode], int]:
-    """The episodes of a session folder, an .mcap file or a LeRobot dataset folder, and
-    how many there are."""
-    if source.suffix == ".mcap" and source.is_file():
-        return [read_episode(source)], 1
-    if is_session(source):
-        paths = Session(source).episode_paths()
-        return (read_episode(p) for p in paths), len(paths)
+    """The episodes of a LeRobot dataset folder, or of whatever ``twinrl data`` reads (a
+    session folder, an .mcap file, a catalog .parquet), and how many there are."""
     info = source / "meta" / "info.json"
     if info.is_file():
         return iter_dataset_episodes(source), int(json.loads(info.read_text())["total_episodes"])
-    raise ValueError(
-        f"{source} is not a session folder, an .mcap episode or a LeRobot dataset folder"
-    )
+    try:
+        return episodes_of(source, where=None)
+    except DataError:
+        if source.suffix == ".parquet":
+            raise  # a catalog that could not be read says why
+        raise ValueError(
+            f"{source} is not a session folder, an .mcap episode, a catalog .parquet or a "
+            "LeRobot dataset folder"
+        ) from None
 
 
 def _object_names(policy: Policy, episode: contract.Episode) -> list[str]:
-    names = episode.meta.names.get(contract.ENVIRONMENT_STATE, [])
-    return [
-        names[i].removesuffix(".x") if i < len(names) else f"object{k}"
-        for k, i in enumerate(policy.config.object_indices)
-    ]
+    names = episode.meta.names[contract.ENVIRONMENT_STATE]
+    return [names[i].removesuffix(".x") for i in policy.config.object_indices]
 
 
 @torch.no_grad()
