@@ -23,8 +23,8 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import load_effects
-from twinrl_sim.gap import NoiseFloor, diagnose
-from twinrl_sim.gap.identify import WindowReplay, cut_windows
+from twinrl_sim.gap.diagnose import diagnose
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, cut_windows
 from twinrl_sim.tasks import make_task
 
 TARGET_SECONDS = 180.0

@@ -24,7 +24,7 @@ import torch
 import typer
 
 from twinrl_data.cli import quiet_encoders
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.pipeline import (
     METHOD_TABLE,
     PRESETS,
@@ -34,7 +34,8 @@ from twinrl_learn.pipeline import (
 )
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.settings import RLConfig, SFTConfig
+from twinrl_learn.sft import train_sft
 from twinrl_sim.expand import expand
 
 

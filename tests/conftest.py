@@ -47,7 +47,8 @@ def record_demos(folder, task: str = "pick_place", episodes: int = 1, seed: int 
 def tiny_state_policy(folder, *, seed: int, steps: int):
     """Expert demos (``folder/dataset``) and a state policy briefly trained on them
     (``folder/sft``, chunks of 4); returns both paths."""
-    from twinrl_learn.sft import SFTConfig, train_sft
+    from twinrl_learn.settings import SFTConfig
+    from twinrl_learn.sft import train_sft
 
     dataset = record_demos(folder, seed=seed)
     train_sft(

@@ -31,6 +31,23 @@ def test_help_lists_every_command():
         assert command in result.output
 
 
+# What a command loads only when it runs: the command list and every --help stay quick.
+HEAVY_MODULES = ("torch", "lerobot", "scipy", "rerun", "mujoco.sysid", "pycolmap", "open3d")
+
+
+def test_help_loads_no_heavy_module():
+    probe = (
+        "import sys; from twinrl_learn.cli import app; from typer.main import get_command; "
+        "get_command(app); "
+        f"print(','.join(m for m in {HEAVY_MODULES!r} if m in sys.modules))"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "", f"building the CLI loaded {result.stdout.strip()}"
+    help_text = twinrl("--help")
+    assert help_text.returncode == 0 and "locate" in help_text.stdout
+
+
 def test_expert_json_has_the_documented_shape():
     result = twinrl("sim", "expert", "pick_place", "--episodes", "2", "--region", "OOD", "--json")
     assert result.returncode == 0, result.stderr

@@ -27,86 +27,15 @@ from __future__ import annotations
 
 import copy
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from twinrl_learn.policy import Policy
-from twinrl_learn.replay import RewardSettings, TransitionBatch
-
-METHODS = ("twinrl", "conrft", "hil-serl")
-
-
-@dataclass
-class RLConfig:
-    """Hyper-parameters of the agent (defaults: TwinRL's where the paper gives them)."""
-
-    method: str = "twinrl"
-    gamma: float = 0.98
-    tau: float = 0.005
-    critics: int = 2
-    hidden: int = 256
-    batch_size: int = 64  # as in the paper
-    # Small, because the actor is a fine-tuned SFT policy: 10 plant minutes of real RL with
-    # imitation alone (eta 0) took it from 44 / 44 % (ID / OOD) to 38 / 6 % at 3e-4 and
-    # to 50 / 38 % at 3e-5 (seed 0). SAC without an imitation term keeps 3e-4.
-    actor_lr: float = 3e-5
-    critic_lr: float = 3e-4
-    beta: float = 1.0  # weight of L_IL
-    # Weight of L_Q. Kept small: at 1 the young critic pulled the SFT policy off its demos
-    # within the first plant minute (ID success 50 -> 12 %); 0.1 held it.
-    eta: float = 0.1
-    beta_online: float | None = None  # beta after the offline phase (None: unchanged)
-    cql_alpha: float = 0.1
-    cql_actions: int = 4
-    entropy: bool = False  # SAC temperature term in the actor and the TD target
-    target_entropy_per_dim: float = -1.0
-    demo_ratio: float = 0.5  # share of each batch from demos + interventions (RLPD)
-    # Rollouts sample with the policy's spread times this: a spread learned by BC from
-    # noisy teleop is too wide for mm-precise tasks (SAC learns its own: 1.0).
-    exploration: float = 0.3
-    utd: float = 1.0  # gradient updates per environment step
-    offline_steps: int = 500
-    rewards: RewardSettings = field(default_factory=RewardSettings)
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if isinstance(self.rewards, dict):
-            self.rewards = RewardSettings(**self.rewards)
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got '{self.method}'")
-        if self.critics < 2:
-            raise ValueError(f"the critic ensemble needs at least 2 members, got {self.critics}")
-        if not 0 <= self.demo_ratio <= 1:
-            raise ValueError(f"demo_ratio must be in [0, 1], got {self.demo_ratio}")
-        if self.beta < 0 or self.eta < 0:
-            raise ValueError("beta and eta must be non-negative")
-
-    @classmethod
-    def load(cls, folder: str | Path) -> RLConfig:
-        """The settings an RL checkpoint folder was trained with."""
-        path = Path(folder) / "rl_config.json"
-        if not path.is_file():
-            raise ValueError(f"{folder} holds no rl_config.json; it is not an RL checkpoint")
-        return cls(**json.loads(path.read_text()))
-
-    @classmethod
-    def for_method(cls, method: str, **overrides) -> RLConfig:
-        """The settings that define each compared method."""
-        base: dict = {"method": method}
-        if method == "hil-serl":
-            base |= {
-                "beta": 0.0,
-                "eta": 1.0,
-                "entropy": True,
-                "offline_steps": 0,
-                "cql_alpha": 0.0,
-                "exploration": 1.0,
-                "actor_lr": 3e-4,
-            }
-        return cls(**(base | overrides))
+from twinrl_learn.replay import TransitionBatch
+from twinrl_learn.settings import RLConfig
 
 
 class CriticEnsemble(nn.Module):

@@ -4,31 +4,24 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import torch
 import typer
 from rich.console import Console
 from rich.table import Table
 
+# Only what the options' help texts and defaults need loads here, so that `twinrl --help`
+# is quick; each command loads the rest (torch, the simulator, the datasets) when it runs.
 from twinrl_data import cli as data_cli
-from twinrl_learn.agent import METHODS, RLConfig
-from twinrl_learn.evaluate import evaluate
-from twinrl_learn.locating import band_labels, locating_errors
-from twinrl_learn.mining import load_targets, mine
-from twinrl_learn.pipeline import PRESETS, RunProgress, run_demo
-from twinrl_learn.policy import is_checkpoint
-from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.replay import RewardSettings
-from twinrl_learn.runners import load_runner
-from twinrl_learn.sft import DEFAULTS, SFTConfig, train_sft
-from twinrl_learn.stage1 import Stage1Settings, run_stage1
-from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+from twinrl_learn.settings import DEFAULTS, METHODS, RLConfig, SFTConfig
 from twinrl_robot import cli as robot_cli
 from twinrl_robot.operator import OperatorRule
 from twinrl_sim import cli as sim_cli
-from twinrl_sim.spec import SpecError
 from twinrl_sim.tasks import TASKS, make_task
+
+if TYPE_CHECKING:
+    from twinrl_learn.pipeline import RunProgress
 
 app = typer.Typer(
     help="twinrl: digital-twin-guided reinforcement learning for real robot arms.",
@@ -118,6 +111,8 @@ def train_sft_command(
     ] = False,
 ) -> None:
     """Supervised fine-tuning on demonstrations (real and twin), with a loss curve."""
+    from twinrl_learn.sft import train_sft
+
     if policy not in DEFAULTS:
         raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
     parsed = [float(w) for w in weights.split(",")] if weights else None
@@ -207,8 +202,11 @@ def eval_command(
     ] = None,
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
+    from twinrl_learn.evaluate import evaluate
+    from twinrl_learn.runners import load_runner
+
     if task not in TASKS:
-        sim_cli.make_task(task)  # raises with the nearest task name
+        make_task(task)  # raises with the nearest task name
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
@@ -275,6 +273,8 @@ def locate_command(
 
     By the TCP's distance to each object, per source and region: its training demos
     against its own rollouts, say."""
+    from twinrl_learn.locating import band_labels, locating_errors
+
     labelled = _sources(sources)
     with data_cli.progress() as bar:
         job = bar.add_task("replaying episodes", total=None)
@@ -360,6 +360,11 @@ def train_twin_rl_command(
     resume: ResumeOption = False,
 ) -> None:
     """Stage II: online RL in parallel twin envs; exports the twin buffer that seeds real RL."""
+    import torch
+
+    from twinrl_learn.policy import is_checkpoint
+    from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+
     make_task(task)
     if not resume and init is None:
         raise ValueError("--init SFT_CHECKPOINT is needed to start a run (or pass --resume)")
@@ -506,6 +511,12 @@ def train_real_rl_command(
     resume: ResumeOption = False,
 ) -> None:
     """Stage III: human-in-the-loop RL on the robot with twin-mined resets."""
+    import torch
+
+    from twinrl_learn.mining import load_targets
+    from twinrl_learn.policy import is_checkpoint
+    from twinrl_learn.real_rl import RealRL, RealRLSettings
+
     make_task(task)
     if not resume and init is None:
         raise ValueError("--init CHECKPOINT is needed to start a run (or pass --resume)")
@@ -619,6 +630,10 @@ def demo_command(
 
     The baselines (HiL-SERL, ConRFT-style and TwinRL without the twin buffer) run on
     the same plant and seeds."""
+    import torch
+
+    from twinrl_learn.pipeline import PRESETS, run_demo
+
     make_task(task)
     if preset not in PRESETS:
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
@@ -692,6 +707,9 @@ def mine_command(
     seed: Annotated[int, typer.Option(help="Seed for the evaluation.")] = 0,
 ) -> None:
     """Stage III support: where does the policy fail in the twin? Ranked reset targets."""
+    from twinrl_learn.mining import mine
+    from twinrl_learn.runners import load_runner
+
     make_task(task)
     runner = load_runner(policy)
     result = mine(
@@ -758,6 +776,8 @@ def bench_stage1(
     ] = "relative",
 ) -> None:
     """TwinRL's Table I in the plant: real-only SFT vs real + twin ID/OOD demos."""
+    from twinrl_learn.stage1 import Stage1Settings, run_stage1
+
     steps = {k: v for k, v in (("vla", vla_steps), ("state", state_steps)) if v}
     settings = Stage1Settings(
         tasks=tuple(t for t in tasks.split(",") if t),
@@ -775,7 +795,7 @@ def bench_stage1(
     console.print((out / "table1.md").read_text())
 
 
-USER_ERRORS = (ValueError, SpecError, FileNotFoundError, KeyError)
+USER_ERRORS = (ValueError, FileNotFoundError, KeyError)  # a bad scene spec is a ValueError
 
 
 def main() -> None:

@@ -55,13 +55,12 @@ from twinrl_data.cli import quiet_encoders
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.view import save_rrd
-from twinrl_learn.agent import RLConfig
 from twinrl_learn.evaluate import evaluate, grid_cells
 from twinrl_learn.mining import mine
-from twinrl_learn.policy import check_inputs
 from twinrl_learn.real_rl import EvalPoint, RealRL, RealRLSettings, load_evaluations, minutes_to
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.settings import RLConfig, SFTConfig, check_inputs
+from twinrl_learn.sft import train_sft
 from twinrl_learn.stage1 import record_real_demos
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule

@@ -57,24 +57,10 @@ from safetensors.torch import load_file, save_file
 from torch import nn
 
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
+from twinrl_learn.settings import check_inputs
 from twinrl_sim.tasks.expert import FINGERS_STILL, GRIPPER_CLOSED
 
 KINDS = ("vla", "state")
-INPUTS = ("absolute", "relative")
-
-
-def check_inputs(inputs: str, kind: str) -> None:
-    """Refuse ``inputs`` that are unknown or that the policy ``kind`` cannot have: the
-    one check behind SFT, its CLI and the pipeline, made before any work starts."""
-    if inputs not in INPUTS:
-        raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
-    if inputs != "absolute" and kind != "state":
-        raise ValueError(
-            f"--inputs applies to --policy state only: {inputs} inputs need the state policy "
-            "(the vla policy sees images)"
-        )
-
-
 LOG_STD_RANGE = (-5.0, 1.0)
 ACTION_MARGIN = 0.9
 EPS = 1e-4
@@ -130,7 +116,7 @@ class PolicyConfig:
     image_size: int = 64
     # Stride of each encoder's first convolution: 2 (3x3) for 64 px images, 4 (8x8) for
     # 128 px, which reaches the same 32x32 maps from 4x the pixels in about the same
-    # training time (sft.STEM_STRIDES).
+    # training time (settings.STEM_STRIDES).
     stem_stride: int = 2
     # Weight of the auxiliary loss that locates the objects relative to the TCP (vla;
     # 0: no locating head). Trained where the data hold observation.environment_state.

@@ -43,13 +43,14 @@ import numpy as np
 import rerun as rr
 
 from twinrl_data.schema import EpisodeMeta, step_record
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import Target, load_targets, mine
 from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
 from twinrl_learn.policy import GraspHold, Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.settings import RLConfig
 from twinrl_robot.operator import Operator, OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.env import TwinEnv

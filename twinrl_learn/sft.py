@@ -25,92 +25,17 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from twinrl_data.training import FrameTable, load_frames
-from twinrl_learn.policy import Policy, PolicyConfig, check_inputs
+from twinrl_learn.policy import Policy, PolicyConfig
+from twinrl_learn.settings import STEM_STRIDES, SFTConfig
 
-
-class Defaults(NamedTuple):
-    """The SFT settings of a policy kind that no option overrides."""
-
-    steps: int
-    batch_size: int
-    lr: float
-    lr_schedule: str  # one of LR_SCHEDULES
-
-
-# Enough for 30-120 episodes in a few minutes on 2 cores. The state policy's final
-# weights were a noisy iterate at a constant rate; the image policy's were better at one
-# (the README's SFT section has the figures).
-DEFAULTS = {
-    "state": Defaults(steps=3000, batch_size=256, lr=1e-3, lr_schedule="cosine"),
-    "vla": Defaults(steps=5000, batch_size=64, lr=5e-4, lr_schedule="constant"),
-}
-# The image policy's input sizes (the cameras record 128 px) and the stride of its
-# encoders' first convolution for each: both reach 32x32 feature maps.
-STEM_STRIDES = {64: 2, 128: 4}
-IMAGE_SIZES = tuple(STEM_STRIDES)
-# How the learning rate runs over the steps (see learning_rate).
-LR_SCHEDULES = ("cosine", "constant")
 # What a run saved before an option existed had: it did not locate objects, and it kept
 # its learning rate constant.
 SAVED_BEFORE_OPTION = {"locate_weight": 0.0, "lr_schedule": "constant"}
-
-
-@dataclass
-class SFTConfig:
-    """What to train on and how. ``None`` fields take the defaults of the policy kind, or
-    in a resumed run the run's own settings."""
-
-    datasets: list[str]
-    out: str
-    policy: str = "vla"
-    weights: list[float] | None = None
-    steps: int | None = None
-    batch_size: int | None = None
-    lr: float | None = None
-    lr_schedule: str | None = None  # cosine (decay to zero) or constant; None: by policy
-    chunk: int = 8
-    inputs: str = "absolute"  # the state policy's inputs: absolute or relative (policy.py)
-    image_size: int = 128  # vla: images are resized to this on load (64 or 128)
-    # vla: weight of the auxiliary object-locating loss (0: off). Its squared error is in
-    # decimetres (a 1 cm miss costs 0.01), so at 1 it barely shaped the features: on Table
-    # I's 30 / 60 data (64 plant episodes per region) 10 gave 41 / 41 and 33 / 28 % (ID /
-    # OOD, SFT seeds 0 and 1) against 33 / 14 % with 1, and 30 gave 22 / 20 %.
-    locate_weight: float = 10.0
-    seed: int = 0
-    checkpoint_every: int = 500
-    log_every: int = 25
-
-    def __post_init__(self) -> None:
-        check_inputs(self.inputs, self.policy)
-        if self.image_size not in IMAGE_SIZES:
-            raise ValueError(
-                f"--image-size must be one of {', '.join(map(str, IMAGE_SIZES))}, "
-                f"got {self.image_size}"
-            )
-        if self.locate_weight < 0:
-            raise ValueError(f"--locate-weight must be >= 0, got {self.locate_weight}")
-        if self.lr_schedule not in (None, *LR_SCHEDULES):
-            raise ValueError(
-                f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{self.lr_schedule}'"
-            )
-
-    def resolved(self) -> SFTConfig:
-        defaults = DEFAULTS[self.policy]
-        return SFTConfig(
-            **{
-                **asdict(self),
-                "steps": self.steps or defaults.steps,
-                "batch_size": self.batch_size or defaults.batch_size,
-                "lr": self.lr or defaults.lr,
-                "lr_schedule": self.lr_schedule or defaults.lr_schedule,
-            }
-        )
 
 
 @dataclass

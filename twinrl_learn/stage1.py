@@ -34,12 +34,12 @@ from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.evaluate import evaluate
-from twinrl_learn.policy import check_inputs
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.settings import SFTConfig, check_inputs
+from twinrl_learn.sft import train_sft
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.expand import expand
-from twinrl_sim.gap import diagnose
+from twinrl_sim.gap.diagnose import diagnose
 from twinrl_sim.gap.report import write_fitted_spec
 from twinrl_sim.spec import SceneSpec, load_spec
 from twinrl_sim.tasks import make_task

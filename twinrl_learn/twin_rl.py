@@ -26,10 +26,11 @@ import numpy as np
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import EpisodeMeta, step_record
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
 from twinrl_learn.policy import GraspHold, Policy
 from twinrl_learn.replay import ReplayBuffer
+from twinrl_learn.settings import RLConfig
 from twinrl_sim.batch import BatchEnv
 from twinrl_sim.tasks import REGION_NAMES, Progress, make_task
 

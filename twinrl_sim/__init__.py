@@ -2,32 +2,68 @@
 
 Scene specs, the built-in UR5e cell, the four tasks and their scripted experts,
 Gymnasium envs, replay of logged commands, batched simulation and physical effects.
+
+The names below load on first use, so that importing one submodule (the command line
+does, to list its commands) does not load MuJoCo and the whole stack.
 """
 
+import importlib
 import os
+from typing import Any
+
+import gymnasium as gym
 
 # Headless rendering by default: EGL unless the user chose a backend or has a display.
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
     os.environ["MUJOCO_GL"] = "egl"
 
-from twinrl_sim.batch import BatchEnv as BatchEnv
-from twinrl_sim.batch import BatchRollout as BatchRollout
-from twinrl_sim.build import CellLayout as CellLayout
-from twinrl_sim.build import CompiledScene as CompiledScene
-from twinrl_sim.build import compile_scene as compile_scene
-from twinrl_sim.cell import Cell as Cell
-from twinrl_sim.effects import EFFECTS as EFFECTS
-from twinrl_sim.effects import load_effects as load_effects
-from twinrl_sim.env import TwinEnv as TwinEnv
-from twinrl_sim.env import make as make
-from twinrl_sim.env import register_envs as register_envs
-from twinrl_sim.replay import ReplayResult as ReplayResult
-from twinrl_sim.replay import replay as replay
-from twinrl_sim.spec import SceneSpec as SceneSpec
-from twinrl_sim.spec import SpecError as SpecError
-from twinrl_sim.spec import load_spec as load_spec
-from twinrl_sim.tasks import TASKS as TASKS
-from twinrl_sim.tasks import TaskConfig as TaskConfig
-from twinrl_sim.tasks import make_task as make_task
+_EXPORTS = {
+    "BatchEnv": "twinrl_sim.batch",
+    "BatchRollout": "twinrl_sim.batch",
+    "CellLayout": "twinrl_sim.build",
+    "CompiledScene": "twinrl_sim.build",
+    "compile_scene": "twinrl_sim.build",
+    "Cell": "twinrl_sim.cell",
+    "EFFECTS": "twinrl_sim.effects",
+    "load_effects": "twinrl_sim.effects",
+    "TwinEnv": "twinrl_sim.env",
+    "make": "twinrl_sim.env",
+    "ReplayResult": "twinrl_sim.replay",
+    "replay": "twinrl_sim.replay",
+    "SceneSpec": "twinrl_sim.spec",
+    "SpecError": "twinrl_sim.spec",
+    "load_spec": "twinrl_sim.spec",
+    "TASKS": "twinrl_sim.tasks",
+    "TaskConfig": "twinrl_sim.tasks",
+    "make_task": "twinrl_sim.tasks",
+}
+
+# Gymnasium ids of the tasks (``gymnasium.make("twinrl/PickPlace-v0")``).
+GYM_IDS = {
+    "pick_place": "twinrl/PickPlace-v0",
+    "insert_hexagon": "twinrl/InsertHexagon-v0",
+    "insert_triple_column": "twinrl/InsertTripleColumn-v0",
+    "erase_whiteboard": "twinrl/EraseWhiteboard-v0",
+}
+
+
+def register_envs() -> None:
+    """Register every task with Gymnasium; the env module loads when one is made."""
+    for task, env_id in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point="twinrl_sim.env:TwinEnv", kwargs={"task": task})
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'twinrl_sim' has no attribute '{name}'")
+    value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])
+
 
 register_envs()

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from twinrl_sim.effects import apply_effects
 from twinrl_sim.robots import gripper as gripper_lib
@@ -286,6 +285,8 @@ def geom_volume(geom: GeomSpec) -> float:
     s = geom.size
     match geom.type:
         case "mesh":
+            from scipy.spatial import ConvexHull  # here: scipy.spatial takes 0.2 s to load
+
             return float(ConvexHull(mesh_vertices(geom.file)).volume)
         case "box":
             return 8 * s[0] * s[1] * s[2]

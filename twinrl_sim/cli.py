@@ -4,40 +4,23 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from twinrl_data.catalog import discover
+# Only what the options' help texts and defaults need loads here, so that `twinrl --help`
+# is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.cli import progress, quiet_encoders
-from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
-from twinrl_data.lerobot_io import iter_dataset_episodes
-from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import STATE, Episode
-from twinrl_data.session import Session, is_session
-from twinrl_data.view import LinkFrames, save_rrd, spawn_viewer
-from twinrl_sim.build import compile_scene
-from twinrl_sim.effects import describe_effects
-from twinrl_sim.env import TwinEnv
-from twinrl_sim.expand import expand
-from twinrl_sim.gap import (
-    CANDIDATES,
-    IMAGE_EFFECTS,
-    NoiseFloor,
-    diagnose,
-    localize,
-    plot_localization,
-    replay_windows,
-    write_report,
-)
-from twinrl_sim.gap.report import format_params
-from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
-from twinrl_sim.kinematics import TcpKinematics
+from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
 from twinrl_sim.tasks import TASKS, TaskConfig, make_task, task_on_twin, twin_scene
+
+if TYPE_CHECKING:
+    from twinrl_data.view import LinkFrames
 
 app = typer.Typer(
     help="The MuJoCo twin: render cells, run experts, list effects.", no_args_is_help=True
@@ -82,6 +65,8 @@ def show(
     """Render the cell of TASK from every camera, side by side, to a PNG."""
     import PIL.Image
 
+    from twinrl_sim.env import TwinEnv
+
     out = out or Path(f"{task}.png")
     if out.suffix.lower() != ".png":
         raise ValueError(f"--out must end in .png, got {out}")
@@ -104,6 +89,8 @@ def show(
 @app.command()
 def effects() -> None:
     """List the physical effects the twin and the plant understand."""
+    from twinrl_sim.effects import describe_effects
+
     table = Table("effect", "parameters", "models")
     for name, params, doc in describe_effects():
         table.add_row(name, params, doc)
@@ -112,6 +99,10 @@ def effects() -> None:
 
 def load_target(target: str, default_episode: int) -> Episode:
     """An episode from ``PATH`` or ``PATH#N``: an .mcap file, a session or a dataset."""
+    from twinrl_data.lerobot_io import iter_dataset_episodes
+    from twinrl_data.mcap_log import read_episode
+    from twinrl_data.session import Session, is_session
+
     path_text, _, index_text = target.partition("#")
     index = int(index_text) if index_text else default_episode
     path = Path(path_text)
@@ -129,6 +120,9 @@ def load_target(target: str, default_episode: int) -> Episode:
 
 def twin_link_frames(episode: Episode) -> LinkFrames | None:
     """FK of the built-in twin for episodes of a built-in task with joint names logged."""
+    from twinrl_sim.build import compile_scene
+    from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
+
     if episode.meta.task not in TASKS or episode.meta.robot != "ur5e":
         return None
     names = episode.meta.names.get(STATE, [])
@@ -150,6 +144,8 @@ def view(
     force: Annotated[bool, typer.Option(help="Overwrite --save if it exists.")] = False,
 ) -> None:
     """Inspect episodes in Rerun; two or more are overlaid on one timeline."""
+    from twinrl_data.view import save_rrd, spawn_viewer
+
     episodes = [load_target(t, episode) for t in targets]
     link_frames = twin_link_frames(episodes[0])
     if save is not None:
@@ -203,6 +199,8 @@ def expand_command(
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
 ) -> None:
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
+    from twinrl_sim.expand import expand
+
     kinds = RANDOMIZATIONS if randomize == "all" else tuple(k for k in randomize.split(",") if k)
     scene = task_on_twin(task, twin) if twin is not None else None
     quiet_encoders()
@@ -276,6 +274,11 @@ def import_csv_command(
     (rad|deg), ``layout`` (wide|long), ``commanded``/``measured`` (one column per joint),
     optional ``velocity``, ``effort`` (N m), ``tcp`` (x y z rx ry rz), ``joints``.
     """
+    from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
+    from twinrl_data.session import Session
+    from twinrl_sim.build import compile_scene
+    from twinrl_sim.kinematics import TcpKinematics
+
     if format not in ("rtde", "generic"):
         raise ValueError(f"--format must be rtde or generic, got '{format}'")
     if format == "generic" and column_map is None:
@@ -307,6 +310,10 @@ gap_app = typer.Typer(
 def load_episodes(paths: list[Path], *, images: bool = False) -> list[Episode]:
     """Every episode of the sessions, .mcap files and LeRobotDatasets found under
     ``paths`` (the catalog's discovery), with camera images only if ``images``."""
+    from twinrl_data.catalog import discover
+    from twinrl_data.lerobot_io import iter_dataset_episodes
+    from twinrl_data.mcap_log import read_episode
+
     mcaps, datasets = discover(paths)
     episodes = [read_episode(p, images=images) for p in mcaps]
     for root in datasets:
@@ -330,6 +337,9 @@ def localize_command(
     """Replay measured episodes in the twin (restarting from the measurement every
     --window steps) and show where they disagree: RMS, bias, gain and lag per signal,
     split by motion regime."""
+    from twinrl_sim.gap.localize import localize, plot_localization
+    from twinrl_sim.gap.shooting import replay_windows
+
     scene = twin_scene(twin)
     episodes = load_episodes(measured)
     if out.exists() and any(out.iterdir()):
@@ -409,6 +419,12 @@ def diagnose_command(
     measured episodes (mujoco.sysid over shooting windows), keep the one that held-out
     episodes and BIC support, repeat until none is significant, and write the fitted
     twin with a report of the gap before and after."""
+    from twinrl_sim.gap.diagnose import diagnose
+    from twinrl_sim.gap.identify import NoiseFloor
+    from twinrl_sim.gap.localize import localize
+    from twinrl_sim.gap.report import format_params, write_report
+    from twinrl_sim.gap.shooting import replay_windows
+
     scene = twin_scene(twin)
     noise_floor = NoiseFloor.parse(noise)
     allowed = (

@@ -178,18 +178,3 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
 def make(task: str, **kwargs: Any) -> TwinEnv:
     """Create the twin env of ``task``; keyword arguments go to :class:`TwinEnv`."""
     return TwinEnv(task, **kwargs)
-
-
-GYM_IDS = {
-    "pick_place": "twinrl/PickPlace-v0",
-    "insert_hexagon": "twinrl/InsertHexagon-v0",
-    "insert_triple_column": "twinrl/InsertTripleColumn-v0",
-    "erase_whiteboard": "twinrl/EraseWhiteboard-v0",
-}
-
-
-def register_envs() -> None:
-    """Register every task with Gymnasium (``gymnasium.make("twinrl/PickPlace-v0")``)."""
-    for task, env_id in GYM_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(env_id, entry_point="twinrl_sim.env:TwinEnv", kwargs={"task": task})

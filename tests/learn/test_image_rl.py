@@ -9,13 +9,14 @@ import torch
 from tests.conftest import record_demos
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.mining import mine
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, load_evaluations
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.settings import RLConfig, SFTConfig
+from twinrl_learn.sft import train_sft
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule
 

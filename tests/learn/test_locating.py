@@ -14,7 +14,8 @@ from twinrl_data.session import Session
 from twinrl_learn.cli import _sources, app
 from twinrl_learn.locating import BANDS_CM, episode_errors
 from twinrl_learn.policy import Policy
-from twinrl_learn.sft import SFTConfig, train_sft
+from twinrl_learn.settings import SFTConfig
+from twinrl_learn.sft import train_sft
 
 
 @pytest.fixture(scope="module")

@@ -11,11 +11,12 @@ from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.mining import Target
 from twinrl_learn.pipeline import METHOD_TABLE, run_demo
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
+from twinrl_learn.settings import RLConfig
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task

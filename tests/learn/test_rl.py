@@ -10,10 +10,11 @@ from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.schema import Episode, EpisodeMeta
 from twinrl_data.session import Session
-from twinrl_learn.agent import Agent, RLConfig
+from twinrl_learn.agent import Agent
 from twinrl_learn.mining import estimate_cell, load_targets, select_targets
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import MixedSampler, ReplayBuffer, RewardSettings, discounted_returns
+from twinrl_learn.settings import RLConfig
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 
 

@@ -22,7 +22,8 @@ from twinrl_learn.policy import (
     PolicyConfig,
 )
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
-from twinrl_learn.sft import SFTConfig, learning_rate, train_sft
+from twinrl_learn.settings import SFTConfig
+from twinrl_learn.sft import learning_rate, train_sft
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.tasks.expert import tool_quat
 

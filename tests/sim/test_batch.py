@@ -4,8 +4,9 @@ import gymnasium as gym
 import numpy as np
 
 from tests.conftest import expert_commands
+from twinrl_sim import GYM_IDS
 from twinrl_sim.batch import BatchEnv, BatchRollout
-from twinrl_sim.env import GYM_IDS, TwinEnv
+from twinrl_sim.env import TwinEnv
 
 
 def test_batch_env_is_bit_identical_to_single_envs(rng):

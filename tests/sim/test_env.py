@@ -8,7 +8,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from tests.conftest import TASK_NAMES, expert_commands
-from twinrl_sim.env import GYM_IDS, TwinEnv
+from twinrl_sim import GYM_IDS
+from twinrl_sim.env import TwinEnv
 
 
 @pytest.mark.parametrize("name", TASK_NAMES)

@@ -7,8 +7,9 @@ from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_robot.excitation import run_excitation
-from twinrl_sim.gap import localize, replay_windows
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
+from twinrl_sim.gap.localize import localize
+from twinrl_sim.gap.shooting import replay_windows
 from twinrl_sim.tasks import make_task
 
 SCENE = make_task("pick_place").scene

@@ -16,8 +16,8 @@ from twinrl_learn.cli import app
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene
-from twinrl_sim.gap import NoiseFloor, diagnose
-from twinrl_sim.gap.identify import WindowReplay, cut_windows
+from twinrl_sim.gap.diagnose import diagnose
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, cut_windows
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task
 

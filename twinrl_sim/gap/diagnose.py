@@ -36,8 +36,8 @@ from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import EFFECTS
 from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
+from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.gap.identify import (
-    CANDIDATES,
     NoiseFloor,
     WindowReplay,
     Windows,
@@ -53,7 +53,6 @@ MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must
 # nudge of a well-mounted camera gains a few per cent; a real mounting error gains more.
 # Appearance is judged by the same bar.
 MIN_IMAGE_GAIN = 0.2
-IMAGE_EFFECTS = ("camera_pose", "appearance")  # fitted on images, not motion
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
 MAX_EFFECTS = 3  # rounds of naming
 

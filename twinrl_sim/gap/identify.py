@@ -36,7 +36,8 @@ from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
 from twinrl_sim.build import CellLayout, build_mjspec
-from twinrl_sim.effects import EFFECTS, apply_effects
+from twinrl_sim.effects import apply_effects
+from twinrl_sim.gap.candidates import CANDIDATES, Candidate
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec
 
@@ -81,52 +82,6 @@ class NoiseFloor:
                 raise ValueError(f"--noise: {key} must be positive, got {value}")
         return cls(**values)
 
-
-@dataclass(frozen=True)
-class Candidate:
-    """How one effect of the library is fitted.
-
-    ``scale`` is the physical size of one optimiser unit (so that every parameter is
-    of order one for the optimiser), ``start`` where the fit starts and ``null`` the
-    value that means "no effect"; ``None`` for either is the scene's nominal value.
-    """
-
-    effect: str
-    scale: float
-    start: float | None
-    null: float | None
-    needs: str  # "arm": any motion; "objects": object poses logged; "grasp": a closed gripper
-
-    @property
-    def param(self) -> str:
-        return next(iter(EFFECTS[self.effect].params))
-
-    @property
-    def per_joint(self) -> bool:
-        return EFFECTS[self.effect].params[self.param].kind == "per_joint"
-
-    def bounds(self) -> tuple[float, float]:
-        p = EFFECTS[self.effect].params[self.param]
-        return p.low, p.high
-
-
-CANDIDATES: dict[str, Candidate] = {
-    c.effect: c
-    for c in (
-        Candidate("actuator_delay", 0.05, 0.01, 0.0, "arm"),
-        Candidate("joint_friction", 5.0, 0.2, 0.0, "arm"),
-        Candidate("joint_damping", 5.0, 0.2, 0.0, "arm"),
-        Candidate("servo_gain", 1.0, 1.0, 1.0, "arm"),
-        Candidate("payload", 1.0, 0.1, 0.0, "arm"),
-        Candidate("joint_offset", 0.01, 0.0, 0.0, "arm"),
-        Candidate("object_mass", 1.0, 1.0, 1.0, "grasp"),
-        Candidate("object_friction", 0.5, None, None, "grasp"),
-        Candidate("table_height", 0.01, 0.0, 0.0, "objects"),
-        Candidate("gripper_force", 1.0, 1.0, 1.0, "grasp"),
-    )
-}
-"""Every effect of the library fitted on motion residuals (``camera_pose`` is fitted on
-image residuals, by :mod:`twinrl_sim.gap.camera`)."""
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
 # What a window's rollout sets at every step: the servo and gripper commands, and the
