@@ -767,6 +767,14 @@ def bench_stage1(
             "(gap diagnose) and synthesize the twin demos in that look."
         ),
     ] = False,
+    detours: Annotated[
+        float,
+        typer.Option(
+            help="Share of the twin demos that first stray beside the object (see expand).",
+            min=0.0,
+            max=1.0,
+        ),
+    ] = 0.0,
     inputs: Annotated[
         str,
         typer.Option(
@@ -787,6 +795,7 @@ def bench_stage1(
         episodes_per_cell=episodes,
         steps=steps,
         fit_look=fit_look,
+        detours=detours,
         state_inputs=inputs,
         seed=seed,
     )

@@ -9,7 +9,8 @@ For each task:
 2. Twin demonstrations: planner-synthesized ID and OOD demos in the twin; with
    ``fit_look`` in the twin whose ``appearance`` (light, table colour) ``twinrl gap
    diagnose`` fitted to the real demos' images (``<task>/twin_fitted.yaml``), so that
-   an image policy's twin demos look like the cell.
+   an image policy's twin demos look like the cell; with ``detours`` that share of
+   them first strays beside the object (``twinrl expand --detours``).
 3. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
    (30, 30), (60, 30), (30, 60) (scaled by ``scale``); the state policy reads
    ``state_inputs`` (relative by default, as in the quick pipeline).
@@ -59,6 +60,7 @@ class Stage1Settings:
     episodes_per_cell: int = 4
     steps: dict[str, int] = field(default_factory=dict)  # SFT steps per policy kind
     fit_look: bool = False  # synthesize in the twin with the appearance fitted to real demos
+    detours: float = 0.0  # share of the twin demos that stray beside the object first
     # The state policy's inputs (twinrl_learn.policy): objects seen from the TCP, as the
     # quick pipeline's; with absolute poses and 30-90 demos which mix did best moved with
     # the demos drawn (pick_place 30 real + 30 / 60 twin: 47 % and then 9 % OOD).
@@ -149,6 +151,7 @@ def run_stage1(
             seed=settings.seed,
             export=False,
             images="vla" in settings.policies,
+            detours=settings.detours,
         )
         expand(
             task,
@@ -159,6 +162,7 @@ def run_stage1(
             seed=settings.seed + 1,
             export=False,
             images="vla" in settings.policies,
+            detours=settings.detours,
         )
         twin_id = Session(base / "twin_id" / "session").episode_paths()
         twin_ood = Session(base / "twin_ood" / "session").episode_paths()
@@ -214,6 +218,11 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
         + (
             " (synthesized in the twin with the look fitted to the real demos)"
             if settings.fit_look
+            else ""
+        )
+        + (
+            f", {100 * settings.detours:.0f} % of them straying beside the object first"
+            if settings.detours
             else ""
         )
         + "; "

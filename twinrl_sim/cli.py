@@ -196,6 +196,16 @@ def expand_command(
             "state policy learns from (several times faster)."
         ),
     ] = True,
+    detours: Annotated[
+        float,
+        typer.Option(
+            help="Share of the demos (plan only) whose arm first strays to a point 8-20 cm "
+            "beside the object and does the task from there: views off the straight path, "
+            "and the way back, for an image policy.",
+            min=0.0,
+            max=1.0,
+        ),
+    ] = 0.0,
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
 ) -> None:
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
@@ -227,6 +237,7 @@ def expand_command(
             seed=seed,
             workers=workers,
             images=images,
+            detours=detours,
             force=force,
             on_demo=advance,
         )
@@ -242,6 +253,8 @@ def expand_command(
             f"{100 * report.yield_rate[region]:.0f} %",
         )
     console.print(table)
+    if detours:
+        console.print(f"{sum(report.detoured.values())} of the kept demos stray first")
     console.print(
         f"synthesis {report.seconds_synthesis:.1f} s, export {report.seconds_export:.1f} s; "
         f"episodes in {report.session}, dataset {report.dataset or '(none)'}"

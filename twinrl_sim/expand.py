@@ -54,6 +54,7 @@ class ExpandReport:
     requested: dict[str, int]
     kept: dict[str, int] = field(default_factory=dict)
     attempts: dict[str, int] = field(default_factory=dict)
+    detoured: dict[str, int] = field(default_factory=dict)  # kept demos that strayed first
     seconds_synthesis: float = 0.0
     seconds_export: float = 0.0
     session: str = ""
@@ -79,6 +80,7 @@ class _Job:
     episode_dir: str
     scene: SceneSpec | None = None  # the twin to synthesize in (None: the task's cell)
     images: bool = True  # render and record the cameras
+    detours: float = 0.0  # share of planned demos that stray first (planner.detour_waypoint)
 
 
 _WORKER_CACHE: dict[tuple, Any] = {}  # per worker: twin envs by scene, demos by path
@@ -102,11 +104,18 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
             _WORKER_CACHE.clear()
         env = TwinEnv(job.task, scene=scene, images=job.images)
         _WORKER_CACHE[key] = env
+    policy = f"synthesis:{job.method}"
     if job.method == "plan":
-        plan = plan_demo(env.task, env.cell, config, rng)
+        # Its own stream: whether and where attempt k strays leaves its configuration, its
+        # grasp and every other attempt as they are without detours.
+        draw = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt, 1])
+        detour = draw if draw.random() < job.detours else None
+        plan = plan_demo(env.task, env.cell, config, rng, detour=detour)
         if plan is None:
             return job, None
         actions = plan.actions
+        if detour is not None:
+            policy += "+detour"
     else:
         demo = _WORKER_CACHE.get(("demo", job.demo_path))
         if demo is None:
@@ -143,7 +152,7 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
         region=job.region,
         config=config.to_dict(),
         twin=task.scene.digest,
-        policy=f"synthesis:{job.method}",
+        policy=policy,
         fps=env.task.scene.physics.control_hz,
         robot="ur5e",
         names=env.cell.contract_names(),
@@ -170,6 +179,7 @@ def expand(
     workers: int | None = None,
     export: bool = True,
     images: bool = True,
+    detours: float = 0.0,
     force: bool = False,
     on_demo: Callable[[str, bool], None] | None = None,
 ) -> ExpandReport:
@@ -179,8 +189,11 @@ def expand(
     (re-target the episode ``from_demo``, an .mcap file). ``scene`` is the twin to
     synthesize in (e.g. one fitted by ``twinrl gap diagnose``: its physics and its look);
     ``None`` is the task's built-in cell. ``images=False`` records no camera frames
-    (demos for a state policy: no rendering, no video encoding). ``on_demo(region,
-    kept)`` is called after each attempt (for progress bars).
+    (demos for a state policy: no rendering, no video encoding). ``detours`` is the
+    share of planned demos whose arm first strays beside the object and does the task
+    from there (off-path views and returns for an image policy; drawn per attempt, so the
+    others stay as they are). ``on_demo(region, kept)`` is called after each attempt
+    (for progress bars).
     """
     make_task(task, scene)
     if method not in METHODS:
@@ -195,6 +208,10 @@ def expand(
             raise ValueError(f"--from-demo is a {demo.meta.task} episode, not {task}")
     elif from_demo is not None:
         raise ValueError("--from-demo is only used with --method augment")
+    if not 0.0 <= detours <= 1.0:
+        raise ValueError(f"--detours is a share of the demos, from 0 to 1; got {detours}")
+    if detours and method != "plan":
+        raise ValueError("--detours applies to --method plan (a re-targeted demo keeps its path)")
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
         raise ValueError("ask for at least one demonstration (--id N and/or --ood M)")
     check_kinds(randomize)
@@ -217,13 +234,14 @@ def expand(
         "episode_dir": str(session.path / "episodes"),
         "scene": scene,
         "images": images,
+        "detours": detours,
     }
     workers = workers or min(2, os.cpu_count() or 1)
     start = time.perf_counter()
     context = multiprocessing.get_context("spawn")
     with context.Pool(workers) as pool:
         for region, count in (("ID", id_count), ("OOD", ood_count)):
-            report.kept[region] = report.attempts[region] = 0
+            report.kept[region] = report.attempts[region] = report.detoured[region] = 0
             attempt = 0
             # Waves of attempts in attempt order: results do not depend on the workers.
             while report.kept[region] < count and attempt < count * MAX_ATTEMPTS_PER_DEMO:
@@ -243,6 +261,7 @@ def expand(
                         meta = EpisodeMeta.from_dict(result["meta"])
                         session.register(Path(result["path"]), meta, result["length"])
                         report.kept[region] += 1
+                        report.detoured[region] += meta.policy.endswith("+detour")
                     if on_demo is not None:
                         on_demo(region, result is not None)
     report.seconds_synthesis = time.perf_counter() - start

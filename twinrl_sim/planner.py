@@ -8,6 +8,10 @@ contacts (arm, gripper and held object against the table and fixtures); the tran
 height is raised until the path is clear, and grasps whose path cannot be cleared are
 dropped. The path is then time-parameterised with a trapezoidal speed profile into the
 episode contract's 10 Hz end-effector deltas, ready to execute in the twin.
+
+A *detour* demo first strays from home to a random point beside the object and does the
+task from there: views from off the straight path, and the way back to the object, for
+an image policy that would otherwise only ever see the path its demos took.
 """
 
 from __future__ import annotations
@@ -32,6 +36,13 @@ EASE_PEAK = 1.5  # peak rate of the speed profile's ease over its mean
 APPROACH = 0.08  # m: straight vertical approach and retreat
 CHECK_SPACING = 0.01  # m between collision checks along a segment
 PENETRATION = 0.001  # m: deeper contacts count as collisions
+# Where a detour strays: this far from the object in the table plane (an image policy that
+# had lost the banana was 10-20 cm from it), this much above the approach height, turned
+# this far from home; a few draws until its path is clear.
+DETOUR_RADIUS = (0.08, 0.20)  # m
+DETOUR_RISE = (0.0, 0.12)  # m
+DETOUR_TURN = 0.4  # rad
+DETOUR_DRAWS = 8
 
 
 @dataclass(frozen=True)
@@ -185,9 +196,11 @@ def plan_demo(
     config: TaskConfig,
     rng: np.random.Generator,
     settings: PlannerSettings | None = None,
+    detour: np.random.Generator | None = None,
 ) -> Plan | None:
     """Plan a demonstration for ``config`` (the cell is reset to it); ``None`` if no
-    grasp admits a collision-free path."""
+    grasp admits a collision-free path. With ``detour`` (the generator that draws it),
+    the arm first strays to a point beside the object (see :func:`detour_waypoint`)."""
     settings = settings or PlannerSettings()
     task.start(cell, config)
     home, home_quat = cell.tcp_pose()
@@ -237,7 +250,15 @@ def plan_demo(
                 break
         else:
             continue
-        waypoints = [
+        waypoints = []
+        if detour is not None:
+            stray = detour_waypoint(
+                checker, (home, home_yaw), (start + up, start_yaw), object_pos, detour, settings
+            )
+            if stray is None:
+                continue
+            waypoints.append(stray)
+        waypoints += [
             Waypoint(start + up, start_yaw, 0.0, settings.speed),
             Waypoint(start, start_yaw, 0.0, settings.slow_speed),
             Waypoint(start, start_yaw, 1.0, settings.slow_speed, dwell=settings.close_steps),
@@ -262,6 +283,36 @@ def plan_demo(
             )
         actions = time_parameterize(home, home_yaw, waypoints, cell.control_dt, settings)
         return Plan(actions=actions, grasp=grasp, transport_height=height, waypoints=waypoints)
+    return None
+
+
+def detour_waypoint(
+    checker: CollisionChecker,
+    home: tuple[np.ndarray, float],
+    approach: tuple[np.ndarray, float],
+    object_pos: np.ndarray,
+    rng: np.random.Generator,
+    settings: PlannerSettings,
+) -> Waypoint | None:
+    """A point to stray to, open-handed, on the way from ``home`` to the ``approach``
+    pose (TCP position, yaw): :data:`DETOUR_RADIUS` from the object, above the approach
+    height, both legs clear of the table and fixtures; ``None`` if no draw is clear."""
+    opening = 2 * gripper_lib.STROKE
+    for _ in range(DETOUR_DRAWS):
+        angle = rng.uniform(0.0, 2 * math.pi)
+        radius = rng.uniform(*DETOUR_RADIUS)
+        point = np.array(
+            [
+                object_pos[0] + radius * math.cos(angle),
+                object_pos[1] + radius * math.sin(angle),
+                approach[0][2] + rng.uniform(*DETOUR_RISE),
+            ]
+        )
+        yaw = home[1] + rng.uniform(-DETOUR_TURN, DETOUR_TURN)
+        if _segment_clear(checker, *home, point, yaw, None, opening) and _segment_clear(
+            checker, point, yaw, *approach, None, opening
+        ):
+            return Waypoint(point, yaw, 0.0, settings.speed)
     return None
 
 

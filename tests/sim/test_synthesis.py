@@ -15,7 +15,14 @@ from twinrl_sim.cell import Cell
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
 from twinrl_sim.grasping import sample_antipodal_grasps
-from twinrl_sim.planner import CollisionChecker, object_pose_from_tcp, plan_demo, tcp_from_object
+from twinrl_sim.planner import (
+    APPROACH,
+    DETOUR_RADIUS,
+    CollisionChecker,
+    object_pose_from_tcp,
+    plan_demo,
+    tcp_from_object,
+)
 from twinrl_sim.randomize import randomize_scene
 from twinrl_sim.spec import ObjectSpec
 from twinrl_sim.tasks import TaskConfig, make_task
@@ -70,6 +77,72 @@ def test_plans_are_collision_free_and_succeed(rng):
         if terminated:
             break
     assert info["success"]
+
+
+def test_a_detour_strays_beside_the_object_and_comes_back_to_the_same_grasp():
+    env = TwinEnv("pick_place")
+    config = env.task.sample_config(np.random.default_rng(3), "OOD")
+    straight = plan_demo(env.task, env.cell, config, np.random.default_rng(1))
+    plan = plan_demo(
+        env.task, env.cell, config, np.random.default_rng(1), detour=np.random.default_rng(2)
+    )
+    assert straight is not None and plan is not None
+    stray, approach = plan.waypoints[0], plan.waypoints[1]
+    # The detour is drawn apart: after it, the same grasp and the same waypoints.
+    assert len(plan.waypoints) == len(straight.waypoints) + 1
+    for mine, theirs in zip(plan.waypoints[1:], straight.waypoints, strict=True):
+        np.testing.assert_array_equal(mine.position, theirs.position)
+    object_pos, _ = env.cell.object_pose(env.task.object_name)
+    beside = np.linalg.norm(stray.position[:2] - object_pos[:2])
+    assert DETOUR_RADIUS[0] <= beside <= DETOUR_RADIUS[1]
+    assert stray.position[2] >= approach.position[2] >= object_pos[2] + APPROACH / 2
+    checker = CollisionChecker(env.cell, env.task.object_name)
+    home, home_quat = env.cell.tcp_pose()
+    for a, ya, b, yb in [
+        (home, yaw_of(home_quat), stray.position, stray.yaw),
+        (stray.position, stray.yaw, approach.position, approach.yaw),
+    ]:
+        for s in np.linspace(0, 1, 15):
+            assert not checker.collides(a + s * (b - a), ya + s * (yb - ya), None, 0.08)
+    env.reset(options={"config": config})
+    closest = np.inf
+    for action in plan.actions:
+        *_, terminated, _, info = env.step(action)
+        closest = min(closest, np.linalg.norm(env.cell.tcp_pose()[0] - stray.position))
+        if terminated:
+            break
+    assert info["success"] and closest < 0.02  # it went there, and still did the task
+    assert len(plan.actions) > len(straight.actions)
+
+
+def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+
+    args = ["expand", "pick_place", "--id", "1", "--ood", "1", "--workers", "1", "--no-images"]
+    result = CliRunner().invoke(app, [*args, "--detours", "1", "--out", str(tmp_path / "d")])
+    assert result.exit_code == 0, result.output
+    assert "2 of the kept demos stray first" in result.output
+    saved = json.loads((tmp_path / "d" / "expand.json").read_text())
+    assert saved["detoured"] == {"ID": 1, "OOD": 1}
+    paths = Session(tmp_path / "d" / "session").episode_paths()
+    assert {read_episode(p).meta.policy for p in paths} == {"synthesis:plan+detour"}
+    for detours, method, message in [
+        (1.5, "plan", "from 0 to 1"),
+        (0.5, "augment", "applies to --method plan"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            expand(
+                "pick_place",
+                id_count=1,
+                ood_count=0,
+                out=tmp_path / "x",
+                method=method,
+                from_demo=paths[0] if method == "augment" else None,
+                detours=detours,
+            )
+        assert not (tmp_path / "x").exists()
 
 
 @pytest.mark.parametrize("degrees", [-88, -84, -80, 80, 84, 88])
