@@ -4,7 +4,7 @@ Scene specs, the built-in UR5e cell, the four tasks and their scripted experts,
 Gymnasium envs, replay of logged commands, batched simulation and physical effects.
 
 The names below load on first use, so that importing one submodule (the command line
-does, to list its commands) does not load MuJoCo and the whole stack.
+does, to list its commands) loads only what that submodule needs.
 """
 
 import importlib
