@@ -485,3 +485,27 @@ def test_fit_look_gives_the_twin_the_plants_appearance(tmp_path):
     with pytest.raises(RuntimeError, match="name no appearance difference"):
         fit_look("pick_place", tmp_path / "same" / "real", tmp_path / "not_written.yaml")
     assert not (tmp_path / "not_written.yaml").exists()
+
+
+def test_the_table_i_benchmark_end_to_end_at_smoke_scale(tmp_path):
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+    from twinrl_learn.stage1 import MIXES
+
+    out = tmp_path / "stage1"
+    args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
+    smoke = ["--grid", "2x2", "--episodes", "1", "--state-steps", "40", "--detours", "1"]
+    result = CliRunner().invoke(app, [*args, *smoke])
+    assert result.exit_code == 0, result.output
+    rows = json.loads((out / "stage1.json").read_text())["rows"]
+    assert [(r["twin_id"], r["twin_ood"]) for r in rows] == list(MIXES)
+    assert all(set(r["success"]) == {"ID", "OOD"} for r in rows)
+    table = (out / "table1.md").read_text()
+    assert "100 % of them straying beside the object first" in table
+    assert table.count("| pick_place | state |") == len(MIXES)
+    for r in rows:
+        name = f"state_real_id{r['twin_id']}_ood{r['twin_ood']}"
+        assert (out / "pick_place" / f"{name}_eval" / "heatmap.png").is_file()
+    twin = Session(out / "pick_place" / "twin_ood" / "session").episode_paths()
+    assert {read_episode(p, images=False).meta.policy for p in twin} == {"synthesis:plan+detour"}
