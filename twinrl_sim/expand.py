@@ -42,6 +42,7 @@ from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import TaskConfig, make_task
 
 METHODS = ("plan", "augment")
+DETOUR_TAG = "+detour"  # ends the policy name of a demo that strayed first
 MAX_ATTEMPTS_PER_DEMO = 4
 
 
@@ -115,7 +116,7 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
             return job, None
         actions = plan.actions
         if detour is not None:
-            policy += "+detour"
+            policy += DETOUR_TAG
     else:
         demo = _WORKER_CACHE.get(("demo", job.demo_path))
         if demo is None:
@@ -261,7 +262,7 @@ def expand(
                         meta = EpisodeMeta.from_dict(result["meta"])
                         session.register(Path(result["path"]), meta, result["length"])
                         report.kept[region] += 1
-                        report.detoured[region] += meta.policy.endswith("+detour")
+                        report.detoured[region] += meta.policy.endswith(DETOUR_TAG)
                     if on_demo is not None:
                         on_demo(region, result is not None)
     report.seconds_synthesis = time.perf_counter() - start
