@@ -465,7 +465,10 @@ def train_real_rl_command(
         float, typer.Option(help="Share of resets drawn from the mined targets.")
     ] = 0.7,
     refresh_every: Annotated[
-        int, typer.Option(help="Episodes between re-minings in the twin (0: never).", min=0)
+        int,
+        typer.Option(
+            help="Episodes between re-minings of --targets in the twin (0: never).", min=0
+        ),
     ] = 10,
     plant_steps: Annotated[
         int, typer.Option(help="Robot steps to learn for (10 Hz: 600 = 1 min).", min=1)

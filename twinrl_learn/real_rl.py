@@ -77,7 +77,9 @@ class RealRLSettings:
     twin_buffer: str | None = None  # Stage II's twin buffer: the replay buffer's start
     targets: str | None = None  # targets.json from `twinrl mine` (None: uniform resets)
     target_ratio: float = 0.7  # share of resets drawn from the targets
-    refresh_every: int = 10  # episodes between re-minings in the twin (0: never)
+    # Episodes between re-minings of the targets in the twin (0: never; without
+    # ``targets`` the resets stay uniform and nothing is mined).
+    refresh_every: int = 10
     mining_grid: tuple[int, int] = (4, 4)
     mining_episodes: int = 1
     tau: float = 0.8
@@ -326,7 +328,9 @@ class RealRL:
 
     def _refresh_due(self, episode_index: int) -> bool:
         every = self.settings.refresh_every
-        return every > 0 and episode_index > 0 and episode_index % every == 0
+        if self.settings.targets is None or every == 0:
+            return False
+        return episode_index > 0 and episode_index % every == 0
 
     def refresh_targets(self, episode_index: int) -> None:
         """Mine S_target again in the twin with the current weights."""

@@ -162,7 +162,9 @@ def real_settings(demos, out, **overrides):
 
 
 def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tmp_path):
-    real = RealRL.start(real_settings(demos, tmp_path / "run"))
+    # No --targets: the resets stay uniform, and nothing is mined however often a
+    # refresh is asked for.
+    real = RealRL.start(real_settings(demos, tmp_path / "run", refresh_every=1))
     recorded_demos = len(real.run_state.demo.episodes)
     run = real.run()
     session = Session(tmp_path / "run" / "session")
@@ -189,13 +191,15 @@ def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tm
     assert list((tmp_path / "run").glob("resets-*.rrd"))
 
     # Resume with a longer budget: counters, history and evaluations carry on.
-    more = real_settings(demos, tmp_path / "run", plant_steps=120)
+    more = real_settings(demos, tmp_path / "run", plant_steps=120, refresh_every=1)
     resumed = RealRL.resume(more)
     assert resumed.run_state.agent.env_steps == run.agent.env_steps
     assert len(resumed.run_state.history) == len(run.history)
     resumed.run()
     assert resumed.run_state.agent.env_steps >= 120
     assert len(load_evaluations(tmp_path / "run")) == 3
+    assert len(resumed.run_state.history) >= 2 and not (tmp_path / "run" / "mining").exists()
+    assert set(resumed.run_state.extra["reset_origins"]) == {"uniform"}
 
 
 def test_real_rl_keeps_the_twin_agents_critic_when_asked(demos, tmp_path):
