@@ -303,17 +303,22 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
                 inputs=p.inputs,
             )
         )
-        evaluate(
-            TwinrlRunner(paths[name]),
-            task,
-            world="plant",
-            grid=p.eval_grid,
-            episodes=p.eval_episodes,
-            seed=10_000,
-            out=folder / f"{paths[name].name}_eval",
-        )
+        _plant_eval(paths[name], task, p, folder / f"{paths[name].name}_eval")
     _mark_done(folder)
     return paths
+
+
+def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path) -> None:
+    """A starting policy's success in the plant, on the real-RL runs' evaluation grid."""
+    evaluate(
+        TwinrlRunner(checkpoint),
+        task,
+        world="plant",
+        grid=p.eval_grid,
+        episodes=p.eval_episodes,
+        seed=10_000,
+        out=_fresh(out),
+    )
 
 
 def _demos(stage1: dict[str, Path], *, twin: bool) -> list[str]:
@@ -339,6 +344,9 @@ def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) 
             )
         )
         _mark_done(folder)
+    if not (folder / "plant_eval" / "eval.json").is_file():  # also for runs made before it
+        log("Stage II: evaluating the twin-RL policy in the plant")
+        _plant_eval(folder / "agent", task, p, folder / "plant_eval")
     return folder
 
 
@@ -549,6 +557,31 @@ def _fmt_minutes(value: float | None) -> str:
     return "not reached" if value is None else f"{value:.1f}"
 
 
+def _pct(rate: float) -> str:
+    return f"{100 * rate:.0f} %"
+
+
+def _per_seed_table(runs: dict[str, dict[int, Path]]) -> list[str]:
+    """Markdown rows: one per method and seed, one column per evaluation."""
+    series = {
+        (name, seed): load_evaluations(folder)
+        for name, folders in runs.items()
+        for seed, folder in folders.items()
+    }
+    columns = max(len(s) for s in series.values())
+    longest = max(series.values(), key=len)
+    header = " | ".join(f"~{e.plant_minutes:.1f} min" for e in longest)
+    rows = [f"| method | seed | {header} |", "|---|---|" + "---|" * columns]
+    for (name, seed), evaluations in series.items():
+        cells = [
+            " / ".join(_pct(e.success_rate.get(r, 0.0)) for r in REGION_NAMES) for e in evaluations
+        ]
+        rows.append(
+            f"| {name} | {seed} | " + " | ".join(cells + [""] * (columns - len(cells))) + " |"
+        )
+    return rows
+
+
 def write_report(
     task: str,
     preset_name: str,
@@ -559,12 +592,37 @@ def write_report(
     seeds: tuple[int, ...],
 ) -> dict[str, Any]:
     methods = {name: method_summary(folders) for name, folders in runs.items()}
+    twin_data = f"{p.real_demos} real + {p.twin_id} ID / {p.twin_ood} OOD twin demos"
+    starts = [  # (report.json key, what it is, its plant evaluation)
+        (
+            "sft_real",
+            f"Stage I: SFT on real demos only ({p.real_demos} real)",
+            stage1["sft_real"].parent / f"{stage1['sft_real'].name}_eval",
+        ),
+        (
+            "sft_real_twin",
+            f"Stage I: SFT on {twin_data}",
+            stage1["sft_twin"].parent / f"{stage1['sft_twin'].name}_eval",
+        ),
+        (
+            "twin_rl",
+            f"Stage II: twin RL ({p.twin_rl_steps} twin steps)",
+            out / "stage2" / "plant_eval",
+        ),
+    ]
+    start_rates = {
+        key: json.loads((folder / "eval.json").read_text())["success_rate"]
+        for key, _, folder in starts
+    }
     report = {
         "task": task,
         "preset": preset_name,
         "policy": p.policy,
         "inputs": p.inputs,
         "seeds": list(seeds),
+        "stages": {
+            key: {r: rates.get(r, 0.0) for r in REGION_NAMES} for key, rates in start_rates.items()
+        },
         "methods": methods,
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
@@ -573,10 +631,6 @@ def write_report(
         str(sum(c.region == region for c in grid_cells(task, p.eval_grid)) * p.eval_episodes)
         for region in REGION_NAMES
     )
-    stage1_rows = []
-    for key, label in (("sft_real", "real demos only"), ("sft_twin", "real + twin demos")):
-        result = json.loads((out / "stage1" / f"{stage1[key].name}_eval" / "eval.json").read_text())
-        stage1_rows.append((label, result["success_rate"]))
     lines = [
         f"# TwinRL in the plant: {task}, preset `{preset_name}`",
         "",
@@ -592,15 +646,17 @@ def write_report(
         f"{' / '.join(REGION_NAMES)}) in a separate plant (not counted as interaction). "
         "Values are medians over seeds.",
         "",
-        "## Stage I: SFT coverage (plant evaluation)",
+        "## The starting policies (plant evaluation, same grid)",
         "",
-        "| data | ID | OOD |",
+        "HiL-SERL and ConRFT-style start from the real-only SFT policy, both TwinRL "
+        "variants from the Stage II policy.",
+        "",
+        "| policy | ID | OOD |",
         "|---|---|---|",
         *[
-            f"| {label} ({p.real_demos} real"
-            + (f" + {p.twin_id} ID / {p.twin_ood} OOD twin" if "twin" in label else "")
-            + f") | {100 * r.get('ID', 0):.0f} % | {100 * r.get('OOD', 0):.0f} % |"
-            for label, r in stage1_rows
+            f"| {label} | {_pct(start_rates[key].get('ID', 0.0))} "
+            f"| {_pct(start_rates[key].get('OOD', 0.0))} |"
+            for key, label, _ in starts
         ],
         "",
         "## Real RL",
@@ -618,6 +674,13 @@ def write_report(
             f"| {100 * m['final_success']['ID']:.0f} % | {100 * m['final_success']['OOD']:.0f} % "
             f"| {m['interventions']} | {m['plant_steps']} |"
         )
+    lines += [
+        "",
+        "Each run's evaluations, ID / OOD (an evaluation follows the episode that "
+        "crosses its step count, so the minutes differ a little between runs):",
+        "",
+    ]
+    lines += _per_seed_table(runs)
     lines += [
         "",
         "Per run: `real_rl/<method>/seed<k>/` (curve.png, evaluations/, session/, "

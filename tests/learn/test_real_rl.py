@@ -2,6 +2,7 @@
 real-RL resume, and the whole pipeline at smoke scale."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -291,7 +292,23 @@ def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
         assert len(settings["demos"]) == demos, slug
         assert settings["rl"]["actor_lr"] == actor_lr, slug
         assert settings["operator"]["correct_within"] == OperatorRule().correct_within > 0
-    assert "![success against plant minutes](curves.png)" in (out / "report.md").read_text()
+    # The starting policies are measured on the runs' grid: Stage I's two, Stage II's.
+    assert set(report["stages"]) == {"sft_real", "sft_real_twin", "twin_rl"}
+    stage2_eval = json.loads((out / "stage2" / "plant_eval" / "eval.json").read_text())
+    assert report["stages"]["twin_rl"] == {
+        r: stage2_eval["success_rate"].get(r, 0.0) for r in ("ID", "OOD")
+    }
+    text = (out / "report.md").read_text()
+    assert "![success against plant minutes](curves.png)" in text
+    assert "| Stage II: twin RL (40 twin steps) |" in text
+    for method in METHOD_TABLE:  # each run's evaluations, one row per method and seed
+        assert sum(line.startswith(f"| {method.name} | 0 |") for line in text.splitlines()) == 1
+    # A run made before Stage II was evaluated gets the evaluation when resumed.
+    shutil.rmtree(out / "stage2" / "plant_eval")
+    assert (
+        run_demo("pick_place", "smoke", out, inputs="relative", resume=True, log=lambda _: None)
+        == report
+    )
     # A finished pipeline is never overwritten by accident.
     with pytest.raises(ValueError, match="not empty"):
         run_demo("pick_place", "smoke", out)
