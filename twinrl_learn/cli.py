@@ -807,6 +807,48 @@ def bench_stage1(
     console.print((out / "table1.md").read_text())
 
 
+@bench_app.command("stages")
+def bench_stages(
+    run: Annotated[Path, typer.Argument(help="A `twinrl demo` run folder (Stage II done).")],
+    out: Annotated[Path, typer.Option(help="Folder for stages.md, stages.json, stages.png.")],
+    seeds: Annotated[
+        str, typer.Option(help="Comma-separated seeds: one evaluation and offline phase each.")
+    ] = "0,1,2,3,4",
+    grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "8x8",
+    episodes: Annotated[int, typer.Option(help="Evaluation episodes per grid cell.", min=1)] = 2,
+    finals: Annotated[
+        bool, typer.Option(help="Also measure the final policies of the run's TwinRL runs.")
+    ] = True,
+) -> None:
+    """What each stage of a pipeline run adds, on many plant episodes per policy.
+
+    Measures the Stage I and Stage II policies, the Stage II policy after the real-RL
+    offline phase with and without the twin buffer, and the TwinRL runs' final
+    policies, all on the same plant configurations (paired by seed)."""
+    import torch
+
+    from twinrl_learn.stages import StagesSettings, measure_stages
+
+    settings = StagesSettings(
+        run=run,
+        out=out,
+        seeds=_int_list(seeds, "--seeds"),
+        grid=_grid(grid),
+        episodes=episodes,
+        finals=finals,
+    )
+    torch.set_num_threads(1)
+    data_cli.quiet_encoders()
+    with data_cli.progress() as bar:
+        task = bar.add_task("measuring", total=None)
+
+        def on_evaluation(done: int, total: int, label: str) -> None:
+            bar.update(task, completed=done, total=total, description=label)
+
+        measure_stages(settings, on_evaluation=on_evaluation)
+    console.print((out / "stages.md").read_text(), markup=False)
+
+
 USER_ERRORS = (ValueError, FileNotFoundError, KeyError)  # a bad scene spec is a ValueError
 
 

@@ -18,6 +18,7 @@ from twinrl_learn.pipeline import METHOD_TABLE, run_demo
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_learn.settings import RLConfig
+from twinrl_learn.stages import StagesSettings, measure_stages
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.plant import Plant
 from twinrl_sim.tasks import make_task
@@ -252,12 +253,18 @@ def test_real_rl_refuses_bad_input(demos, tmp_path):
     assert not (tmp_path / "b").exists()
 
 
-def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
-    out = tmp_path / "demo"
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    """A whole pipeline run at smoke scale, and its report."""
+    out = tmp_path_factory.mktemp("pipeline") / "demo"
     with pytest.raises(ValueError, match="--inputs must be one of absolute, relative"):
         run_demo("pick_place", "smoke", out, inputs="sideways")
     assert not out.exists()
-    report = run_demo("pick_place", "smoke", out, inputs="relative", log=lambda _: None)
+    return out, run_demo("pick_place", "smoke", out, inputs="relative", log=lambda _: None)
+
+
+def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
+    out, report = smoke_run
     on_disk = json.loads((out / "report.json").read_text())
     assert on_disk == report
     assert (report["task"], report["preset"], report["policy"], report["inputs"]) == (
@@ -315,3 +322,47 @@ def test_the_whole_pipeline_runs_at_smoke_scale(tmp_path):
     # Nor resumed as a different run: its stages would mix two kinds of policy.
     with pytest.raises(ValueError, match="is a run with inputs 'relative', not 'absolute'"):
         run_demo("pick_place", "smoke", out, resume=True)
+
+
+def test_the_stages_are_measured_on_shared_configurations(smoke_run, tmp_path):
+    out, _ = smoke_run
+    run = tmp_path / "run"
+    shutil.copytree(out, run)
+    # Smoke-scale twin RL keeps no rollout; stand its real demos in as the twin buffer.
+    shutil.copytree(run / "stage1" / "real", run / "stage2" / "twin_buffer")
+    settings = StagesSettings(run=run, out=tmp_path / "stages", seeds=(0, 1), grid=(2, 2))
+    heard = []
+    result = measure_stages(settings, on_evaluation=lambda done, total, _: heard.append(done))
+    policies = result["policies"]
+    assert list(policies)[:5] == [
+        "Stage I: SFT, real demos only",
+        "Stage I: SFT, real + twin demos",
+        "Stage II: twin RL",
+        "Stage II + offline phase, with the twin buffer",
+        "Stage II + offline phase, without the twin buffer",
+    ]
+    assert {"TwinRL, seed0 final", "TwinRL w/o twin buffer, seed0 final"} <= set(policies)
+    assert heard == list(range(2 * len(policies)))
+    for p in policies.values():
+        assert len(p["per_seed"]) == 2 and set(p["mean"]) == {"ID", "OOD"}
+    gain = result["twin_buffer_offline_gain"]
+    with_, without = (
+        policies[f"Stage II + offline phase, with{s} the twin buffer"] for s in ("", "out")
+    )
+    assert gain["mean"]["ID"] == pytest.approx(with_["mean"]["ID"] - without["mean"]["ID"])
+    # Every policy met the same plant configurations in evaluation k.
+    for k in (0, 1):
+        starts = {
+            json.dumps(read_episode(path).meta.config, sort_keys=True)
+            for folder in (tmp_path / "stages" / "evaluations" / f"seed{k}").iterdir()
+            for path in Session(folder / "session").episode_paths()[:1]
+        }
+        assert len(starts) == 1
+    for name in ("stages.md", "stages.json", "stages.png"):
+        assert (tmp_path / "stages" / name).is_file()
+    # A finished study is not overwritten; a folder that is no pipeline run is refused.
+    with pytest.raises(ValueError, match="not empty"):
+        measure_stages(settings)
+    result = run_cli("bench", "stages", str(tmp_path), "--out", str(tmp_path / "s2"))
+    assert result.returncode == 2 and "is not a `twinrl demo` run folder" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "s2").exists()
