@@ -195,7 +195,7 @@ def real_rl_config(method: Method, p: Preset, seed: int) -> RLConfig:
 
 def run_demo(
     task: str = "pick_place",
-    preset: str = "quick",
+    preset: str | Preset = "quick",
     out: str | Path = "out/twinrl_demo",
     *,
     seeds: tuple[int, ...] | None = None,
@@ -206,14 +206,19 @@ def run_demo(
     on_progress: Callable[[RunProgress], None] | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline and write the report; returns ``report.json``'s content.
+    ``preset`` is a name of :data:`PRESETS` or a :class:`Preset` of one's own (e.g.
+    ``replace(PRESETS["quick"], twin_id=30)``; its report calls it ``custom``).
     ``inputs`` overrides the preset's state-policy inputs (``absolute``/``relative``);
     ``on_progress`` hears from every real-RL run after each of its episodes."""
     make_task(task)
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
-    if preset not in PRESETS:
+    if isinstance(preset, Preset):
+        p, preset = preset, "custom"
+    elif preset in PRESETS:
+        p = PRESETS[preset]
+    else:
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
-    p = PRESETS[preset]
     if inputs is not None:
         check_inputs(inputs, p.policy)
         p = replace(p, inputs=inputs)
@@ -221,7 +226,10 @@ def run_demo(
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not resume:
         raise ValueError(f"{out} exists and is not empty; pass --resume or choose another --out")
-    _check_same_run(out / "run.json", {"task": task, "preset": preset, "inputs": p.inputs})
+    recorded = {"task": task, "preset": preset, "inputs": p.inputs}
+    if preset == "custom":  # a custom run resumes only with the very same scale
+        recorded["settings"] = json.loads(json.dumps(asdict(p)))
+    _check_same_run(out / "run.json", recorded)
     out.mkdir(parents=True, exist_ok=True)
     stage1 = _stage1(task, p, out / "stage1", log)
     stage2 = _stage2(task, p, out, stage1, log)
@@ -238,7 +246,7 @@ def run_demo(
     return write_report(task, preset, p, out, stage1, runs, seeds)
 
 
-def _check_same_run(path: Path, settings: dict[str, str]) -> None:
+def _check_same_run(path: Path, settings: dict[str, Any]) -> None:
     """Record what a run is; a resumed run must be the same one (nothing mixed)."""
     if path.is_file():
         recorded = json.loads(path.read_text())

@@ -111,7 +111,10 @@ def _offline_policy(run: Path, out: Path, seed: int, twin_buffer: bool) -> Polic
 def _preset_offline_steps(run: Path) -> int:
     from twinrl_learn.pipeline import PRESETS
 
-    preset = json.loads((run / "run.json").read_text())["preset"]
+    recorded = json.loads((run / "run.json").read_text())
+    preset = recorded["preset"]
+    if "settings" in recorded:  # a custom preset (run_demo with a Preset)
+        return recorded["settings"]["offline_steps"]
     if preset not in PRESETS:
         raise ValueError(f"{run} was made with preset '{preset}', which this version lacks")
     return PRESETS[preset].offline_steps

@@ -3,6 +3,7 @@ real-RL resume, and the whole pipeline at smoke scale."""
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
 from twinrl_learn.mining import Target
-from twinrl_learn.pipeline import METHOD_TABLE, run_demo
+from twinrl_learn.pipeline import METHOD_TABLE, PRESETS, run_demo
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_learn.settings import RLConfig
@@ -322,6 +323,10 @@ def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
     # Nor resumed as a different run: its stages would mix two kinds of policy.
     with pytest.raises(ValueError, match="is a run with inputs 'relative', not 'absolute'"):
         run_demo("pick_place", "smoke", out, resume=True)
+    # A preset of one's own is a 'custom' run, never mixed with a named one.
+    custom = replace(PRESETS["smoke"], plant_steps=200, inputs="relative")
+    with pytest.raises(ValueError, match="is a run with preset 'smoke', not 'custom'"):
+        run_demo("pick_place", custom, out, resume=True)
 
 
 def test_the_stages_are_measured_on_shared_configurations(smoke_run, tmp_path):
