@@ -311,9 +311,14 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
                 inputs=p.inputs,
             )
         )
-        _plant_eval(paths[name], task, p, folder / f"{paths[name].name}_eval")
+        _plant_eval(paths[name], task, p, _eval_folder(paths[name]))
     _mark_done(folder)
     return paths
+
+
+def _eval_folder(checkpoint: Path) -> Path:
+    """Where a Stage I policy's plant evaluation lies: beside it."""
+    return checkpoint.with_name(f"{checkpoint.name}_eval")
 
 
 def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path) -> None:
@@ -605,12 +610,12 @@ def write_report(
         (
             "sft_real",
             f"Stage I: SFT on real demos only ({p.real_demos} real)",
-            stage1["sft_real"].parent / f"{stage1['sft_real'].name}_eval",
+            _eval_folder(stage1["sft_real"]),
         ),
         (
             "sft_real_twin",
             f"Stage I: SFT on {twin_data}",
-            stage1["sft_twin"].parent / f"{stage1['sft_twin'].name}_eval",
+            _eval_folder(stage1["sft_twin"]),
         ),
         (
             "twin_rl",
@@ -618,19 +623,17 @@ def write_report(
             out / "stage2" / "plant_eval",
         ),
     ]
-    start_rates = {
-        key: json.loads((folder / "eval.json").read_text())["success_rate"]
-        for key, _, folder in starts
-    }
+    start_rates = {}
+    for key, _, folder in starts:
+        rates = json.loads((folder / "eval.json").read_text())["success_rate"]
+        start_rates[key] = {r: rates.get(r, 0.0) for r in REGION_NAMES}
     report = {
         "task": task,
         "preset": preset_name,
         "policy": p.policy,
         "inputs": p.inputs,
         "seeds": list(seeds),
-        "stages": {
-            key: {r: rates.get(r, 0.0) for r in REGION_NAMES} for key, rates in start_rates.items()
-        },
+        "stages": start_rates,
         "methods": methods,
     }
     (out / "report.json").write_text(json.dumps(report, indent=1))
@@ -662,8 +665,7 @@ def write_report(
         "| policy | ID | OOD |",
         "|---|---|---|",
         *[
-            f"| {label} | {_pct(start_rates[key].get('ID', 0.0))} "
-            f"| {_pct(start_rates[key].get('OOD', 0.0))} |"
+            f"| {label} | {_pct(start_rates[key]['ID'])} | {_pct(start_rates[key]['OOD'])} |"
             for key, label, _ in starts
         ],
         "",
