@@ -87,15 +87,16 @@ def _offline_policy(run: Path, out: Path, seed: int, twin_buffer: bool) -> Polic
     """The Stage II policy after the offline phase of a TwinRL real-RL run (seed ``seed``),
     exactly as the pipeline starts it, with or without the twin buffer."""
     task = json.loads((run / "run.json").read_text())["task"]
-    sft_twin = next(p for p in (run / "stage1").glob("*_real_twin") if p.is_dir())
     template = run / "real_rl" / "twinrl" / "seed0" / "agent"
-    rl = RLConfig.load(template) if (template / "rl_config.json").is_file() else None
-    rl = rl or RLConfig.for_method("twinrl", offline_steps=_preset_offline_steps(run))
+    if (template / "rl_config.json").is_file():  # the settings the TwinRL runs had
+        rl = RLConfig.load(template)
+    else:  # the run stopped before real RL: the pipeline's settings
+        rl = RLConfig.for_method("twinrl", offline_steps=_preset_offline_steps(run))
     settings = RealRLSettings(
         task=task,
         init=str(run / "stage2" / "agent"),
         out=str(out),
-        demos=[str(run / "stage1" / "real"), str(sft_twin.parent / "twin" / "dataset")],
+        demos=[str(run / "stage1" / "real"), str(run / "stage1" / "twin" / "dataset")],
         twin_buffer=str(run / "stage2" / "twin_buffer") if twin_buffer else None,
         show_resets=False,
         rl=replace(rl, seed=seed),
