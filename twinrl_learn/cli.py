@@ -477,6 +477,9 @@ def train_real_rl_command(
         int, typer.Option(help="Robot steps between evaluations on a fixed grid.", min=0)
     ] = 600,
     eval_grid: Annotated[str, typer.Option(help="Evaluation grid over ID and OOD.")] = "4x4",
+    eval_episodes: Annotated[
+        int, typer.Option(help="Evaluation episodes per grid cell.", min=1)
+    ] = 1,
     method: MethodOption = "twinrl",
     beta: BetaOption = None,
     eta: EtaOption = None,
@@ -561,6 +564,7 @@ def train_real_rl_command(
         plant_steps=plant_steps,
         eval_every=eval_every,
         eval_grid=_grid(eval_grid, "--eval-grid"),
+        eval_episodes=eval_episodes,
         operator=OperatorRule(funnel=funnel, correct_within=correct_within) if operator else None,
         rl=rl,
     )

@@ -232,9 +232,11 @@ def test_real_rl_keeps_the_twin_agents_critic_when_asked(demos, tmp_path):
         "train", "real-rl", "--task", "pick_place", "--out", str(tmp_path / "cli"),
         "--init", str(tmp_path / "agent"), "--keep-critic", "--takeover-reward", "-3",
         "--demos", str(demos[0]), "--plant-steps", "10", "--eval-every", "0",
-        "--eval-grid", "2x2", "--refresh-every", "0", "--offline-steps", "1",
+        "--eval-grid", "2x2", "--eval-episodes", "2", "--refresh-every", "0",
+        "--offline-steps", "1",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
+    assert load_evaluations(tmp_path / "cli")[0].episodes == 2 * 4  # 2 per cell of 2x2
     config = RLConfig.load(tmp_path / "cli" / "agent")
     assert config.rewards.takeover == -3.0 and config.rewards.success == 10.0
     assert json.loads((tmp_path / "cli" / "settings.json").read_text())["keep_critic"]
