@@ -276,13 +276,34 @@ def _fresh(folder: Path) -> Path:
     return folder
 
 
-def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
-    paths = {
+def stage1_paths(folder: Path, policy: str) -> dict[str, Path]:
+    """Where Stage I keeps its data and policies in a run's ``stage1`` folder."""
+    return {
         "real": folder / "real",
         "twin": folder / "twin" / "dataset",
-        "sft_real": folder / f"{p.policy}_real",
-        "sft_twin": folder / f"{p.policy}_real_twin",
+        "sft_real": folder / f"{policy}_real",
+        "sft_twin": folder / f"{policy}_real_twin",
     }
+
+
+def run_preset(out: Path) -> Preset:
+    """The preset a run in ``out`` was made with (its ``run.json``)."""
+    path = Path(out) / "run.json"
+    if not path.is_file():
+        raise ValueError(f"{out} is not a `twinrl demo` run folder (no run.json)")
+    recorded = json.loads(path.read_text())
+    if "settings" in recorded:  # a custom preset
+        fields = recorded["settings"]
+        return Preset(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
+    if recorded["preset"] not in PRESETS:
+        raise ValueError(
+            f"{out} was made with preset '{recorded['preset']}', which this version lacks"
+        )
+    return replace(PRESETS[recorded["preset"]], inputs=recorded["inputs"])
+
+
+def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
+    paths = stage1_paths(folder, p.policy)
     if _done(folder):
         return paths
     _fresh(folder).mkdir(parents=True)
@@ -455,12 +476,12 @@ def _real_rl_in_worker(job: RealRLJob) -> None:
     _real_rl(job, _worker_messages.put, _worker_messages.put)
 
 
-def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None]) -> None:
-    """Start or resume one unfinished run (``_run_jobs`` skips the finished ones)."""
+def real_rl_settings(job: RealRLJob) -> RealRLSettings:
+    """The settings of one method's real-RL run."""
     task, p, method, seed, folder = job.task, job.p, job.method, job.seed, job.folder
     stage1, stage2, targets = job.stage1, job.stage2, job.targets
     twin_buffer = stage2 / "twin_buffer"
-    settings = RealRLSettings(
+    return RealRLSettings(
         task=task,
         init=str(stage2 / "agent" if method.from_twin else stage1["sft_real"]),
         out=str(folder),
@@ -477,6 +498,12 @@ def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None
         operator=OperatorRule(),
         rl=real_rl_config(method, p, seed),
     )
+
+
+def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None]) -> None:
+    """Start or resume one unfinished run (``_run_jobs`` skips the finished ones)."""
+    method, seed, folder = job.method, job.seed, job.folder
+    settings = real_rl_settings(job)
     if (folder / "run.json").is_file():
         log(f"real RL: {method.name}, seed {seed}: resuming")
         real = RealRL.resume(settings)

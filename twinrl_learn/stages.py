@@ -26,16 +26,23 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.pipeline import (
+    METHOD_TABLE,
+    Method,
+    RealRLJob,
+    real_rl_settings,
+    run_preset,
+    stage1_paths,
+)
 from twinrl_learn.policy import Policy
-from twinrl_learn.real_rl import RealRL, RealRLSettings
+from twinrl_learn.real_rl import RealRL
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import RLConfig
 from twinrl_sim.tasks import REGION_NAMES
 
 EVAL_SEED = 20_000  # apart from the pipeline's own evaluations (10_000 + ...)
 WITH_BUFFER = "Stage II + offline phase, with the twin buffer"
 WITHOUT_BUFFER = "Stage II + offline phase, without the twin buffer"
-TWIN_RL_RUNS = {"twinrl": "TwinRL", "twinrl_no_buffer": "TwinRL w/o twin buffer"}
+TWIN_RL_METHODS = [m for m in METHOD_TABLE if m.from_twin]  # with and without the buffer
 
 
 @dataclass(frozen=True)
@@ -51,74 +58,53 @@ class StagesSettings:
 @dataclass(frozen=True)
 class _Candidate:
     label: str
-    checkpoint: Path | None  # None: made per seed by the offline phase
-    twin_buffer: bool = False
+    checkpoint: Path | None  # None: made per seed by the offline phase of ``method``
+    method: Method | None = None
 
 
 def _candidates(run: Path, finals: bool) -> list[_Candidate]:
     """The run's policies to measure, checked to exist (a clear error if not)."""
-    if not (run / "run.json").is_file():
-        raise ValueError(f"{run} is not a `twinrl demo` run folder (no run.json)")
-    sft = sorted(p for p in (run / "stage1").glob("*_real_twin") if p.is_dir())
+    stage1 = stage1_paths(run / "stage1", run_preset(run).policy)
     stage2 = run / "stage2"
-    if not sft or not (stage2 / ".done").is_file():
+    if not stage1["sft_twin"].is_dir() or not (stage2 / ".done").is_file():
         raise ValueError(
             f"{run} has not finished Stage II; continue it with `twinrl demo --out {run} "
             "--resume` first"
         )
-    real_only = sft[0].with_name(sft[0].name.removesuffix("_twin"))
+    with_buffer = next(m for m in TWIN_RL_METHODS if m.twin_buffer)
+    without_buffer = next(m for m in TWIN_RL_METHODS if not m.twin_buffer)
     candidates = [
-        _Candidate("Stage I: SFT, real demos only", real_only),
-        _Candidate("Stage I: SFT, real + twin demos", sft[0]),
+        _Candidate("Stage I: SFT, real demos only", stage1["sft_real"]),
+        _Candidate("Stage I: SFT, real + twin demos", stage1["sft_twin"]),
         _Candidate("Stage II: twin RL", stage2 / "agent"),
-        _Candidate(WITHOUT_BUFFER, None),
     ]
-    if (stage2 / "twin_buffer" / "meta" / "info.json").is_file():  # no rollout kept: none
-        candidates.insert(3, _Candidate(WITH_BUFFER, None, twin_buffer=True))
+    if (stage2 / "twin_buffer").exists():  # as the pipeline: Stage II kept a rollout
+        candidates.append(_Candidate(WITH_BUFFER, None, with_buffer))
+    candidates.append(_Candidate(WITHOUT_BUFFER, None, without_buffer))
     if finals:
-        for slug, name in TWIN_RL_RUNS.items():
-            for folder in sorted((run / "real_rl" / slug).glob("seed*")):
+        for method in TWIN_RL_METHODS:
+            for folder in sorted((run / "real_rl" / method.slug).glob("seed*")):
                 if (folder / ".done").is_file():
-                    candidates.append(_Candidate(f"{name}, {folder.name} final", folder / "agent"))
+                    label = f"{method.name}, {folder.name} final"
+                    candidates.append(_Candidate(label, folder / "agent"))
     return candidates
 
 
-def _offline_policy(run: Path, out: Path, seed: int, twin_buffer: bool) -> Policy:
-    """The Stage II policy after the offline phase of a TwinRL real-RL run (seed ``seed``),
-    exactly as the pipeline starts it, with or without the twin buffer."""
+def _offline_policy(run: Path, out: Path, seed: int, method: Method) -> Policy:
+    """The Stage II policy after the offline phase of ``method``'s real-RL run with
+    ``seed``, with the pipeline's very settings for that run."""
+    p = run_preset(run)
     task = json.loads((run / "run.json").read_text())["task"]
-    template = run / "real_rl" / "twinrl" / "seed0" / "agent"
-    if (template / "rl_config.json").is_file():  # the settings the TwinRL runs had
-        rl = RLConfig.load(template)
-    else:  # the run stopped before real RL: the pipeline's settings
-        rl = RLConfig.for_method("twinrl", offline_steps=_preset_offline_steps(run))
-    settings = RealRLSettings(
-        task=task,
-        init=str(run / "stage2" / "agent"),
-        out=str(out),
-        demos=[str(run / "stage1" / "real"), str(run / "stage1" / "twin" / "dataset")],
-        twin_buffer=str(run / "stage2" / "twin_buffer") if twin_buffer else None,
-        show_resets=False,
-        rl=replace(rl, seed=seed),
-    )
+    stage1 = stage1_paths(run / "stage1", p.policy)
+    job = RealRLJob(task, p, method, seed, out, stage1, run / "stage2", run / "targets.json")
+    # Resets and targets play no part before the first robot step.
+    settings = replace(real_rl_settings(job), targets=None, refresh_every=0, show_resets=False)
     real = RealRL.start(settings)
     try:
         real.run_state.pretrain()
     finally:
         real.close()
     return real.run_state.agent.policy
-
-
-def _preset_offline_steps(run: Path) -> int:
-    from twinrl_learn.pipeline import PRESETS
-
-    recorded = json.loads((run / "run.json").read_text())
-    preset = recorded["preset"]
-    if "settings" in recorded:  # a custom preset (run_demo with a Preset)
-        return recorded["settings"]["offline_steps"]
-    if preset not in PRESETS:
-        raise ValueError(f"{run} was made with preset '{preset}', which this version lacks")
-    return PRESETS[preset].offline_steps
 
 
 def measure_stages(
@@ -145,10 +131,9 @@ def measure_stages(
             if on_evaluation is not None:
                 on_evaluation(i * len(candidates) + index, total, f"seed {k}: {c.label}")
             if c.checkpoint is None:
-                name = f"offline_{'with' if c.twin_buffer else 'without'}_buffer_seed{k}"
                 with tempfile.TemporaryDirectory() as scratch:  # the run's logs hold nothing
-                    policy = _offline_policy(s.run, Path(scratch) / "run", k, c.twin_buffer)
-                runner = TwinrlRunner(policy, name=name)
+                    policy = _offline_policy(s.run, Path(scratch) / "run", k, c.method)
+                runner = TwinrlRunner(policy, name=f"offline:{c.method.slug}:seed{k}")
             else:
                 runner = TwinrlRunner(c.checkpoint)
             report = evaluate(
