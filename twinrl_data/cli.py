@@ -22,8 +22,9 @@ from twinrl_data.lerobot_io import (
     missing_contract_fields,
     open_dataset,
 )
-from twinrl_data.mcap_log import read_episode, recover
-from twinrl_data.session import Session, is_session
+from twinrl_data.mcap_log import recover
+from twinrl_data.session import Session
+from twinrl_data.sources import open_episodes
 
 app = typer.Typer(
     help="Episode logs: recover MCAP, export/import LeRobot datasets, catalog.",
@@ -102,21 +103,6 @@ def recover_command(
     )
 
 
-def episodes_of(source: Path, where: str | None) -> tuple[Iterator[contract.Episode], int]:
-    """Episodes of a session folder, an .mcap file or a catalog (filtered by ``where``)."""
-    if source.suffix == ".parquet":
-        table = catalog_lib.query(source, where=where)
-        return catalog_lib.load_selected(table), table.num_rows
-    if where is not None:
-        raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
-    if source.suffix == ".mcap":
-        return iter([read_episode(source)]), 1
-    if is_session(source):
-        paths = Session(source).episode_paths()
-        return (read_episode(p) for p in paths), len(paths)
-    raise DataError(f"{source} is not a session folder, an .mcap episode or a catalog .parquet")
-
-
 @app.command("export")
 def export_command(
     source: Annotated[
@@ -132,7 +118,9 @@ def export_command(
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
 ) -> None:
     """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved)."""
-    episodes, count = episodes_of(source, where)
+    if where is not None and source.suffix != ".parquet":
+        raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
+    episodes, count = open_episodes(source, where=where)
     export_with_progress(episodes, count, to, repo_id=repo_id, force=force)
 
 

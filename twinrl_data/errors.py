@@ -1,7 +1,16 @@
-"""The errors twinrl_data raises: every one says what is wrong and how to fix it."""
+"""The project's errors: every one says what is wrong and how to fix it.
+
+:class:`TwinrlError` is the root; each package raises its own subclasses. They derive
+from ``ValueError`` because every one of them is a value the caller passed (a file, a
+setting, a robot) that cannot be used as given.
+"""
 
 
-class DataError(ValueError):
+class TwinrlError(ValueError):
+    """Something the caller gave twinrl cannot be used as given."""
+
+
+class DataError(TwinrlError):
     """A log, dataset or catalog cannot be used as given."""
 
 

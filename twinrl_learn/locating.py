@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,9 +28,7 @@ import numpy as np
 import torch
 
 from twinrl_data import schema as contract
-from twinrl_data.cli import episodes_of
-from twinrl_data.errors import DataError
-from twinrl_data.lerobot_io import iter_dataset_episodes
+from twinrl_data.sources import open_episodes
 from twinrl_learn.policy import Policy
 
 # TCP-to-object distances (cm) that split the frames: grasping, approaching, reaching.
@@ -59,23 +57,6 @@ class ObjectErrors:
             "first_frame_cm": float(np.median([e[0] for e in self.error_cm])),
             "episodes": len(self.error_cm),
         }
-
-
-def episodes_from(source: Path) -> tuple[Iterable[contract.Episode], int]:
-    """The episodes of a LeRobot dataset folder, or of whatever ``twinrl data`` reads (a
-    session folder, an .mcap file, a catalog .parquet), and how many there are."""
-    info = source / "meta" / "info.json"
-    if info.is_file():
-        return iter_dataset_episodes(source), int(json.loads(info.read_text())["total_episodes"])
-    try:
-        return episodes_of(source, where=None)
-    except DataError:
-        if source.suffix == ".parquet":
-            raise  # a catalog that could not be read says why
-        raise ValueError(
-            f"{source} is not a session folder, an .mcap episode, a catalog .parquet or a "
-            "LeRobot dataset folder"
-        ) from None
 
 
 def _object_names(policy: Policy, episode: contract.Episode) -> list[str]:
@@ -127,7 +108,7 @@ def locating_errors(
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
-    opened = {label: episodes_from(Path(source)) for label, source in sources.items()}
+    opened = {label: open_episodes(Path(source)) for label, source in sources.items()}
     if on_start is not None:
         on_start(sum(count for _, count in opened.values()))
     results: dict[str, dict[str, dict[str, ObjectErrors]]] = {}

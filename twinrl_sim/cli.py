@@ -99,23 +99,9 @@ def effects() -> None:
 
 def load_target(target: str, default_episode: int) -> Episode:
     """An episode from ``PATH`` or ``PATH#N``: an .mcap file, a session or a dataset."""
-    from twinrl_data.lerobot_io import iter_dataset_episodes
-    from twinrl_data.mcap_log import read_episode
-    from twinrl_data.session import Session, is_session
+    from twinrl_data.sources import open_episode
 
-    path_text, _, index_text = target.partition("#")
-    index = int(index_text) if index_text else default_episode
-    path = Path(path_text)
-    if path.suffix == ".mcap":
-        return read_episode(path)
-    if is_session(path):
-        paths = Session(path).episode_paths()
-        if not 0 <= index < len(paths):
-            raise ValueError(f"{path} has {len(paths)} episodes; --episode {index} is out of range")
-        return read_episode(paths[index])
-    if (path / "meta" / "info.json").is_file():
-        return next(iter_dataset_episodes(path, episodes=[index]))
-    raise ValueError(f"{path} is not an .mcap episode, a session or a LeRobotDataset")
+    return open_episode(target, default_episode)
 
 
 def twin_link_frames(episode: Episode) -> LinkFrames | None:
@@ -320,22 +306,6 @@ gap_app = typer.Typer(
 )
 
 
-def load_episodes(paths: list[Path], *, images: bool = False) -> list[Episode]:
-    """Every episode of the sessions, .mcap files and LeRobotDatasets found under
-    ``paths`` (the catalog's discovery), with camera images only if ``images``."""
-    from twinrl_data.catalog import discover
-    from twinrl_data.lerobot_io import iter_dataset_episodes
-    from twinrl_data.mcap_log import read_episode
-
-    mcaps, datasets = discover(paths)
-    episodes = [read_episode(p, images=images) for p in mcaps]
-    for root in datasets:
-        episodes += list(iter_dataset_episodes(root, cameras=None if images else []))
-    if not episodes:
-        raise ValueError("no episodes found in the given paths")
-    return episodes
-
-
 @gap_app.command("localize")
 def localize_command(
     measured: Annotated[
@@ -350,11 +320,12 @@ def localize_command(
     """Replay measured episodes in the twin (restarting from the measurement every
     --window steps) and show where they disagree: RMS, bias, gain and lag per signal,
     split by motion regime."""
+    from twinrl_data.sources import discover_episodes
     from twinrl_sim.gap.localize import localize, plot_localization
     from twinrl_sim.gap.shooting import replay_windows
 
     scene = twin_scene(twin)
-    episodes = load_episodes(measured)
+    episodes = discover_episodes(measured)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
     replays = []
@@ -432,6 +403,7 @@ def diagnose_command(
     measured episodes (mujoco.sysid over shooting windows), keep the one that held-out
     episodes and BIC support, repeat until none is significant, and write the fitted
     twin with a report of the gap before and after."""
+    from twinrl_data.sources import discover_episodes
     from twinrl_sim.gap.diagnose import diagnose
     from twinrl_sim.gap.identify import NoiseFloor
     from twinrl_sim.gap.localize import localize
@@ -446,7 +418,7 @@ def diagnose_command(
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
     images = allowed is None or any(e in allowed for e in IMAGE_EFFECTS)
-    episodes = load_episodes(measured, images=images)
+    episodes = discover_episodes(measured, images=images)
     with progress() as bar:
         job = bar.add_task("diagnose", total=None)
         diagnosis = diagnose(

@@ -1,0 +1,89 @@
+"""The recorder every producer of episodes writes through.
+
+Shaped like LeRobot's dataset writer: :meth:`Recorder.start_episode` with the
+episode's metadata, :meth:`Recorder.add_frame` once per control step (a dict keyed by
+contract field, see :mod:`twinrl_data.schema`), :meth:`Recorder.save_episode` at the
+end. Frames stream straight into the episode's MCAP file (chunked, so a killed recorder
+loses at most the last second); the target is a :class:`~twinrl_data.session.Session`
+(which keeps its manifest current) or an :class:`EpisodeFolder` (loose files that a
+parent process registers later, as parallel synthesis does).
+
+    >>> recorder = Recorder(Session.create(path))          # doctest: +SKIP
+    >>> recorder.start_episode(meta)                      # doctest: +SKIP
+    >>> for frame in frames: recorder.add_frame(frame)    # doctest: +SKIP
+    >>> recorder.save_episode()                           # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+from twinrl_data.errors import DataError
+from twinrl_data.mcap_log import EpisodeWriter
+from twinrl_data.schema import EpisodeMeta
+
+
+class EpisodeTarget(Protocol):
+    """Where a recorder puts episodes: opens one writer per episode."""
+
+    def record(self, meta: EpisodeMeta, **writer_options: Any) -> EpisodeWriter: ...
+
+
+class EpisodeFolder:
+    """Episodes as loose files ``<folder>/<prefix><episode_id>.mcap``."""
+
+    def __init__(self, folder: str | Path, prefix: str = "") -> None:
+        self.folder, self.prefix = Path(folder), prefix
+
+    def record(self, meta: EpisodeMeta, **writer_options: Any) -> EpisodeWriter:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        return EpisodeWriter(
+            self.folder / f"{self.prefix}{meta.episode_id}.mcap", meta, **writer_options
+        )
+
+
+class Recorder:
+    """Records one episode at a time into ``target`` (see the module docstring)."""
+
+    def __init__(self, target: EpisodeTarget, **writer_options: Any) -> None:
+        self.target = target
+        self.writer_options = writer_options
+        self._writer: EpisodeWriter | None = None
+        self.saved: EpisodeMeta | None = None  # the last saved episode's final metadata
+
+    @property
+    def recording(self) -> bool:
+        """Whether an episode is open."""
+        return self._writer is not None
+
+    @property
+    def frames(self) -> int:
+        """Frames added to the open episode (0 when none is open)."""
+        return self._writer.steps if self._writer is not None else 0
+
+    def start_episode(self, meta: EpisodeMeta) -> None:
+        if self._writer is not None:
+            raise DataError(
+                f"episode {self._writer.meta.episode_id} is still open; save_episode() first"
+            )
+        self._writer = self.target.record(meta, **self.writer_options)
+
+    def add_frame(self, frame: Mapping[str, Any]) -> None:
+        """Write one control step; a frame that breaks the contract is an error naming
+        every problem, and nothing of it is written."""
+        self._require_open().append(frame)
+
+    def save_episode(self, *, success: bool | None = None) -> Path:
+        """Close the episode (``success`` defaults to the last frame's ``next.success``)
+        and return its file."""
+        writer = self._require_open()
+        self._writer = None
+        self.saved = writer.close(success=success)
+        return writer.path
+
+    def _require_open(self) -> EpisodeWriter:
+        if self._writer is None:
+            raise DataError("no episode is open; call start_episode(meta) first")
+        return self._writer
