@@ -207,6 +207,10 @@ def eval_command(
 
     if task not in TASKS:
         make_task(task)  # raises with the nearest task name
+    if world not in ("twin", "plant"):
+        raise ValueError(f"--world must be twin or plant, got '{world}'")
+    if world == "twin" and effects is not None:
+        raise ValueError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
@@ -513,6 +517,14 @@ def train_real_rl_command(
             "stretch for the critic (a success earns 10)."
         ),
     ] = RewardSettings.takeover,
+    learner_sync: Annotated[
+        bool,
+        typer.Option(
+            help="Between episodes, wait for the learner (its own thread) to run every update "
+            "the episode bought, so a seed gives the same run; off, take the weights it has "
+            "reached. The robot loop never waits for an update either way."
+        ),
+    ] = True,
     seed: Annotated[int, typer.Option(help="Seed (networks, resets, sensor noise).")] = 0,
     resume: ResumeOption = False,
 ) -> None:
@@ -566,9 +578,11 @@ def train_real_rl_command(
         eval_grid=_grid(eval_grid, "--eval-grid"),
         eval_episodes=eval_episodes,
         operator=OperatorRule(funnel=funnel, correct_within=correct_within) if operator else None,
+        learner_sync=learner_sync,
         rl=rl,
     )
-    torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
+    # Small networks: one thread each for the actor and the learner.
+    torch.set_num_threads(1)
     data_cli.quiet_encoders()
     job_run = RealRL.resume(settings) if resume else RealRL.start(settings)
     with data_cli.progress("ID", "OOD", "interventions") as bar:

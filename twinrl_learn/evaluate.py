@@ -21,12 +21,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
-from twinrl_learn.runners import Runner
-from twinrl_robot.plant import Plant
-from twinrl_sim.env import TwinEnv
-from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
+from twinrl_learn.runners import Runner, RunnerSource
+from twinrl_robot.backends import open_robot
+from twinrl_robot.loop import privileged_success, run_episode
+from twinrl_sim.tasks import REGION_NAMES, TaskConfig, make_task
 
 
 @dataclass
@@ -118,21 +118,13 @@ def evaluate(
     on_episode: Callable[[Cell, bool], None] | None = None,
 ) -> EvalReport:
     """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``."""
-    if world not in ("twin", "plant"):
-        raise ValueError(f"--world must be twin or plant, got '{world}'")
-    if world == "twin" and effects is not None:
-        raise ValueError("--effects applies to --world plant only")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"{out} exists and is not empty; choose another --out")
+    task = make_task(task_name)
+    robot = open_robot(world, task, effects=effects, seed=seed, cameras=runner.cameras)
     cells = grid_cells(task_name, grid)
-    session = Session.create(out / "session")
-    if world == "twin":
-        env = TwinEnv(task_name, images=runner.needs_images, cameras=runner.cameras or None)
-        task = env.task
-    else:
-        plant = Plant(task_name, effects=effects, seed=seed, images=runner.cameras)
-        task = plant.task
+    recorder = Recorder(Session.create(out / "session"))
     rng = np.random.default_rng(seed)
     # Runners re-seed torch for every episode; a caller that is training (real RL,
     # mining between its episodes) gets its random stream back as it was.
@@ -141,54 +133,30 @@ def evaluate(
         for cell in cells:
             for _ in range(episodes):
                 config = _cell_config(task, cell, rng)
-                runner.reset(task, config, seed=int(rng.integers(2**31)))
-                if world == "twin":
-                    obs, info = env.reset(options={"config": config})
-                    names = env.cell.contract_names()
-                else:
-                    obs = plant.reset(config)
-                    names = plant.contract_names()
-                meta = EpisodeMeta(
-                    task=task.name,
-                    instruction=task.instruction,
+                source = RunnerSource(runner, seed=int(rng.integers(2**31)))
+                meta = task.episode_meta(
                     source="eval",
                     world=world,
+                    names=robot.names,
+                    config=config,
                     region=cell.region,
-                    config=config.to_dict(),
-                    twin=task.scene.digest,
                     policy=runner.name,
-                    names=names,
                 )
-                success = False
-                with session.record(meta) as log:
-                    for t in range(task.max_steps):
-                        action = np.asarray(runner.act(obs), np.float32)
-                        if world == "twin":
-                            next_obs, _, terminated, _, info = env.step(action)
-                            success, target = bool(terminated), info["command.joint_target"]
-                        else:
-                            plant.act(action)
-                            next_obs, success, target = (
-                                plant.observe(),
-                                plant.success,
-                                plant.last_joint_target,
-                            )
-                        done = success or t == task.max_steps - 1
-                        reward = task.reward(Progress(success=success), "sparse")
-                        log.append(
-                            step_record(
-                                obs, action, target, reward, done, success, action_policy=action
-                            )
-                        )
-                        obs = next_obs
-                        if success:
-                            break
+                outcome = run_episode(
+                    robot,
+                    source,
+                    task,
+                    config,
+                    judge=privileged_success(robot),
+                    recorder=recorder,
+                    meta=meta,
+                )
                 cell.episodes += 1
-                cell.successes += success
+                cell.successes += outcome.success
                 if on_episode is not None:
-                    on_episode(cell, success)
+                    on_episode(cell, outcome.success)
     finally:
-        (env if world == "twin" else plant).close()
+        robot.close()
         torch.set_rng_state(torch_state)
     report = EvalReport(task=task_name, world=world, policy=runner.name, cells=cells)
     (out / "eval.json").write_text(json.dumps(report.to_json(), indent=1))

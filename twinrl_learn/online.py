@@ -122,14 +122,27 @@ class OnlineRun:
     # -------------------------------------------------------------- learning
     def learn(self, env_steps: int) -> dict[str, float]:
         """Count ``env_steps`` new environment steps and run the updates they buy
-        (``utd`` per step); returns the last update's metrics."""
-        agent = self.agent
-        agent.env_steps += env_steps
-        self._pending_updates += agent.config.utd * env_steps
+        (``utd`` per step) here and now; returns the last update's metrics. (Real RL runs
+        them apart from the robot loop instead: :mod:`twinrl_learn.learner`.)"""
+        self.count_steps(env_steps)
         metrics: dict[str, float] = {}
-        while self._pending_updates >= 1:
-            metrics = self.update()
-            self._pending_updates -= 1
+        while self.updates_due():
+            metrics = self.update_due()
+        return metrics
+
+    def count_steps(self, env_steps: int) -> None:
+        """Count new environment steps; each buys ``utd`` updates."""
+        self.agent.env_steps += env_steps
+        self._pending_updates += self.agent.config.utd * env_steps
+
+    def updates_due(self) -> bool:
+        """Whether the steps counted so far have bought an update not yet run."""
+        return self._pending_updates >= 1
+
+    def update_due(self) -> dict[str, float]:
+        """Run one update that the counted steps bought."""
+        metrics = self.update()
+        self._pending_updates -= 1
         return metrics
 
     def update(self) -> dict[str, float]:

@@ -30,7 +30,7 @@ were off by a couple of centimetres or tens of degrees. ``temporal_ensemble = No
 executes each chunk open-loop, as RL's exploring rollouts do (their critic scores the
 chunk it executes).
 
-With ``grasp_hold`` the arm waits for the gripper (:class:`GraspHold`), as a blocking
+With ``grasp_hold`` the arm waits for the gripper (``HoldRule``), as a blocking
 grasp call does on a real gripper: the demonstrations dwell while the fingers close,
 but a policy's lift comes on its own clock, and the grasps it lost were lifted while
 the fingers were still 3-6 cm apart.
@@ -58,7 +58,7 @@ from torch import nn
 
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 from twinrl_learn.settings import check_inputs
-from twinrl_sim.tasks.expert import FINGERS_STILL, GRIPPER_CLOSED
+from twinrl_robot.wrappers import HoldRule
 
 KINDS = ("vla", "state")
 LOG_STD_RANGE = (-5.0, 1.0)
@@ -67,40 +67,6 @@ EPS = 1e-4
 IMAGE_SHIFT = 4  # pixels of random shift (pad + crop) augmentation
 CONV_KERNELS = {2: (3, 1), 4: (8, 2)}  # convolution stride -> (kernel, padding)
 STATE_NOISE = 0.1  # std of Gaussian noise on normalised state inputs during training
-
-
-class GraspHold:
-    """Holds the arm while the gripper closes: from the step the gripper command turns
-    to close, the arm's motion (the action's first six entries) is zeroed for ``settle``
-    steps and then for as long as the fingers keep moving, so the arm lifts only once
-    they have closed on the object.
-
-    One per episode (:meth:`reset` at its start). Call it at every control step with
-    the observation's ``observation.state`` (whose last entry is ``gripper.opening``)
-    and the action about to be executed; ``applies=False`` (an operator's action) keeps
-    track of the gripper without changing the action.
-    """
-
-    def __init__(self, settle: int = 2) -> None:
-        self.settle = settle
-        self.reset()
-
-    def reset(self) -> None:
-        self._closing_steps = 0
-        self._opening: float | None = None
-
-    def __call__(self, state: np.ndarray, action: np.ndarray, applies: bool = True) -> np.ndarray:
-        opening = float(state[-1])
-        moving = self._opening is not None and abs(opening - self._opening) >= FINGERS_STILL
-        self._opening = opening
-        if action[-1] < GRIPPER_CLOSED:
-            self._closing_steps = 0
-            return action
-        self._closing_steps += 1
-        if applies and (self._closing_steps <= self.settle or moving):
-            action = action.copy()
-            action[:6] = 0.0
-        return action
 
 
 @dataclass
@@ -133,7 +99,7 @@ class PolicyConfig:
     # per region): 89 / 89, 91 / 83 and 89 / 91 % (ID / OOD) against 80 / 75, 72 / 75 and
     # 80 / 89 % open-loop.
     temporal_ensemble: float | None = 0.01
-    # Acting, hold the arm while the gripper closes (GraspHold). Measured with four
+    # Acting, hold the arm while the gripper closes (HoldRule). Measured with four
     # state policies of a quick run (Stage I, Stage II, two after real RL; 64 plant
     # episodes per region each): 398 successes in 512 episodes against 387 without, and
     # no policy lost any; with Table I's four image policies (32 per region), whose
@@ -251,7 +217,7 @@ class Policy(nn.Module):
             self.locator = nn.Linear(c.hidden, 3 * len(c.object_indices))
         self.instructions = InstructionCache(c.instructions)
         self._predictions: list[np.ndarray] = []  # the unexecuted rest of each chunk
-        self._grasp_hold = GraspHold()
+        self._grasp_hold = HoldRule()
         self._stats = {k: {s: torch.tensor(v) for s, v in d.items()} for k, d in c.stats.items()}
 
     @property
@@ -424,13 +390,19 @@ class Policy(nn.Module):
         return actions, log_prob.sum(dim=(-1, -2))
 
     def sample(
-        self, batch: dict[str, torch.Tensor], deterministic: bool = False, std_scale: float = 1.0
+        self,
+        batch: dict[str, torch.Tensor],
+        deterministic: bool = False,
+        std_scale: float = 1.0,
+        generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """Normalised actions: the mode, or a draw with the spread scaled by ``std_scale``."""
+        """Normalised actions: the mode, or a draw with the spread scaled by ``std_scale``
+        (from ``generator``, or torch's global stream when ``None``)."""
         mean, log_std = self.distribution(batch)
         if deterministic:
             return torch.tanh(mean)
-        return torch.tanh(mean + std_scale * log_std.exp() * torch.randn_like(mean))
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        return torch.tanh(mean + std_scale * log_std.exp() * noise)
 
     # ------------------------------------------------------------ normalising
     def _action_range(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -550,10 +522,12 @@ class Policy(nn.Module):
         instructions: list[str],
         deterministic: bool = True,
         std_scale: float = 1.0,
+        generator: torch.Generator | None = None,
     ) -> np.ndarray:
-        """Action chunks (B, chunk, A) in physical units for a batch of observations."""
+        """Action chunks (B, chunk, A) in physical units for a batch of observations
+        (sampled from ``generator`` unless ``deterministic``; see :meth:`sample`)."""
         batch = self.observation_inputs(observations, instructions)
-        actions = self.sample(batch, deterministic, std_scale)
+        actions = self.sample(batch, deterministic, std_scale, generator)
         return self.unnormalize_action(actions).numpy().astype(np.float32)
 
     def act(
@@ -564,7 +538,7 @@ class Policy(nn.Module):
         With ``chunk > 1`` and ``temporal_ensemble`` set, it predicts a chunk at every
         step and returns the weighted average of every prediction made for this step;
         without ``temporal_ensemble`` it executes each chunk in turn before looking again.
-        With ``grasp_hold`` the arm holds while the gripper closes (:class:`GraspHold`).
+        With ``grasp_hold`` the arm holds while the gripper closes (``HoldRule``).
         :meth:`reset` starts afresh.
         """
         action = self._next_action(observation, instruction, deterministic)
@@ -593,7 +567,7 @@ class Policy(nn.Module):
         """Forget the predictions made so far and the gripper's state (call at each
         episode start)."""
         self._predictions = []
-        self._grasp_hold = GraspHold()
+        self._grasp_hold = HoldRule()
 
     @property
     def needs_images(self) -> bool:

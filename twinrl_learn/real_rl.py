@@ -8,14 +8,19 @@ latest weights (:func:`twinrl_learn.mining.mine`). Each reset configuration is
 rendered from the twin and logged to a Rerun recording, which shows an operator of a
 real cell where to put the object; the plant resets programmatically.
 
-While the policy acts (one sampled action chunk at a time, the arm held while the
-gripper closes when the policy's ``grasp_hold`` says so), an :class:`Operator` may
-take the controls (the plant's :class:`~twinrl_robot.operator.SimulatedOperator`, a
-teleop device on a real cell); its steps are flagged ``intervention`` and the episode
-joins the demo buffer; a takeover ends the policy's stretch for the critic (see
-:mod:`twinrl_learn.replay`). The replay buffer starts as the twin buffer
-(D_real <- D_twin), the demo buffer as the real demos, and, with ``keep_critic``, the
-critic as Stage II's. The agent takes ``utd`` updates per robot step.
+Each episode runs the robot loop (:func:`twinrl_robot.loop.run_episode`): the actor
+samples the policy's action chunks, and the robot is wrapped in an operator's takeover
+(:class:`~twinrl_robot.wrappers.OperatorTakeover`: the plant's
+:class:`~twinrl_robot.operator.SimulatedOperator`, a teleop device on a real cell) and,
+when the policy's ``grasp_hold`` says so, the grasp hold. The operator's steps are
+flagged ``intervention`` and the episode joins the demo buffer; a takeover ends the
+policy's stretch for the critic (see :mod:`twinrl_learn.replay`). The replay buffer
+starts as the twin buffer (D_real <- D_twin), the demo buffer as the real demos, and,
+with ``keep_critic``, the critic as Stage II's.
+
+The loop never waits for learning: each robot step grants the :class:`Learner` ``utd``
+updates, which it runs in its own thread while the arm moves; between episodes the
+actor takes the new weights (after the learner has caught up, with ``learner_sync``).
 
 Plant time counts robot steps only (10 Hz: 600 steps = 1 min). Progress is measured
 every ``eval_every`` robot steps by evaluating the deterministic policy on a fixed
@@ -29,35 +34,48 @@ Outputs (besides :mod:`twinrl_learn.online`'s)::
     out/resets-<episode>.rrd   each episode's reset configuration rendered from the twin
     out/evaluations.json       [{"plant_steps", "plant_minutes", "success_rate"}, ...]
     out/curve.png              evaluation success per region against plant minutes
+    out/timing.json            the control loop's period (p50 / p99 / max, s) this session
 """
 
 from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import torch
 
-from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_data.recorder import Recorder
 from twinrl_learn.agent import Agent
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
 from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
-from twinrl_learn.policy import GraspHold, Policy
+from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.settings import RLConfig
+from twinrl_robot.backends import open_robot
+from twinrl_robot.loop import privileged_success, run_episode
 from twinrl_robot.operator import Operator, OperatorRule, SimulatedOperator
-from twinrl_robot.plant import Plant
+from twinrl_robot.robot import Robot
+from twinrl_robot.wrappers import (
+    GraspHold,
+    OperatorTakeover,
+    random_states,
+    restore_random_states,
+)
 from twinrl_sim.env import TwinEnv
-from twinrl_sim.tasks import REGION_NAMES, Progress, Task, TaskConfig, make_task
+from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
 
 ROBOTS = ("plant",)
 EVALUATIONS_FILE = "evaluations.json"
+TIMING_FILE = "timing.json"
 
 
 @dataclass
@@ -90,6 +108,10 @@ class RealRLSettings:
     eval_episodes: int = 1  # per grid cell
     operator: OperatorRule | None = field(default_factory=OperatorRule)  # None: no operator
     show_resets: bool = True  # render each reset configuration to a Rerun recording
+    # Between episodes, wait for the learner to run every update the episode bought
+    # (exactly ``utd`` per robot step, so a seed gives the same run); off, the actor
+    # takes whatever weights the learner has reached (a cell that cannot wait).
+    learner_sync: bool = True
     rl: RLConfig = field(default_factory=RLConfig)
 
     def __post_init__(self) -> None:
@@ -142,6 +164,36 @@ def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, Re
     return demo, ReplayBuffer.from_datasets(twin, cameras=cameras, rewards=rewards)
 
 
+class PolicySource:
+    """The actor: samples the policy's action chunks (spread scaled by ``exploration``,
+    drawn from its own ``generator``) and executes each open-loop; after an operator's
+    step it looks afresh."""
+
+    def __init__(self, policy: Policy, exploration: float, generator: torch.Generator) -> None:
+        self.policy, self.exploration, self.generator = policy, exploration, generator
+        self._instruction = ""
+        self._queue: list[np.ndarray] = []
+
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        self._instruction, self._queue = task.instruction, []
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        if not self._queue:
+            batch = {k: np.asarray(v)[None] for k, v in observation.items()}
+            chunks = self.policy.act_chunks(
+                batch,
+                [self._instruction],
+                deterministic=False,
+                std_scale=self.exploration,
+                generator=self.generator,
+            )
+            self._queue = list(chunks[0])
+        return self._queue.pop(0)
+
+    def interrupted(self) -> None:
+        self._queue = []
+
+
 class RealRL:
     """A Stage III run; build with :meth:`start` or :meth:`resume`, then :meth:`run`."""
 
@@ -151,20 +203,38 @@ class RealRL:
         self.out = Path(settings.out)
         self.operator = operator
         policy = run.agent.policy
-        cameras = tuple(policy.config.cameras) if policy.needs_images else ()
-        self.plant = Plant(
-            self.task, effects=settings.effects, seed=settings.rl.seed, images=cameras
+        self.robot = self._open_robot(policy, operator)
+        seed = settings.rl.seed
+        self.rng = np.random.default_rng([seed, 1])  # the actor's: resets
+        self.actor = actor_copy(policy)
+        self.source = PolicySource(
+            self.actor, run.agent.config.exploration, torch.Generator().manual_seed(seed + 1)
         )
         extra = run.extra
-        if "plant_rng" in extra:
-            self.plant.rng.bit_generator.state = extra["plant_rng"]
+        if "robot_rng" in extra:
+            restore_random_states(self.robot, extra["robot_rng"])
+            self.rng.bit_generator.state = extra["actor_rng"]
+            self.source.generator.set_state(torch.tensor(extra["actor_torch"], dtype=torch.uint8))
         if isinstance(operator, SimulatedOperator) and "operator_rng" in extra:
             operator.rng.bit_generator.state = extra["operator_rng"]
         targets = load_targets(extra["targets"]) if extra.get("targets") else []
         self.resets = ResetPlanner(self.task, targets, settings.target_ratio)
         self.evaluations = [EvalPoint(**p) for p in extra.get("evaluations", [])]
+        self.periods: list[float] = []  # the control loop's, this session (s)
+        self._learner: Learner | None = None
         self._render_env: TwinEnv | None = None
         self._recording: rr.RecordingStream | None = None
+
+    def _open_robot(self, policy: Policy, operator: Operator | None) -> Robot:
+        """The cell, with the operator's takeover under the policy's grasp hold."""
+        s = self.settings
+        cameras = tuple(policy.config.cameras) if policy.needs_images else ()
+        robot = open_robot(s.robot, self.task, effects=s.effects, seed=s.rl.seed, cameras=cameras)
+        if operator is not None:
+            robot = OperatorTakeover(robot, operator, self.task)
+        if policy.config.grasp_hold:
+            robot = GraspHold(robot)
+        return robot
 
     # ------------------------------------------------------------ lifecycle
     @classmethod
@@ -197,12 +267,19 @@ class RealRL:
         return cls(settings, run, _operator(settings, operator))
 
     def checkpoint(self) -> None:
+        """Save everything :meth:`resume` needs (between episodes, no update running)."""
         extra = self.run_state.extra
-        extra["plant_rng"] = self.plant.rng.bit_generator.state
+        extra["robot_rng"] = random_states(self.robot)
+        extra["actor_rng"] = self.rng.bit_generator.state
+        extra["actor_torch"] = self.source.generator.get_state().tolist()
         if isinstance(self.operator, SimulatedOperator):
             extra["operator_rng"] = self.operator.rng.bit_generator.state
         extra["evaluations"] = [asdict(p) for p in self.evaluations]
-        self.run_state.checkpoint()
+        if self._learner is None:
+            self.run_state.checkpoint()
+            return
+        with self._learner.paused() as run:
+            run.checkpoint()
 
     # ------------------------------------------------------------------ run
     def run(
@@ -216,7 +293,9 @@ class RealRL:
         try:
             if run.agent.updates < run.agent.config.offline_steps and not run.history:
                 run.pretrain(on_update)
+                self.actor.load_state_dict(run.agent.policy.state_dict())
                 self.checkpoint()
+            self._learner = Learner(run)
             if not self.evaluations:
                 self.evaluate()
                 self.checkpoint()
@@ -224,7 +303,7 @@ class RealRL:
                 episode_index = len(run.history)
                 if self._refresh_due(episode_index):
                     self.refresh_targets(episode_index)
-                config, region, origin = self.resets.next(run.rng)
+                config, region, origin = self.resets.next(self.rng)
                 self._show_reset(episode_index, config, region, origin)
                 record = self.episode(config, region, origin)
                 if self._evaluation_due():
@@ -240,10 +319,14 @@ class RealRL:
         plot_evaluations(
             self.evaluations, self.out / "curve.png", title=f"real RL: {self.task.name}"
         )
+        (self.out / TIMING_FILE).write_text(json.dumps(loop_timing(self.periods), indent=1))
         return run
 
     def close(self) -> None:
-        self.plant.close()
+        if self._learner is not None:
+            self._learner.close()
+            self._learner = None
+        self.robot.close()
         if self._render_env is not None:
             self._render_env.close()
             self._render_env = None
@@ -254,77 +337,39 @@ class RealRL:
 
     # -------------------------------------------------------------- episodes
     def episode(self, config: TaskConfig, region: str, origin: str) -> RoundRecord:
-        """One robot episode from ``config``: policy chunks, operator takeovers, one
-        update batch per step; logged (source ``real_rl``) and added to the buffers."""
-        run, task, plant = self.run_state, self.task, self.plant
-        agent = run.agent
-        obs = plant.reset(config)
-        if self.operator is not None:
-            self.operator.reset(task, config)
-        meta = EpisodeMeta(
-            task=task.name,
-            instruction=task.instruction,
+        """One robot episode from ``config`` (the robot loop, logged as ``real_rl``); the
+        learner updates meanwhile; then the episode joins the buffers and the actor takes
+        the new weights."""
+        run, learner = self.run_state, self._learner
+        if learner is None:
+            raise RuntimeError("RealRL.episode runs inside RealRL.run, which starts the learner")
+        meta = self.task.episode_meta(
             source="real_rl",
-            world="plant",
+            world=self.robot.world,
+            names=self.robot.names,
+            config=config,
             region=region,
-            config=config.to_dict(),
-            twin=task.scene.digest,
-            policy=f"rl:{agent.config.method}",
-            names=plant.contract_names(),
+            policy=f"rl:{run.agent.config.method}",
             operator="simulated" if isinstance(self.operator, SimulatedOperator) else None,
         )
-        queue: list[np.ndarray] = []
-        intervening = False
-        hold = GraspHold() if agent.policy.config.grasp_hold else None
-        metrics: dict[str, float] = {}
-        with run.session.record(meta) as log:
-            for t in range(task.max_steps):
-                action = None
-                if self.operator is not None:
-                    action = self.operator.intervene(obs, plant.progress)
-                proposed = None
-                if action is not None:
-                    if not intervening:
-                        plant.hold()  # the operator starts from where the arm is
-                    queue = []  # the policy looks afresh once it has the controls back
-                else:
-                    if not queue:
-                        batch = {k: np.asarray(v)[None] for k, v in obs.items()}
-                        queue = list(
-                            agent.policy.act_chunks(
-                                batch,
-                                [task.instruction],
-                                deterministic=False,
-                                std_scale=agent.config.exploration,
-                            )[0]
-                        )
-                    action = proposed = queue.pop(0)
-                if hold is not None:
-                    action = hold(obs["observation.state"], action, applies=proposed is not None)
-                intervening = proposed is None
-                plant.act(action)
-                success = plant.success
-                done = success or t == task.max_steps - 1
-                reward = task.reward(Progress(success=success), "sparse")
-                log.append(
-                    step_record(
-                        obs,
-                        action,
-                        plant.last_joint_target,
-                        reward,
-                        done,
-                        success,
-                        action_policy=proposed,
-                        intervention=proposed is None,
-                    )
-                )
-                obs = plant.observe()
-                metrics = run.learn(1) or metrics
-                if success:
-                    break
-        episodes = run.add_episodes([log.path])
+        outcome = run_episode(
+            self.robot,
+            self.source,
+            self.task,
+            config,
+            judge=privileged_success(self.robot),
+            recorder=Recorder(run.session),
+            meta=meta,
+            on_step=lambda _t, _sent: learner.grant(1),
+        )
+        self.periods.extend(outcome.periods)
+        if self.settings.learner_sync:
+            learner.wait()
+        assert outcome.path is not None
+        episodes = learner.add_episodes([outcome.path])
+        self.actor.load_state_dict(learner.weights())
         run.extra.setdefault("reset_origins", []).append(origin)
-        return run.record_round(episodes, metrics)
+        return run.record_round(episodes, learner.metrics)
 
     def _refresh_due(self, episode_index: int) -> bool:
         every = self.settings.refresh_every
@@ -339,19 +384,30 @@ class RealRL:
         if path.exists():  # an interrupted refresh: mine afresh
             path.unlink()
             shutil.rmtree(path.with_suffix(""), ignore_errors=True)
-        runner = TwinrlRunner(self.run_state.agent.policy, name=f"rl@{episode_index}")
-        mine(
-            runner,
-            s.task,
-            out=path,
-            grid=s.mining_grid,
-            episodes=s.mining_episodes,
-            tau=s.tau,
-            k=s.k,
-            seed=s.rl.seed + episode_index,
-        )
+        runner = TwinrlRunner(self.actor, name=f"rl@{episode_index}")
+        with self._quiet_learner():
+            mine(
+                runner,
+                s.task,
+                out=path,
+                grid=s.mining_grid,
+                episodes=s.mining_episodes,
+                tau=s.tau,
+                k=s.k,
+                seed=s.rl.seed + episode_index,
+            )
         self.resets.targets = load_targets(path)
         self.run_state.extra["targets"] = str(path)
+
+    @contextmanager
+    def _quiet_learner(self) -> Iterator[None]:
+        """No update runs meanwhile: evaluation and mining re-seed torch's global stream,
+        which the learner's updates draw from."""
+        if self._learner is None:
+            yield
+            return
+        with self._learner.paused():
+            yield
 
     def _evaluation_due(self) -> bool:
         every = self.settings.eval_every
@@ -363,20 +419,21 @@ class RealRL:
         s, steps = self.settings, self.run_state.agent.env_steps
         folder = self.out / "evaluations" / f"{steps:06d}"
         shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
-        runner = TwinrlRunner(self.run_state.agent.policy, name=f"rl@{steps}")
-        report = evaluate(
-            runner,
-            s.task,
-            world="plant",
-            effects=s.effects,
-            grid=s.eval_grid,
-            episodes=s.eval_episodes,
-            seed=10_000 + s.rl.seed,
-            out=folder,
-        )
+        runner = TwinrlRunner(self.actor, name=f"rl@{steps}")
+        with self._quiet_learner():
+            report = evaluate(
+                runner,
+                s.task,
+                world="plant",
+                effects=s.effects,
+                grid=s.eval_grid,
+                episodes=s.eval_episodes,
+                seed=10_000 + s.rl.seed,
+                out=folder,
+            )
         point = EvalPoint(
             plant_steps=steps,
-            plant_minutes=steps / self.plant.control_hz / 60,
+            plant_minutes=steps / self.robot.control_hz / 60,
             success_rate=report.success_rate(),
             episodes=report.episodes,
         )
@@ -409,6 +466,19 @@ def _operator(settings: RealRLSettings, operator: Operator | None) -> Operator |
     if operator is not None or settings.operator is None:
         return operator
     return SimulatedOperator(settings.operator, seed=settings.rl.seed + 7)
+
+
+def loop_timing(periods: list[float]) -> dict[str, float | int]:
+    """The control loop's period (s) over ``periods``: median, 99th percentile, worst."""
+    if not periods:
+        return {"steps": 0}
+    values = np.asarray(periods)
+    return {
+        "steps": len(values),
+        "p50_s": float(np.percentile(values, 50)),
+        "p99_s": float(np.percentile(values, 99)),
+        "max_s": float(values.max()),
+    }
 
 
 def minutes_to(evaluations: list[EvalPoint], region: str, level: float = 0.95) -> float | None:

@@ -33,6 +33,22 @@ class Runner(Protocol):
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray: ...
 
 
+class RunnerSource:
+    """A runner as the robot loop's action source for one episode, seeded with ``seed``."""
+
+    def __init__(self, runner: Runner, seed: int) -> None:
+        self.runner, self.seed = runner, seed
+
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        self.runner.reset(task, config, seed=self.seed)
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        return np.asarray(self.runner.act(observation), np.float32)
+
+    def interrupted(self) -> None:
+        """Evaluations run without an operator; nothing to forget."""
+
+
 class TwinrlRunner:
     """A twinrl policy: a checkpoint folder, or a policy in memory (``name`` then
     labels its episodes) such as the one an RL run is training."""

@@ -25,12 +25,14 @@ import numpy as np
 
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
-from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_data.recorder import Recorder
+from twinrl_data.schema import step_record
 from twinrl_learn.agent import Agent
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
-from twinrl_learn.policy import GraspHold, Policy
+from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.settings import RLConfig
+from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.batch import BatchEnv
 from twinrl_sim.tasks import REGION_NAMES, Progress, make_task
 
@@ -100,27 +102,23 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
     configs = [task.sample_config(run.rng, region) for region in regions]
     obs = env.reset([c.to_dict() for c in configs])
     names = env.cells[0].contract_names()
-    logs = [
-        run.session.record(
-            EpisodeMeta(
-                task=task.name,
-                instruction=task.instruction,
+    recorders = [Recorder(run.session) for _ in range(n)]
+    for recorder, region, config in zip(recorders, regions, configs, strict=True):
+        recorder.start_episode(
+            task.episode_meta(
                 source="twin_rl",
                 world="twin",
-                region=region,
-                config=config.to_dict(),
-                twin=task.scene.digest,
-                policy=f"rl:{agent.config.method}",
                 names=names,
+                config=config,
+                region=region,
+                policy=f"rl:{agent.config.method}",
             )
         )
-        for region, config in zip(regions, configs, strict=True)
-    ]
-    paths = [log.path for log in logs]
+    paths: list[Path] = [Path()] * n  # in env order, whichever ends first
     active = np.ones(n, bool)
     success = np.zeros(n, bool)
     queues: list[list[np.ndarray]] = [[] for _ in range(n)]
-    holds = [GraspHold() for _ in range(n)] if agent.policy.config.grasp_hold else None
+    holds = [HoldRule() for _ in range(n)] if agent.policy.config.grasp_hold else None
     metrics: dict[str, float] = {}
     while active.any():
         need = [i for i in range(n) if active[i] and not queues[i]]
@@ -146,7 +144,7 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
             done = bool(terminated[i] or truncated[i])
             success[i] = bool(terminated[i])
             reward = task.reward(Progress(success=success[i]), "sparse")
-            logs[i].append(
+            recorders[i].add_frame(
                 step_record(
                     {k: v[i] for k, v in obs.items()},
                     actions[i],
@@ -158,7 +156,7 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
                 )
             )
             if done:
-                logs[i].close(success=bool(success[i]))
+                paths[i] = recorders[i].save_episode(success=bool(success[i]))
                 active[i] = False
         obs = next_obs
         metrics = run.learn(len(stepping)) or metrics

@@ -12,9 +12,10 @@ from rich.table import Table
 
 from twinrl_data.cli import progress
 from twinrl_data.session import Session
+from twinrl_robot.backends import WORLDS
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
-from twinrl_robot.scripted import WORLDS, ExpertReport, run_scripted_expert
+from twinrl_robot.scripted import ExpertReport, run_scripted_expert
 from twinrl_sim.tasks import REGION_NAMES, TASKS, task_class, task_on_twin
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
@@ -137,6 +138,8 @@ def excite(
     seed: Annotated[int, typer.Option(help="Seed for phases and object placement.")] = 0,
 ) -> None:
     """Record safe multi-sine joint motions (source ``excitation``) for identification."""
+    if world not in WORLDS:
+        raise ValueError(f"--world must be {' or '.join(WORLDS)}, got '{world}'")
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     settings = ExcitationSettings(duration=duration, amplitude=amplitude)

@@ -20,22 +20,20 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import EFFORT, EpisodeMeta, effort_names, step_record
+from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
-from twinrl_robot.plant import Plant
+from twinrl_robot.backends import open_robot
+from twinrl_robot.loop import JointCommand, run_episode
 from twinrl_sim.build import CompiledScene, compile_scene
-from twinrl_sim.cell import Cell
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.kinematics import TcpKinematics
 from twinrl_sim.robots.ur5e import JOINT_SPEED_LIMIT
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import Task, TaskConfig, make_task
 
-WORLDS = ("twin", "plant")
 # Peak amplitude (rad) of each UR joint's multi-sine before scaling: the wrists move
 # most, the shoulder lift least (it carries the whole arm over the table).
 BASE_AMPLITUDE = (0.5, 0.25, 0.35, 0.6, 0.6, 0.9)
@@ -142,34 +140,24 @@ def safe_trajectory(
     )
 
 
-class _TwinArm:
-    """The twin cell driven by joint targets (noise-free measurements)."""
+class TrajectorySource:
+    """Joint targets sent one per control step (the first is the start pose), with the
+    gripper open; records the end-effector motion each step amounts to."""
 
-    def __init__(self, task: Task) -> None:
-        self.task = task
-        self.cell = Cell(compile_scene(task.scene))
+    def __init__(self, targets: np.ndarray, actions: np.ndarray) -> None:
+        self.targets, self.actions = targets, actions
+        self._step = 0
 
-    def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
-        self.task.start(self.cell, config)
-        return self.observe()
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        self._step = 0
 
-    def observe(self) -> dict[str, np.ndarray]:
-        return {
-            "observation.state": self.cell.state_vector().astype(np.float32),
-            "observation.environment_state": self.cell.environment_vector().astype(np.float32),
-        }
+    def act(self, observation: dict[str, np.ndarray]) -> JointCommand:
+        t = self._step
+        self._step += 1
+        return JointCommand(self.targets[t + 1], 0.0, self.actions[t])
 
-    def joint_torques(self) -> np.ndarray:
-        return self.cell.joint_torques()
-
-    def servo_joints(self, joint_target: np.ndarray, gripper: float) -> None:
-        self.cell.send(joint_target, gripper)
-
-    def contract_names(self) -> dict[str, list[str]]:
-        return self.cell.contract_names()
-
-    def close(self) -> None:
-        self.cell.close()
+    def interrupted(self) -> None:
+        """Nobody takes the controls from an excitation."""
 
 
 def _tcp_actions(targets: np.ndarray, fk: Callable) -> np.ndarray:
@@ -197,49 +185,40 @@ def run_excitation(
     """Record ``episodes`` excitation episodes into ``session``: ``task``'s built-in cell,
     or ``scene`` (any cell spec, e.g. with a custom robot MJCF) with the task's objects
     placed as the task places them."""
-    if world not in WORLDS:
-        raise ValueError(f"--world must be twin or plant, got '{world}'")
-    if world == "twin" and effects is not None:
-        raise ValueError("--effects applies to --world plant only")
     if episodes < 1:
         raise ValueError(f"--episodes must be at least 1, got {episodes}")
     spec_task = make_task(task, scene)
-    arm: Any = (
-        Plant(spec_task, effects=effects, seed=seed) if world == "plant" else _TwinArm(spec_task)
-    )
+    robot = open_robot(world, spec_task, effects=effects, seed=seed, effort=True)
     scene = compile_scene(spec_task.scene)
     fk = TcpKinematics(scene)
     rng = np.random.default_rng(seed)
+    recorder = Recorder(session)
     paths = []
     try:
         for index in range(episodes):
             config = spec_task.sample_config(rng, "ID")
             targets = safe_trajectory(spec_task, settings, rng, scene)
-            actions = _tcp_actions(targets, fk)
-            meta = EpisodeMeta(
-                task=spec_task.name,
-                instruction="excitation",
+            meta = spec_task.episode_meta(
                 source="excitation",
                 world=world,
-                config=config.to_dict(),
-                twin=spec_task.scene.digest,
+                names=robot.names,
+                config=config,
                 policy=f"multisine:{settings.harmonics}x{settings.duration:g}s",
-                fps=spec_task.scene.physics.control_hz,
-                names={**arm.contract_names(), EFFORT: effort_names(scene.layout.arm_joints)},
+                instruction="excitation",
             )
-            obs = arm.reset(config)
-            with session.record(meta) as log:
-                for t, (target, action) in enumerate(zip(targets[1:], actions, strict=True)):
-                    obs[EFFORT] = arm.joint_torques().astype(np.float32)
-                    arm.servo_joints(target, 0.0)
-                    last = t == len(actions) - 1
-                    log.append(
-                        step_record(obs, action, target.astype(np.float32), 0.0, last, False)
-                    )
-                    obs = arm.observe()
-            paths.append(log.path)
+            outcome = run_episode(
+                robot,
+                TrajectorySource(targets, _tcp_actions(targets, fk)),
+                spec_task,
+                config,
+                judge=None,
+                max_steps=len(targets) - 1,
+                recorder=recorder,
+                meta=meta,
+            )
+            paths.append(outcome.path)
             if on_episode is not None:
                 on_episode(index)
     finally:
-        arm.close()
+        robot.close()
     return paths

@@ -38,7 +38,12 @@ from twinrl_sim.tasks.expert import ObsView, ScriptedExpert
 
 @runtime_checkable
 class Operator(Protocol):
-    """Someone who can take the controls from the policy during an episode."""
+    """Someone who can take the controls from the policy during an episode.
+
+    An operator that reads the task's progress sets ``judges_progress = True``: it is
+    then given the progress from the robot's privileged channel (and refused on a real
+    cell, which has none); otherwise ``progress`` is ``None``.
+    """
 
     def reset(self, task: Task, config: TaskConfig) -> None: ...
 
@@ -76,6 +81,8 @@ class OperatorRule:
 
 class SimulatedOperator:
     """The scripted expert as an operator, following :class:`OperatorRule`."""
+
+    judges_progress = True
 
     def __init__(self, rule: OperatorRule = OperatorRule(), seed: int | None = None) -> None:
         self.rule = rule

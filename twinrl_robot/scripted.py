@@ -6,19 +6,17 @@ import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import EFFORT, EpisodeMeta, step_record
+from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
-from twinrl_robot.plant import Plant
-from twinrl_sim.env import TwinEnv
+from twinrl_robot.backends import open_robot
+from twinrl_robot.loop import privileged_success, run_episode
 from twinrl_sim.spec import SceneSpec
-from twinrl_sim.tasks import REGION_NAMES, Progress, TaskConfig, make_task
-
-World = Literal["twin", "plant"]
-WORLDS: tuple[str, ...] = ("twin", "plant")
+from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
+from twinrl_sim.tasks.expert import ScriptedExpert
 
 
 @dataclass(frozen=True)
@@ -63,78 +61,36 @@ class ExpertReport:
         )
 
 
-class _TwinWorld:
-    source, world = "twin_demo", "twin"
+class ExpertSource:
+    """The task's scripted expert as an action source, with an operator's hand jitter
+    of ``noise`` m per step (five times as much, in rad, on rotations), which the
+    expert then corrects like a person watching the arm."""
 
-    def __init__(self, task: str, images: bool, scene: SceneSpec | None) -> None:
-        self.env = TwinEnv(task, scene=scene, images=images)
-        self.task = self.env.task
-        self.names = self.env.cell.contract_names()
-        self._success = False
+    def __init__(self, rng: np.random.Generator, jitter: np.random.Generator, noise: float):
+        self.rng, self.jitter, self.noise = rng, jitter, noise
+        self.expert: ScriptedExpert | None = None
 
-    def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
-        obs, info = self.env.reset(options={"config": config})
-        self._success = info["success"]
-        return obs
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        self.expert = task.expert(config, self.rng)
 
-    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        obs, _, _, _, info = self.env.step(action)
-        self._success = info["success"]
-        return obs, info["command.joint_target"]
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        assert self.expert is not None, "reset the source first"
+        action = self.expert.act(observation)
+        if self.noise > 0:
+            shake = self.jitter.normal(0.0, self.noise, 6) * [1, 1, 1, 5, 5, 5]
+            action = action.copy()
+            action[:6] += shake
+            self.expert.perturb(shake[:3], shake[3:])
+        return action
 
-    @property
-    def success(self) -> bool:
-        return self._success
-
-    def close(self) -> None:
-        self.env.close()
-
-
-class _PlantWorld:
-    # The scripted expert stands in for a human teleoperating the (stand-in) real cell,
-    # whose controller reports joint torques as a UR's does (the gap workflow uses them).
-    source, world = "teleop", "plant"
-
-    def __init__(
-        self,
-        task: str,
-        effects: dict | str | Path | None,
-        seed: int,
-        images: bool,
-        scene: SceneSpec | None,
-    ) -> None:
-        self.plant = Plant(
-            make_task(task, scene),
-            effects=effects,
-            seed=seed,
-            images=("front", "wrist") if images else (),
-        )
-        self.task = self.plant.task
-        self.names = {**self.plant.contract_names(), EFFORT: self.plant.effort_names}
-
-    def _with_effort(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {**obs, EFFORT: self.plant.joint_torques().astype(np.float32)}
-
-    def reset(self, config: TaskConfig) -> dict[str, np.ndarray]:
-        return self._with_effort(self.plant.reset(config))
-
-    def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        self.plant.act(action)
-        assert self.plant.last_joint_target is not None
-        return self._with_effort(self.plant.observe()), self.plant.last_joint_target
-
-    @property
-    def success(self) -> bool:
-        return self.plant.success
-
-    def close(self) -> None:
-        self.plant.close()
+    def interrupted(self) -> None:
+        """Nobody takes the controls from the expert."""
 
 
 def run_scripted_expert(
     task: str,
     *,
-    world: World = "twin",
+    world: str = "twin",
     episodes: int = 20,
     regions: tuple[str, ...] = REGION_NAMES,
     effects: dict | str | Path | None = None,
@@ -154,73 +110,59 @@ def run_scripted_expert(
     then corrects like an operator watching the arm. ``scene`` replaces the task's
     built-in cell (e.g. one built by ``twinrl twin build``) in both worlds.
     """
-    if world not in WORLDS:
-        raise ValueError(f"world must be one of {', '.join(WORLDS)}, got '{world}'")
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
-    if world == "twin" and effects is not None:
-        raise ValueError("effects apply to the plant only; the twin runs its own scene spec")
+    recording = session is not None
+    # The expert stands in for a person teleoperating the (stand-in) real cell, whose
+    # controller reports joint torques as a UR's does (the gap workflow uses them).
     spec_task = make_task(task, scene)
     for region in regions:
         spec_task.region(region)
-    images = session is not None
-    sim = (
-        _TwinWorld(task, images, scene)
-        if world == "twin"
-        else _PlantWorld(task, effects, seed, images, scene)
+    robot = open_robot(
+        world,
+        spec_task,
+        effects=effects,
+        seed=seed,
+        cameras=("front", "wrist") if recording else (),
+        effort=world == "plant",
     )
+    recorder = Recorder(session) if session is not None else None
+    source_name = "teleop" if world == "plant" else "twin_demo"
     rng = np.random.default_rng(seed)
     results = []
     try:
         for r, region in enumerate(regions):
             for i in range(episodes):
-                config = sim.task.sample_config(rng, region)
-                expert = sim.task.expert(config, np.random.default_rng([seed, r, i]))
-                jitter = np.random.default_rng([seed, r, i, 1])
-                obs = sim.reset(config)
-                log = None
-                if session is not None:
-                    log = session.record(_episode_meta(sim, config, region))
-                steps = 0
-                while steps < sim.task.max_steps and not sim.success:
-                    action = expert.act(obs)
-                    if action_noise > 0:
-                        shake = jitter.normal(0.0, action_noise, 6) * [1, 1, 1, 5, 5, 5]
-                        action = action.copy()
-                        action[:6] += shake
-                        expert.perturb(shake[:3], shake[3:])
-                    next_obs, joint_target = sim.step(action)
-                    steps += 1
-                    if log is not None:
-                        done = sim.success or steps >= sim.task.max_steps
-                        reward = sim.task.reward(Progress(success=sim.success), "sparse")
-                        log.append(
-                            step_record(obs, action, joint_target, reward, done, sim.success)
-                        )
-                    obs = next_obs
-                if log is not None:
-                    log.close()
-                episode = ExpertEpisode(region, config.to_dict(), sim.success, steps)
+                config = spec_task.sample_config(rng, region)
+                source = ExpertSource(
+                    np.random.default_rng([seed, r, i]),
+                    np.random.default_rng([seed, r, i, 1]),
+                    action_noise,
+                )
+                meta = None
+                if recorder is not None:
+                    meta = spec_task.episode_meta(
+                        source=source_name,
+                        world=world,
+                        names=robot.names,
+                        config=config,
+                        region=region,
+                        policy="scripted_expert",
+                        operator="scripted_expert" if world == "plant" else None,
+                    )
+                outcome = run_episode(
+                    robot,
+                    source,
+                    spec_task,
+                    config,
+                    judge=privileged_success(robot),
+                    recorder=recorder,
+                    meta=meta,
+                )
+                episode = ExpertEpisode(region, config.to_dict(), outcome.success, outcome.steps)
                 results.append(episode)
                 if on_episode is not None:
                     on_episode(episode)
     finally:
-        sim.close()
+        robot.close()
     return ExpertReport(task=task, world=world, episodes=tuple(results))
-
-
-def _episode_meta(sim: _TwinWorld | _PlantWorld, config: TaskConfig, region: str) -> EpisodeMeta:
-    return EpisodeMeta(
-        task=sim.task.name,
-        instruction=sim.task.instruction,
-        source=sim.source,
-        world=sim.world,
-        region=region,
-        config=config.to_dict(),
-        twin=sim.task.scene.digest,
-        policy="scripted_expert",
-        fps=sim.task.scene.physics.control_hz,
-        robot=sim.task.scene.robot.builtin or "custom",
-        operator="scripted_expert" if sim.source == "teleop" else None,
-        names=sim.names,
-    )

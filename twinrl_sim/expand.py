@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.recorder import EpisodeFolder, Recorder
 from twinrl_data.schema import Episode, EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_sim.augment import retarget
@@ -145,25 +146,22 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
             break
     if not info["success"]:
         return job, None
-    meta = EpisodeMeta(
-        task=env.task.name,
-        instruction=env.task.instruction,
+    meta = env.task.episode_meta(
         source="twin_demo",
         world="twin",
-        region=job.region,
-        config=config.to_dict(),
-        twin=task.scene.digest,
-        policy=policy,
-        fps=env.task.scene.physics.control_hz,
-        robot="ur5e",
         names=env.cell.contract_names(),
+        config=config,
+        region=job.region,
+        policy=policy,
         randomization=record,
     )
-    path = Path(job.episode_dir) / f"{job.region}_{job.attempt:05d}_{meta.episode_id}.mcap"
-    with EpisodeWriter(path, meta) as log:
-        for step in steps:
-            log.append(step)
-    return job, {"path": str(path), "meta": log.meta.to_dict(), "length": len(steps)}
+    recorder = Recorder(EpisodeFolder(job.episode_dir, prefix=f"{job.region}_{job.attempt:05d}_"))
+    recorder.start_episode(meta)
+    for step in steps:
+        recorder.add_frame(step)
+    path = recorder.save_episode()
+    assert recorder.saved is not None
+    return job, {"path": str(path), "meta": recorder.saved.to_dict(), "length": len(steps)}
 
 
 def expand(

@@ -20,8 +20,9 @@ from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_learn.settings import RLConfig
 from twinrl_learn.stages import StagesSettings, measure_stages
+from twinrl_robot.backends import open_robot
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
-from twinrl_robot.plant import Plant
+from twinrl_robot.wrappers import OperatorTakeover
 from twinrl_sim.tasks import make_task
 from twinrl_sim.tasks.expert import GRIPPER_CLOSED
 
@@ -56,28 +57,22 @@ def test_resets_follow_the_targets_by_score_and_mix_in_uniform_draws():
 
 
 def _operated_episode(task, operator, policy_action, heights=None):
-    """Run one plant episode with ``operator`` watching; which steps it acted on (and,
-    into ``heights``, the TCP height at each step)."""
-    plant = Plant(task, seed=0)
+    """Run one plant episode with ``operator`` watching (through the takeover wrapper);
+    which steps it acted on (and, into ``heights``, the TCP height at each step)."""
+    robot = OperatorTakeover(open_robot("plant", task, seed=0), operator, task)
     config = task.sample_config(np.random.default_rng(1), "ID")
-    obs = plant.reset(config)
-    operator.reset(task, config)
+    obs = robot.reset(config)
     acting = []
-    tcp_z = plant.contract_names()["observation.state"].index("tcp.z")
+    tcp_z = robot.names["observation.state"].index("tcp.z")
     for _ in range(task.max_steps):
         if heights is not None:
             heights.append(float(obs["observation.state"][tcp_z]))
-        was = operator.in_control
-        action = operator.intervene(obs, plant.progress)
-        acting.append(action is not None)
-        if action is not None and not was:
-            plant.hold()
-        plant.act(policy_action(obs) if action is None else action)
-        obs = plant.observe()
-        if plant.success:
+        acting.append(robot.act(policy_action(obs)).intervention)
+        obs = robot.observe()
+        if robot.privileged.success:
             break
-    plant.close()
-    return acting, plant.success
+    robot.close()
+    return acting, robot.privileged.success
 
 
 def test_the_operator_takes_over_a_stalled_arm_after_its_delay_and_hands_back():

@@ -17,13 +17,13 @@ from twinrl_learn.policy import (
     IMAGE_SHIFT,
     STATE_NOISE,
     FiLMConvEncoder,
-    GraspHold,
     Policy,
     PolicyConfig,
 )
 from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
 from twinrl_learn.settings import SFTConfig
 from twinrl_learn.sft import learning_rate, train_sft
+from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.tasks.expert import tool_quat
 
@@ -148,7 +148,7 @@ def test_the_arm_holds_while_the_gripper_closes():
     move_close = move_open.copy()
     move_close[-1] = 1.0
     state = lambda opening: np.array([0.3, 0.0, 0.2, opening])  # noqa: E731
-    hold = GraspHold(settle=2)
+    hold = HoldRule(settle=2)
     openings = [0.08, 0.08, 0.079, 0.06, 0.04, 0.031, 0.0308, 0.0308, 0.0308]
     commands = [move_open] + [move_close] * 8
     executed = [hold(state(o), a) for o, a in zip(openings, commands, strict=True)]

@@ -3,20 +3,27 @@
 import numpy as np
 import pytest
 
-from twinrl_robot.interface import Robot
-from twinrl_robot.plant import DEFAULT_EFFECTS_FILE, Plant, PlantSettings
+from twinrl_robot.backends import open_robot
+from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
+from twinrl_robot.robot import Robot
 from twinrl_robot.scripted import run_scripted_expert
+from twinrl_robot.wrappers import NoiseLevels
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.tasks import TaskConfig
 
 CONFIG = TaskConfig(object=(0.45, -0.2, 0.3), target=(0.5, -0.08, 0.0))
-QUIET = PlantSettings(
+QUIET = NoiseLevels(
     joint_noise=0,
     velocity_noise=0,
     tcp_noise=0,
     object_noise=0,
 )
 SWING = np.array([0.02, 0.03, -0.01, 0.0, 0.0, 0.2, 0.0], np.float32)
+
+
+def Plant(task, *, effects=None, settings=None, seed=None, images=()):
+    """The plant as every caller opens it."""
+    return open_robot("plant", task, effects=effects, noise=settings, seed=seed, cameras=images)
 
 
 def drive(world, steps=15):
@@ -29,9 +36,10 @@ def test_plant_is_a_robot_and_counts_real_time():
     plant = Plant("pick_place", seed=0)
     assert isinstance(plant, Robot)
     plant.reset(CONFIG)
-    drive(plant, 12)
-    assert plant.elapsed_steps == 12 and plant.elapsed_seconds == pytest.approx(1.2)
-    assert plant.last_joint_target is not None and plant.last_joint_target.shape == (6,)
+    sent = [plant.act(SWING) for _ in range(12)]
+    cell = plant.unwrapped
+    assert cell.elapsed_steps == 12 and cell.elapsed_seconds == pytest.approx(1.2)
+    assert sent[-1].joint_target is not None and sent[-1].joint_target.shape == (6,)
 
 
 def test_without_effects_or_noise_the_plant_behaves_like_the_twin():
@@ -76,7 +84,7 @@ def test_misuse_is_reported():
     with pytest.raises(ValueError, match="unknown effect"):
         Plant("pick_place", effects={"gravity": {"g": 1}})
     with pytest.raises(ValueError, match="must be >= 0"):
-        PlantSettings(joint_noise=-1)
+        NoiseLevels(joint_noise=-1)
 
 
 def test_scripted_expert_solves_the_plant():

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from twinrl_data.schema import EpisodeMeta
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
 from twinrl_sim.spec import SceneSpec, load_spec
@@ -223,6 +224,37 @@ class Task(ABC):
     @abstractmethod
     def expert(self, config: TaskConfig, rng: np.random.Generator) -> ScriptedExpert:
         """The scripted expert for ``config`` (privileged state, IK, sampled grasps)."""
+
+    def episode_meta(
+        self,
+        *,
+        source: str,
+        world: str,
+        names: dict[str, list[str]],
+        config: TaskConfig | None = None,
+        region: str | None = None,
+        policy: str | None = None,
+        operator: str | None = None,
+        instruction: str | None = None,
+        randomization: dict[str, Any] | None = None,
+    ) -> EpisodeMeta:
+        """Metadata of an episode of this task in its cell: what every recorder writes
+        (the cell's rate, robot and scene digest come from the scene spec)."""
+        return EpisodeMeta(
+            task=self.name,
+            instruction=self.instruction if instruction is None else instruction,
+            source=source,
+            world=world,
+            region=region,
+            config=config.to_dict() if config is not None else {},
+            twin=self.scene.digest,
+            policy=policy,
+            fps=self.scene.physics.control_hz,
+            robot=self.scene.robot.builtin or "custom",
+            operator=operator,
+            names=names,
+            randomization=randomization or {},
+        )
 
 
 def planar_distance(a: np.ndarray, b: np.ndarray) -> float:

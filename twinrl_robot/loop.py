@@ -1,0 +1,148 @@
+"""The robot loop: observe, choose an action, send it through the wrappers to the
+robot, record the step. Every producer of episodes runs it; only the action source
+differs (a policy, the scripted expert, an excitation trajectory; teleop and replay
+next).
+
+The loop never waits for learning: whatever trains the policy runs elsewhere (see
+:mod:`twinrl_learn.learner`) and hands the source new weights between episodes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from twinrl_data.recorder import Recorder
+from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_robot.robot import Robot, Sent, require_privileged
+from twinrl_sim.tasks import Progress, Task, TaskConfig
+
+Judge = Callable[[], bool]
+"""Whether the task has succeeded after the last step (the privileged success in a
+simulated cell; a person's key or a reward classifier on a real one)."""
+
+
+@dataclass(frozen=True)
+class JointCommand:
+    """A step given as joint targets (rad) and a gripper command instead of an
+    end-effector action (excitation, replay); ``action`` is the end-effector motion it
+    amounts to, which the episode records."""
+
+    joint_target: np.ndarray
+    gripper: float
+    action: np.ndarray
+
+
+@runtime_checkable
+class ActionSource(Protocol):
+    """Chooses the action of every control step of an episode."""
+
+    def reset(self, task: Task, config: TaskConfig) -> None: ...
+
+    def act(self, observation: dict[str, np.ndarray]) -> np.ndarray | JointCommand: ...
+
+    def interrupted(self) -> None:
+        """An operator acted instead of this source: whatever it planned ahead is stale."""
+        ...
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """How an episode went."""
+
+    success: bool
+    steps: int
+    interventions: int
+    path: Path | None  # the recorded episode, when a recorder was given
+    periods: tuple[float, ...] = ()  # s between consecutive control steps (wall clock)
+
+
+def privileged_success(robot: Robot) -> Judge:
+    """The judge of a simulated cell: its ground-truth success."""
+    channel = require_privileged(robot, "judging success from the task's ground truth")
+    return lambda: channel.success
+
+
+def run_episode(
+    robot: Robot,
+    source: ActionSource,
+    task: Task,
+    config: TaskConfig,
+    *,
+    judge: Judge | None,
+    max_steps: int | None = None,
+    recorder: Recorder | None = None,
+    meta: EpisodeMeta | None = None,
+    realtime: bool = False,
+    on_step: Callable[[int, Sent], None] | None = None,
+) -> EpisodeResult:
+    """Run one episode of ``task`` from ``config``; record it when ``recorder`` is given.
+
+    ``judge`` ends the episode on success (the sparse reward follows it); ``None`` judges
+    nothing (excitation: reward 0, never done early). ``max_steps`` defaults to the
+    task's. ``realtime`` paces the steps at the robot's control rate (a real cell); a
+    simulated one steps as fast as it can and counts its own time.
+    """
+    if (recorder is None) != (meta is None):
+        raise ValueError("give both a recorder and the episode's metadata, or neither")
+    limit = task.max_steps if max_steps is None else max_steps
+    period = 1.0 / robot.control_hz
+    observation = robot.reset(config)
+    source.reset(task, config)
+    if recorder is not None and meta is not None:
+        recorder.start_episode(meta)
+    success, interventions, steps = False, 0, 0
+    stamps: list[float] = []
+    try:
+        for t in range(limit):
+            if realtime and stamps:
+                time.sleep(max(0.0, stamps[-1] + period - time.perf_counter()))
+            stamps.append(time.perf_counter())
+            chosen = source.act(observation)
+            if isinstance(chosen, JointCommand):
+                sent = robot.servo_joints(chosen.joint_target, chosen.gripper)
+                executed, proposed = chosen.action, chosen.action
+            else:
+                sent = robot.act(chosen)
+                executed, proposed = sent.action, chosen
+            if sent.intervention:
+                source.interrupted()
+                interventions += 1
+            success = judge() if judge is not None else False
+            done = success or t == limit - 1
+            steps = t + 1
+            if recorder is not None:
+                recorder.add_frame(
+                    step_record(
+                        observation,
+                        executed,
+                        sent.joint_target,
+                        task.reward(Progress(success=success), "sparse") if judge else 0.0,
+                        done,
+                        success,
+                        action_policy=proposed,
+                        intervention=sent.intervention,
+                    )
+                )
+            if on_step is not None:
+                on_step(t, sent)
+            observation = robot.observe()
+            if success:
+                break
+    except BaseException:
+        if recorder is not None and recorder.recording:
+            recorder.save_episode(success=False)  # keep what was recorded
+        raise
+    path = recorder.save_episode(success=success) if recorder is not None else None
+    return EpisodeResult(
+        success=success,
+        steps=steps,
+        interventions=interventions,
+        path=path,
+        periods=tuple(np.diff(stamps).tolist()),
+    )
