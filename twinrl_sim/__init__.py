@@ -20,7 +20,7 @@ if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
 _EXPORTS = {
     "BatchEnv": "twinrl_sim.batch",
     "BatchRollout": "twinrl_sim.batch",
-    "CellLayout": "twinrl_sim.build",
+    "CellLayout": "twinrl_sim.layout",
     "CompiledScene": "twinrl_sim.build",
     "compile_scene": "twinrl_sim.build",
     "Cell": "twinrl_sim.cell",

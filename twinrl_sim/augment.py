@@ -24,7 +24,8 @@ import numpy as np
 
 from twinrl_data.schema import ACTION, STATE, Episode
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
-from twinrl_sim.tasks.base import TaskConfig, wrap_angle, yaw_of
+from twinrl_sim.planar import wrap_angle, yaw_of
+from twinrl_sim.tasks.base import TaskConfig
 from twinrl_sim.tasks.expert import GRIPPER_CLOSED, grasp_yaw
 
 NEAR = 0.10  # m: within this of a keyframe the path follows the object/target exactly

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.effects import apply_effects
+from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.robots import ur5e
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, SpecError
@@ -29,24 +30,6 @@ EMPTY_PREFIX_WARNING = "Attaching a spec with an empty prefix"  # MuJoCo's words
 FLOOR_DEPTH = 0.75  # floor below the table top (m)
 ENV_CONTYPE, ENV_CONAFFINITY = 1, 1
 VISUAL_GROUP = 1
-
-
-@dataclass(frozen=True)
-class CellLayout:
-    """Names of the parts of a compiled cell."""
-
-    arm_joints: tuple[str, ...]
-    arm_actuators: tuple[str, ...]
-    flange_body: str
-    tcp_site: str
-    gripper_actuator: str | None
-    gripper_joint: str | None
-    table_body: str
-    table_geom: str
-    manipulated: tuple[str, ...]
-    placed: tuple[str, ...]
-    cameras: tuple[str, ...]
-    home_qpos: tuple[float, ...]
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import numpy as np
 import yaml
 
 if TYPE_CHECKING:
-    from twinrl_sim.build import CellLayout
+    from twinrl_sim.layout import CellLayout
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,9 @@ from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.grasping import Grasp, sample_antipodal_grasps
+from twinrl_sim.planar import yaw_of
 from twinrl_sim.robots import gripper as gripper_lib
-from twinrl_sim.tasks.base import Task, TaskConfig, yaw_of
+from twinrl_sim.tasks.base import Task, TaskConfig
 from twinrl_sim.tasks.expert import grasp_yaw, nearest_equivalent, tool_quat
 
 TRANSPORT_HEIGHTS = (0.10, 0.18, 0.28)  # m above the higher of pick-up and goal

@@ -15,6 +15,7 @@ from twinrl_sim.cell import Cell
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.expand import expand
 from twinrl_sim.grasping import sample_antipodal_grasps
+from twinrl_sim.planar import wrap_angle, yaw_of
 from twinrl_sim.planner import (
     APPROACH,
     DETOUR_RADIUS,
@@ -26,7 +27,6 @@ from twinrl_sim.planner import (
 from twinrl_sim.randomize import randomize_scene
 from twinrl_sim.spec import ObjectSpec
 from twinrl_sim.tasks import TaskConfig, make_task
-from twinrl_sim.tasks.base import wrap_angle, yaw_of
 from twinrl_sim.tasks.pick_place import PickPlace
 
 

@@ -35,9 +35,10 @@ from mujoco import sysid
 from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
-from twinrl_sim.build import CellLayout, build_mjspec
+from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_effects
 from twinrl_sim.gap.candidates import CANDIDATES, Candidate
+from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec
 

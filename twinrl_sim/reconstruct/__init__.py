@@ -6,7 +6,8 @@ scene spec that comes out."""
 from twinrl_sim.reconstruct.align import Alignment, Similarity, align_to_points, align_to_tag
 from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
 from twinrl_sim.reconstruct.objects import TwinObject
-from twinrl_sim.reconstruct.pipeline import BuildSettings, TwinBuild, build_twin
+from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
+from twinrl_sim.reconstruct.result import TwinBuild
 from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane, find_objects, level_table
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 

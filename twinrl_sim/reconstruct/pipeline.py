@@ -25,7 +25,7 @@ from twinrl_sim.reconstruct.align import (
     align_to_tag,
     check_reference_points,
 )
-from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
+from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.objects import (
     DEFAULT_DENSITY,
     TwinObject,
@@ -36,6 +36,7 @@ from twinrl_sim.reconstruct.objects import (
     reconstruct_shape,
 )
 from twinrl_sim.reconstruct.report import plot_build, write_build_report, write_build_rrd
+from twinrl_sim.reconstruct.result import TwinBuild
 from twinrl_sim.reconstruct.segment import (
     TablePlane,
     describe_cluster,
@@ -81,24 +82,6 @@ class BuildSettings:
     name: str | None = None
     keep_work: bool = False
     seed: int = 0
-
-
-@dataclass
-class TwinBuild:
-    """What was built, with everything the report shows."""
-
-    scene_path: Path
-    scene: SceneSpec
-    selection: FrameSelection
-    model: SparseModel
-    alignment: Alignment
-    table: TablePlane
-    objects: list[TwinObject]
-    cameras: dict[str, CameraSpec]  # cameras placed from photos
-    levelled: np.ndarray  # (N, 3) the cloud in the base frame
-    camera_path: np.ndarray  # (F, 3) the walk's camera centres, base frame
-    seconds: dict[str, float]
-    size_ratio: float | None = None  # reconstructed / task object size (median)
 
 
 def check_settings(settings: BuildSettings, out: Path) -> None:

@@ -15,7 +15,7 @@ from twinrl_sim.gap.report import _pyplot
 from twinrl_sim.reconstruct.segment import planar_axes
 
 if TYPE_CHECKING:
-    from twinrl_sim.reconstruct.pipeline import TwinBuild
+    from twinrl_sim.reconstruct.result import TwinBuild
 
 
 def _rectangle(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:

@@ -16,7 +16,8 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.cell import Cell
-from twinrl_sim.tasks.base import Progress, Region, Task, TaskConfig, Tracker, yaw_of
+from twinrl_sim.planar import yaw_of
+from twinrl_sim.tasks.base import Progress, Region, Task, TaskConfig, Tracker
 from twinrl_sim.tasks.expert import (
     ObsView,
     Phase,

@@ -17,8 +17,8 @@ import numpy as np
 
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.control import TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.planar import wrap_angle, yaw_of
 from twinrl_sim.spec import SceneSpec
-from twinrl_sim.tasks.base import wrap_angle, yaw_of
 
 DOWN = np.array([0.0, 1.0, 0.0, 0.0])  # tool z pointing at the table, tool x along base x
 # How far (m) below the approach pose an arm must be for a take-over to correct it

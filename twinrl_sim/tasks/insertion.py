@@ -14,7 +14,8 @@ from typing import ClassVar
 import numpy as np
 
 from twinrl_sim.cell import Cell
-from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker, planar_distance, yaw_of
+from twinrl_sim.planar import planar_distance, yaw_of
+from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker
 from twinrl_sim.tasks.expert import (
     ObsView,
     ScriptedExpert,

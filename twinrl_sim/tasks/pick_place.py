@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 from twinrl_sim.cell import Cell
-from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker, planar_distance
+from twinrl_sim.planar import planar_distance
+from twinrl_sim.tasks.base import Progress, Task, TaskConfig, Tracker
 from twinrl_sim.tasks.expert import (
     ObsView,
     ScriptedExpert,
