@@ -23,8 +23,8 @@ import typer
 # synthesis, import, the catalog and the viewer); the twin builder (COLMAP, Open3D) is
 # left out: it loaded lazily before too.
 COMMAND_MODULES = (
-    "twinrl_learn.pipeline",
-    "twinrl_learn.stage1",
+    "twinrl_learn.studies.pipeline",
+    "twinrl_learn.studies.table1",
     "twinrl_learn.locating",
     "twinrl_sim.gap.diagnose",
     "twinrl_sim.expand",

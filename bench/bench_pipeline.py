@@ -21,7 +21,7 @@ import torch
 import typer
 
 from twinrl_data.cli import quiet_encoders
-from twinrl_learn.pipeline import run_demo
+from twinrl_learn.studies.pipeline import run_demo
 
 
 def main(

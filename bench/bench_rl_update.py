@@ -25,17 +25,17 @@ import typer
 
 from twinrl_data.cli import quiet_encoders
 from twinrl_learn.agent import Agent
-from twinrl_learn.pipeline import (
+from twinrl_learn.policy import Policy
+from twinrl_learn.replay import ReplayBuffer
+from twinrl_learn.settings import RLConfig, SFTConfig
+from twinrl_learn.sft import train_sft
+from twinrl_learn.studies.presets import (
     METHOD_TABLE,
     PRESETS,
     Preset,
     real_rl_config,
     twin_rl_config,
 )
-from twinrl_learn.policy import Policy
-from twinrl_learn.replay import ReplayBuffer
-from twinrl_learn.settings import RLConfig, SFTConfig
-from twinrl_learn.sft import train_sft
 from twinrl_sim.expand import expand
 
 

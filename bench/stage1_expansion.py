@@ -1,6 +1,6 @@
 """TwinRL's motivating experiment and Table I, reproduced in the plant.
 
-Thin runner around :func:`twinrl_learn.stage1.run_stage1` (also ``twinrl bench stage1``).
+Thin runner around :func:`twinrl_learn.studies.table1.run_stage1` (also ``twinrl bench stage1``).
 Usage::
 
     python bench/stage1_expansion.py --out out/stage1 --policies state

@@ -21,7 +21,7 @@ from twinrl_sim import cli as sim_cli
 from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:
-    from twinrl_learn.pipeline import RunProgress
+    from twinrl_learn.studies.pipeline import RunProgress
 
 app = typer.Typer(
     help="twinrl: digital-twin-guided reinforcement learning for real robot arms.",
@@ -653,7 +653,8 @@ def demo_command(
     the same plant and seeds."""
     import torch
 
-    from twinrl_learn.pipeline import PRESETS, run_demo
+    from twinrl_learn.studies.pipeline import run_demo
+    from twinrl_learn.studies.presets import PRESETS
 
     make_task(task)
     if preset not in PRESETS:
@@ -805,7 +806,7 @@ def bench_stage1(
     ] = "relative",
 ) -> None:
     """TwinRL's Table I in the plant: real-only SFT vs real + twin ID/OOD demos."""
-    from twinrl_learn.stage1 import Stage1Settings, run_stage1
+    from twinrl_learn.studies.table1 import Stage1Settings, run_stage1
 
     steps = {k: v for k, v in (("vla", vla_steps), ("state", state_steps)) if v}
     settings = Stage1Settings(
@@ -845,7 +846,7 @@ def bench_stages(
     policies, all on the same plant configurations (paired by seed)."""
     import torch
 
-    from twinrl_learn.stages import StagesSettings, measure_stages
+    from twinrl_learn.studies.stages import StagesSettings, measure_stages
 
     settings = StagesSettings(
         run=run,

@@ -15,11 +15,12 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
 from twinrl_learn.mining import Target
-from twinrl_learn.pipeline import METHOD_TABLE, PRESETS, run_demo
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
 from twinrl_learn.settings import RLConfig
-from twinrl_learn.stages import StagesSettings, measure_stages
+from twinrl_learn.studies.pipeline import run_demo
+from twinrl_learn.studies.presets import METHOD_TABLE, PRESETS
+from twinrl_learn.studies.stages import StagesSettings, measure_stages
 from twinrl_robot.backends import open_robot
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.wrappers import OperatorTakeover

@@ -26,17 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_learn.evaluate import evaluate
-from twinrl_learn.pipeline import (
-    METHOD_TABLE,
-    Method,
-    RealRLJob,
-    real_rl_settings,
-    run_preset,
-    stage1_paths,
-)
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL
 from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.studies.layout import stage1_paths
+from twinrl_learn.studies.pipeline import RealRLJob, real_rl_settings, run_preset
+from twinrl_learn.studies.presets import METHOD_TABLE, Method
 from twinrl_sim.tasks import REGION_NAMES
 
 EVAL_SEED = 20_000  # apart from the pipeline's own evaluations (10_000 + ...)

@@ -37,7 +37,6 @@ them side by side; the results do not depend on how many.
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing
 import queue
 import shutil
@@ -47,150 +46,32 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
-from twinrl_data.catalog import build_index
 from twinrl_data.cli import quiet_encoders
-from twinrl_data.mcap_log import read_episode
-from twinrl_data.session import Session
-from twinrl_data.view import save_rrd
-from twinrl_learn.evaluate import evaluate, grid_cells
+from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
-from twinrl_learn.real_rl import EvalPoint, RealRL, RealRLSettings, load_evaluations, minutes_to
+from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import RLConfig, SFTConfig, check_inputs
+from twinrl_learn.settings import SFTConfig, check_inputs
 from twinrl_learn.sft import train_sft
-from twinrl_learn.stage1 import record_real_demos
+from twinrl_learn.studies.layout import eval_folder, stage1_paths
+from twinrl_learn.studies.presets import (
+    METHOD_TABLE,
+    PRESETS,
+    Method,
+    Preset,
+    real_rl_config,
+    twin_rl_config,
+)
+from twinrl_learn.studies.report import write_report
+from twinrl_learn.studies.table1 import record_real_demos
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule
 from twinrl_sim.expand import expand
-from twinrl_sim.tasks import REGION_NAMES, make_task
+from twinrl_sim.tasks import make_task
 
 Log = Callable[[str], None]
-
-
-@dataclass(frozen=True)
-class Preset:
-    """The scale of a pipeline run."""
-
-    policy: str  # state (privileged, fast) or vla (cameras + language)
-    real_demos: int
-    twin_id: int
-    twin_ood: int
-    twin_rl_steps: int
-    twin_envs: int
-    mining_grid: tuple[int, int]
-    mining_episodes: int
-    plant_steps: int  # per real-RL run (10 Hz: 600 = 1 plant minute)
-    eval_every: int
-    eval_grid: tuple[int, int]
-    eval_episodes: int
-    offline_steps: int
-    refresh_every: int
-    seeds: tuple[int, ...]
-    sft_steps: int | None = None  # None: the SFT defaults of the policy kind
-    inputs: str = "absolute"  # the state policy's inputs (twinrl_learn.policy)
-
-
-PRESETS = {
-    # A few minutes: checks that every stage runs (no learning to speak of).
-    "smoke": Preset(
-        policy="state",
-        real_demos=2,
-        twin_id=2,
-        twin_ood=2,
-        twin_rl_steps=40,
-        twin_envs=2,
-        mining_grid=(2, 2),
-        mining_episodes=1,
-        plant_steps=100,
-        eval_every=50,
-        eval_grid=(2, 2),
-        eval_episodes=1,
-        offline_steps=5,
-        refresh_every=1,
-        seeds=(0,),
-        sft_steps=30,
-    ),
-    "quick": Preset(
-        policy="state",
-        # Objects seen from the TCP: measured better at every stage than absolute poses.
-        inputs="relative",
-        real_demos=30,
-        # 105 + 105 twin demos: SFT on them reached 61 / 70 % (ID / OOD) in the plant
-        # against 41 / 56 % with 30 + 30; synthesized without cameras, they fit the time.
-        twin_id=105,
-        twin_ood=105,
-        # Twin RL is where RL is cheap: from the same SFT policy (44 / 44 % ID / OOD in
-        # the plant, 64 episodes per region), 1600 twin steps reached 61 / 75 % and 9600
-        # (4 min) 75 / 91 %.
-        twin_rl_steps=9600,
-        twin_envs=8,
-        mining_grid=(4, 4),
-        mining_episodes=2,
-        plant_steps=2400,
-        # 32 episodes per region per evaluation, each at its own configuration (95 %
-        # takes 31 of 32): with 16 (4x4, 2 each) the final TwinRL policies of a run
-        # measured 88-94 % in each region, and 94-98 % over 64 (8x8, 2 each). Every 2
-        # plant minutes keeps the preset under 20 minutes.
-        eval_every=1200,
-        eval_grid=(8, 8),
-        eval_episodes=1,
-        offline_steps=200,
-        refresh_every=8,
-        seeds=(0, 1, 2),
-    ),
-    "paper": Preset(
-        policy="vla",
-        real_demos=30,
-        twin_id=60,
-        twin_ood=30,
-        twin_rl_steps=20000,
-        twin_envs=8,
-        mining_grid=(8, 8),
-        mining_episodes=2,
-        plant_steps=18000,
-        eval_every=1200,
-        eval_grid=(8, 8),  # 32 episodes per region, as in quick
-        eval_episodes=1,
-        offline_steps=1000,
-        refresh_every=10,
-        seeds=(0, 1, 2),
-    ),
-}
-
-
-@dataclass(frozen=True)
-class Method:
-    """How one compared method runs real RL."""
-
-    name: str
-    slug: str
-    rl_method: str
-    from_twin: bool  # start from Stage II (else from the real-only SFT policy)
-    twin_buffer: bool
-    mined_resets: bool
-
-
-METHOD_TABLE = (
-    Method("TwinRL", "twinrl", "twinrl", True, True, True),
-    Method("TwinRL w/o twin buffer", "twinrl_no_buffer", "twinrl", True, False, True),
-    Method("ConRFT-style", "conrft", "conrft", False, False, False),
-    Method("HiL-SERL", "hil_serl", "hil-serl", False, False, False),
-)
-
-
-def twin_rl_config(p: Preset) -> RLConfig:
-    """The RL settings of a preset's Stage II."""
-    return RLConfig.for_method("twinrl", offline_steps=p.offline_steps)
-
-
-def real_rl_config(method: Method, p: Preset, seed: int) -> RLConfig:
-    """The RL settings of one real-RL run: the method's, with the preset's offline phase
-    (HiL-SERL has none: RLConfig.for_method)."""
-    offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}
-    return RLConfig.for_method(method.rl_method, seed=seed, **offline)
 
 
 def run_demo(
@@ -276,16 +157,6 @@ def _fresh(folder: Path) -> Path:
     return folder
 
 
-def stage1_paths(folder: Path, policy: str) -> dict[str, Path]:
-    """Where Stage I keeps its data and policies in a run's ``stage1`` folder."""
-    return {
-        "real": folder / "real",
-        "twin": folder / "twin" / "dataset",
-        "sft_real": folder / f"{policy}_real",
-        "sft_twin": folder / f"{policy}_real_twin",
-    }
-
-
 def run_preset(out: Path) -> Preset:
     """The preset a run in ``out`` was made with (its ``run.json``)."""
     path = Path(out) / "run.json"
@@ -332,14 +203,9 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
                 inputs=p.inputs,
             )
         )
-        _plant_eval(paths[name], task, p, _eval_folder(paths[name]))
+        _plant_eval(paths[name], task, p, eval_folder(paths[name]))
     _mark_done(folder)
     return paths
-
-
-def _eval_folder(checkpoint: Path) -> Path:
-    """Where a Stage I policy's plant evaluation lies: beside it."""
-    return checkpoint.with_name(f"{checkpoint.name}_eval")
 
 
 def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path) -> None:
@@ -522,220 +388,3 @@ def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None
 
 
 # ------------------------------------------------------------------ report
-def _median(values: list[float | None]) -> float | None:
-    """Median where a missing value (never reached) counts as infinitely late."""
-    finite = [math.inf if v is None else v for v in values]
-    middle = float(np.median(finite))
-    return None if math.isinf(middle) else middle
-
-
-def method_summary(folders: dict[int, Path]) -> dict[str, Any]:
-    """One method's ``M`` of report.json: medians over its seeds."""
-    per_seed = []
-    for folder in folders.values():
-        evaluations = load_evaluations(folder)
-        history = json.loads((folder / "run.json").read_text())["history"]
-        per_seed.append(
-            {
-                "to95": {r: minutes_to(evaluations, r) for r in REGION_NAMES},
-                "final": evaluations[-1].success_rate,
-                "interventions": sum(h["interventions"] for h in history),
-                "plant_steps": history[-1]["env_steps"] if history else 0,
-            }
-        )
-    return {
-        "plant_minutes_to_95": {r: _median([s["to95"][r] for s in per_seed]) for r in REGION_NAMES},
-        "final_success": {
-            r: float(np.median([s["final"].get(r, 0.0) for s in per_seed])) for r in REGION_NAMES
-        },
-        "interventions": int(np.median([s["interventions"] for s in per_seed])),
-        "plant_steps": int(np.median([s["plant_steps"] for s in per_seed])),
-    }
-
-
-def _curve(evaluations: list[EvalPoint], region: str, grid: np.ndarray) -> np.ndarray:
-    """Success held from each evaluation until the next, on ``grid`` (plant minutes)."""
-    xs = np.array([e.plant_minutes for e in evaluations])
-    ys = np.array([e.success_rate.get(region, 0.0) for e in evaluations])
-    index = np.searchsorted(xs, grid, side="right") - 1
-    return ys[np.clip(index, 0, len(ys) - 1)]
-
-
-def plot_methods(runs: dict[str, dict[int, Path]], path: Path, title: str) -> None:
-    """Evaluation success in ID and OOD against plant minutes: median over seeds (bold),
-    each seed (thin)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=120, sharey=True)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for ax, region in zip(axes, REGION_NAMES, strict=True):
-        for color, (name, folders) in zip(colors, runs.items(), strict=False):
-            series = [load_evaluations(f) for f in folders.values()]
-            end = max(s[-1].plant_minutes for s in series)
-            grid = np.linspace(0, end, 200)
-            curves = np.array([_curve(s, region, grid) for s in series])
-            for curve in curves:
-                ax.plot(grid, curve, color=color, lw=0.6, alpha=0.35)
-            ax.plot(grid, np.median(curves, axis=0), color=color, lw=2, label=name)
-        ax.axhline(0.95, color="grey", lw=0.8, ls="--")
-        ax.set_title(f"{region}", fontsize=10)
-        ax.set_xlabel("plant minutes")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("evaluation success")
-    axes[0].set_ylim(-0.02, 1.02)
-    axes[1].legend(fontsize=8, loc="lower right")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-
-
-def _fmt_minutes(value: float | None) -> str:
-    return "not reached" if value is None else f"{value:.1f}"
-
-
-def _pct(rate: float) -> str:
-    return f"{100 * rate:.0f} %"
-
-
-def _per_seed_table(runs: dict[str, dict[int, Path]]) -> list[str]:
-    """Markdown rows: one per method and seed, one column per evaluation."""
-    series = {
-        (name, seed): load_evaluations(folder)
-        for name, folders in runs.items()
-        for seed, folder in folders.items()
-    }
-    columns = max(len(s) for s in series.values())
-    longest = max(series.values(), key=len)
-    header = " | ".join(f"~{e.plant_minutes:.1f} min" for e in longest)
-    rows = [f"| method | seed | {header} |", "|---|---|" + "---|" * columns]
-    for (name, seed), evaluations in series.items():
-        cells = [
-            " / ".join(_pct(e.success_rate.get(r, 0.0)) for r in REGION_NAMES) for e in evaluations
-        ]
-        rows.append(
-            f"| {name} | {seed} | " + " | ".join(cells + [""] * (columns - len(cells))) + " |"
-        )
-    return rows
-
-
-def write_report(
-    task: str,
-    preset_name: str,
-    p: Preset,
-    out: Path,
-    stage1: dict[str, Path],
-    runs: dict[str, dict[int, Path]],
-    seeds: tuple[int, ...],
-) -> dict[str, Any]:
-    methods = {name: method_summary(folders) for name, folders in runs.items()}
-    twin_data = f"{p.real_demos} real + {p.twin_id} ID / {p.twin_ood} OOD twin demos"
-    starts = [  # (report.json key, what it is, its plant evaluation)
-        (
-            "sft_real",
-            f"Stage I: SFT on real demos only ({p.real_demos} real)",
-            _eval_folder(stage1["sft_real"]),
-        ),
-        (
-            "sft_real_twin",
-            f"Stage I: SFT on {twin_data}",
-            _eval_folder(stage1["sft_twin"]),
-        ),
-        (
-            "twin_rl",
-            f"Stage II: twin RL ({p.twin_rl_steps} twin steps)",
-            out / "stage2" / "plant_eval",
-        ),
-    ]
-    start_rates = {}
-    for key, _, folder in starts:
-        rates = json.loads((folder / "eval.json").read_text())["success_rate"]
-        start_rates[key] = {r: rates.get(r, 0.0) for r in REGION_NAMES}
-    report = {
-        "task": task,
-        "preset": preset_name,
-        "policy": p.policy,
-        "inputs": p.inputs,
-        "seeds": list(seeds),
-        "stages": start_rates,
-        "methods": methods,
-    }
-    (out / "report.json").write_text(json.dumps(report, indent=1))
-    plot_methods(runs, out / "curves.png", f"{task}: real RL in the plant ({preset_name})")
-    per_region = " / ".join(
-        str(sum(c.region == region for c in grid_cells(task, p.eval_grid)) * p.eval_episodes)
-        for region in REGION_NAMES
-    )
-    lines = [
-        f"# TwinRL in the plant: {task}, preset `{preset_name}`",
-        "",
-        f"Policy: **{p.policy}**"
-        + (
-            f" (privileged object poses instead of images; {p.inputs} inputs)"
-            if p.policy == "state"
-            else ""
-        )
-        + f". Seeds: {', '.join(map(str, seeds))}. Real RL: {p.plant_steps} robot steps "
-        f"({p.plant_steps / 600:.1f} plant minutes) per run; evaluation every {p.eval_every} "
-        f"steps on a {p.eval_grid[0]}x{p.eval_grid[1]} grid ({per_region} episodes in "
-        f"{' / '.join(REGION_NAMES)}) in a separate plant (not counted as interaction). "
-        "Values are medians over seeds.",
-        "",
-        "## The starting policies (plant evaluation, same grid)",
-        "",
-        "HiL-SERL and ConRFT-style start from the real-only SFT policy, both TwinRL "
-        "variants from the Stage II policy.",
-        "",
-        "| policy | ID | OOD |",
-        "|---|---|---|",
-        *[
-            f"| {label} | {_pct(start_rates[key]['ID'])} | {_pct(start_rates[key]['OOD'])} |"
-            for key, label, _ in starts
-        ],
-        "",
-        "## Real RL",
-        "",
-        "![success against plant minutes](curves.png)",
-        "",
-        "| method | minutes to 95 % ID | minutes to 95 % OOD | final ID | final OOD "
-        "| intervention steps | robot steps |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for name, m in methods.items():
-        lines.append(
-            f"| {name} | {_fmt_minutes(m['plant_minutes_to_95']['ID'])} "
-            f"| {_fmt_minutes(m['plant_minutes_to_95']['OOD'])} "
-            f"| {100 * m['final_success']['ID']:.0f} % | {100 * m['final_success']['OOD']:.0f} % "
-            f"| {m['interventions']} | {m['plant_steps']} |"
-        )
-    lines += [
-        "",
-        "Each run's evaluations, ID / OOD (an evaluation follows the episode that "
-        "crosses its step count, so the minutes differ a little between runs):",
-        "",
-    ]
-    lines += _per_seed_table(runs)
-    lines += [
-        "",
-        "Per run: `real_rl/<method>/seed<k>/` (curve.png, evaluations/, session/, "
-        "resets-*.rrd). All episodes are indexed in `catalog.parquet`; "
-        "`representative.rrd` shows a TwinRL episode with an operator takeover and its "
-        "last training episode.",
-        "",
-        "Settings: " + json.dumps(asdict(p)),
-    ]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
-    build_index([out], out / "catalog.parquet")
-    _representative(runs[METHOD_TABLE[0].name], out / "representative.rrd")
-    return report
-
-
-def _representative(folders: dict[int, Path], path: Path) -> None:
-    session = Session(next(iter(folders.values())) / "session")
-    entries, paths = session.entries, session.episode_paths()
-    helped = [p for p, e in zip(paths, entries, strict=True) if e.get("num_interventions")]
-    chosen = ([helped[-1]] if helped else []) + [paths[-1]]
-    save_rrd([read_episode(p) for p in dict.fromkeys(chosen)], path, force=True)
