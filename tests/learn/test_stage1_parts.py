@@ -465,7 +465,7 @@ def test_training_augmentation_shifts_images_and_noises_states_without_touching_
 
 
 def test_fit_look_gives_the_twin_the_plants_appearance(tmp_path):
-    from twinrl_learn.stage1 import fit_look, record_real_demos
+    from twinrl_learn.studies.table1 import fit_look, record_real_demos
     from twinrl_robot.plant import DEFAULT_EFFECTS_FILE
     from twinrl_sim.effects import load_effects
     from twinrl_sim.spec import load_spec
@@ -491,7 +491,7 @@ def test_the_table_i_benchmark_end_to_end_at_smoke_scale(tmp_path):
     from typer.testing import CliRunner
 
     from twinrl_learn.cli import app
-    from twinrl_learn.stage1 import MIXES
+    from twinrl_learn.studies.table1 import MIXES
 
     out = tmp_path / "stage1"
     args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
