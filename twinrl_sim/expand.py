@@ -19,7 +19,6 @@ of workers.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import shutil
 import time
@@ -30,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.executor import make_executor
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import EpisodeFolder, Recorder
@@ -237,8 +237,7 @@ def expand(
     }
     workers = workers or min(2, os.cpu_count() or 1)
     start = time.perf_counter()
-    context = multiprocessing.get_context("spawn")
-    with context.Pool(workers) as pool:
+    with make_executor(workers) as executor:
         for region, count in (("ID", id_count), ("OOD", ood_count)):
             report.kept[region] = report.attempts[region] = report.detoured[region] = 0
             attempt = 0
@@ -250,7 +249,7 @@ def expand(
                     for i in range(wave)
                 ]
                 attempt += wave
-                for _, result in pool.map(_run_job, jobs):
+                for _, result in executor.map(_run_job, jobs):
                     if report.kept[region] >= count:
                         if result is not None:
                             Path(result["path"]).unlink()  # made in the same wave, not needed

@@ -37,11 +37,8 @@ them side by side; the results do not depend on how many.
 from __future__ import annotations
 
 import json
-import multiprocessing
-import queue
 import shutil
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -49,6 +46,7 @@ from typing import Any
 import torch
 
 from twinrl_data.cli import quiet_encoders
+from twinrl_data.executor import make_executor
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
 from twinrl_learn.real_rl import RealRL, RealRLSettings
@@ -295,51 +293,30 @@ def _run_jobs(
     log: Log,
     on_progress: Callable[[RunProgress], None] | None,
 ) -> None:
-    """Run the jobs, ``workers`` at a time in spawned processes (1: in this one), passing
-    their log lines and progress on to ``log`` and ``on_progress`` as they come."""
+    """Run the jobs, ``workers`` at a time (1: in this process), passing their log lines
+    and progress on to ``log`` and ``on_progress`` as they come."""
     pending = [job for job in jobs if not _done(job.folder)]
-    if workers == 1 or len(pending) <= 1:
-        for job in pending:
-            _real_rl(job, log, on_progress or (lambda _: None))
+    if not pending:
         return
-    context = multiprocessing.get_context("spawn")
-    messages = context.Queue()
-    with ProcessPoolExecutor(
-        min(workers, len(pending)),
-        mp_context=context,
-        initializer=_start_worker,
-        initargs=(messages,),
-    ) as pool:
-        futures = [pool.submit(_real_rl_in_worker, job) for job in pending]
-        while not all(f.done() for f in futures) or not messages.empty():
-            if any(f.done() and f.exception() is not None for f in futures):
-                pool.shutdown(wait=False, cancel_futures=True)  # runs under way finish
-                break
-            try:
-                message = messages.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            if isinstance(message, RunProgress):
-                if on_progress is not None:
-                    on_progress(message)
-            else:
-                log(message)
-        for future in futures:
-            future.result()  # a worker's error is raised here, as if run in this process
+
+    def dispatch(message: str | RunProgress) -> None:
+        if isinstance(message, RunProgress):
+            if on_progress is not None:
+                on_progress(message)
+        else:
+            log(message)
+
+    with make_executor(min(workers, len(pending)), initializer=_start_worker) as executor:
+        executor.run(_real_rl_job, pending, on_message=dispatch)
 
 
-_worker_messages = None
-
-
-def _start_worker(messages) -> None:
-    global _worker_messages
-    _worker_messages = messages
+def _start_worker() -> None:
     torch.set_num_threads(1)
     quiet_encoders()
 
 
-def _real_rl_in_worker(job: RealRLJob) -> None:
-    _real_rl(job, _worker_messages.put, _worker_messages.put)
+def _real_rl_job(job: RealRLJob, send: Callable[[str | RunProgress], None]) -> None:
+    _real_rl(job, send, send)
 
 
 def real_rl_settings(job: RealRLJob) -> RealRLSettings:
@@ -385,6 +362,3 @@ def _real_rl(job: RealRLJob, log: Log, on_progress: Callable[[RunProgress], None
 
     real.run(on_episode=report)
     _mark_done(folder)
-
-
-# ------------------------------------------------------------------ report

@@ -1,0 +1,42 @@
+"""The executor: jobs in order, messages as they come, the first failure raised."""
+
+import os
+
+import pytest
+
+from twinrl_data.executor import InlineExecutor, ProcessExecutor, make_executor
+
+
+def square(n):
+    return n * n, os.getpid()
+
+
+def chatty(n, send):
+    send(f"job {n} starts")
+    if n == 3:
+        raise ArithmeticError(f"job {n} cannot")
+    return n + 100
+
+
+def test_jobs_come_back_in_order_inline_or_in_worker_processes():
+    with make_executor(1) as inline:
+        assert isinstance(inline, InlineExecutor)
+        assert [r for r, _ in inline.map(square, range(5))] == [0, 1, 4, 9, 16]
+    with make_executor(2) as pool:
+        assert isinstance(pool, ProcessExecutor) and pool.workers == 2
+        results = pool.map(square, range(8))
+        again = pool.map(square, range(3))  # the same workers serve a second call
+    assert [r for r, _ in results] == [n * n for n in range(8)]
+    assert os.getpid() not in {pid for _, pid in results + again}
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_messages_arrive_and_the_first_failure_is_raised_as_it_was(workers):
+    heard = []
+    with make_executor(workers) as executor:
+        assert executor.run(chatty, [0, 1, 2], heard.append) == [100, 101, 102]
+        assert sorted(heard) == [f"job {n} starts" for n in range(3)]
+        with pytest.raises(ArithmeticError, match="job 3 cannot"):
+            executor.run(chatty, [3, 4], heard.append)
+    with pytest.raises(ValueError, match="at least one worker"):
+        make_executor(0)

@@ -1,0 +1,157 @@
+"""One way to spread independent jobs over cores: :func:`make_executor`.
+
+Work that scales with cores (twin demo synthesis, the pipeline's real-RL runs) hands
+its jobs to an :class:`Executor` instead of opening a pool of its own:
+
+- :class:`InlineExecutor` runs them one after another in this process (one worker:
+  no start-up cost, and a debugger sees everything);
+- :class:`ProcessExecutor` runs them in spawned worker processes on this machine
+  (spawned, not forked, so MuJoCo's GL contexts, torch and threads start clean); the
+  workers live as long as the executor, so a worker's caches serve many jobs.
+
+Results come back in job order whatever the number of workers, so a seeded computation
+gives the same results on one core or many. A job may send messages (log lines,
+progress) to the caller while it runs: ``run`` passes every job a ``send`` callable
+and hands what it sends to ``on_message`` as it arrives. The first job that fails
+stops the jobs not yet started, and its error is raised in the caller as if the job
+had run there. Functions and jobs must be picklable (module-level functions, plain
+data), and a script that spawns workers needs an ``if __name__ == "__main__":`` guard.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import queue
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any, Protocol, TypeVar
+
+Job = TypeVar("Job")
+Result = TypeVar("Result")
+Send = Callable[[Any], None]
+
+
+class Executor(Protocol):
+    """Runs independent jobs; see the module docstring."""
+
+    workers: int
+
+    def map(self, fn: Callable[[Job], Result], jobs: Iterable[Job]) -> list[Result]: ...
+
+    def run(
+        self,
+        fn: Callable[[Job, Send], Result],
+        jobs: Iterable[Job],
+        on_message: Callable[[Any], None],
+    ) -> list[Result]: ...
+
+    def close(self) -> None: ...
+
+
+class InlineExecutor:
+    """Every job in this process, in order."""
+
+    workers = 1
+
+    def map(self, fn: Callable[[Job], Result], jobs: Iterable[Job]) -> list[Result]:
+        return [fn(job) for job in jobs]
+
+    def run(
+        self,
+        fn: Callable[[Job, Send], Result],
+        jobs: Iterable[Job],
+        on_message: Callable[[Any], None],
+    ) -> list[Result]:
+        return [fn(job, on_message) for job in jobs]
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def __enter__(self) -> InlineExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_messages: Any = None  # a worker's channel back to the caller (set when it starts)
+
+
+def _start_worker(messages: Any, initializer: Callable[[], None] | None) -> None:
+    global _messages
+    _messages = messages
+    if initializer is not None:
+        initializer()
+
+
+def _call_with_send(fn: Callable[[Any, Send], Any], job: Any) -> Any:
+    return fn(job, _messages.put)
+
+
+class ProcessExecutor:
+    """Jobs in ``workers`` spawned processes; ``initializer`` runs once in each worker
+    (e.g. to limit torch to one thread per worker)."""
+
+    def __init__(self, workers: int, *, initializer: Callable[[], None] | None = None) -> None:
+        if workers < 1:
+            raise ValueError(f"an executor needs at least one worker, got {workers}")
+        self.workers = workers
+        context = multiprocessing.get_context("spawn")
+        self._messages = context.Queue()
+        self._pool = ProcessPoolExecutor(
+            workers,
+            mp_context=context,
+            initializer=_start_worker,
+            initargs=(self._messages, initializer),
+        )
+
+    def map(self, fn: Callable[[Job], Result], jobs: Iterable[Job]) -> list[Result]:
+        futures = [self._pool.submit(fn, job) for job in jobs]
+        return self._gather(futures, None)
+
+    def run(
+        self,
+        fn: Callable[[Job, Send], Result],
+        jobs: Iterable[Job],
+        on_message: Callable[[Any], None],
+    ) -> list[Result]:
+        futures = [self._pool.submit(_call_with_send, fn, job) for job in jobs]
+        return self._gather(futures, on_message)
+
+    def _gather(self, futures: list[Future], on_message: Callable[[Any], None] | None) -> list[Any]:
+        """Wait for every job, passing messages on; stop the rest at the first failure."""
+        while True:
+            finished = all(f.done() for f in futures)
+            try:
+                # Once every job is done, what the workers sent last may still be on its way.
+                message = self._messages.get(timeout=0.05 if finished else 0.2)
+            except queue.Empty:
+                if finished:
+                    break
+            else:
+                if on_message is not None:
+                    on_message(message)
+            if any(f.done() and f.exception() is not None for f in futures):
+                for future in futures:
+                    future.cancel()  # jobs under way finish; the others never start
+                break
+        return [future.result() for future in futures]  # a job's error is raised here
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> ProcessExecutor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def make_executor(
+    workers: int, *, initializer: Callable[[], None] | None = None
+) -> InlineExecutor | ProcessExecutor:
+    """An executor with ``workers`` workers: in this process for one, processes beyond
+    (``initializer`` runs in each worker process, not in this one)."""
+    if workers < 1:
+        raise ValueError(f"an executor needs at least one worker, got {workers}")
+    return InlineExecutor() if workers == 1 else ProcessExecutor(workers, initializer=initializer)
