@@ -123,9 +123,19 @@ class FrameTable:
 
     def action_chunks(self, rows: np.ndarray, chunk: int) -> np.ndarray:
         """Actions rows..rows+chunk-1 of each row's episode, the last repeated past its end."""
-        offsets = rows[:, None] + np.arange(chunk)[None]
-        offsets = np.minimum(offsets, self.episode_end[rows, None] - 1)
-        return self.action[offsets]
+        return self.action[chunk_rows(rows, self.episode_end[rows], chunk)[0]]
+
+
+def chunk_rows(
+    rows: np.ndarray, episode_end: np.ndarray, chunk: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of the action chunk that starts at each of ``rows``: ``(B, chunk)`` row
+    indices, the episode's last row repeated past its end (``episode_end`` is each
+    row's exclusive end row), and a mask of the entries inside the episode. Learners
+    that execute chunks (SFT, Q-chunking RL) index their tables with it."""
+    offsets = rows[:, None] + np.arange(chunk)[None]
+    inside = offsets < episode_end[:, None]
+    return np.minimum(offsets, episode_end[:, None] - 1), inside
 
 
 def load_frames(

@@ -39,6 +39,7 @@ from twinrl_data.schema import (
     SUCCESS,
     Episode,
 )
+from twinrl_data.training import chunk_rows
 
 DEMO_SOURCES = ("teleop", "twin_demo")  # episodes whose every action is a demonstration
 
@@ -238,9 +239,7 @@ class ReplayBuffer:
         self._build(gamma)
         a = self._arrays
         end = a["end"][rows]
-        offsets = rows[:, None] + np.arange(chunk)[None]
-        inside = offsets < end[:, None]
-        clipped = np.minimum(offsets, end[:, None] - 1)
+        clipped, inside = chunk_rows(rows, end, chunk)
         steps = inside.sum(1)
         powers = gamma ** np.arange(chunk)[None]
         reward = (a["reward"][clipped] * powers * inside).sum(1)
