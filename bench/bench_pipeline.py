@@ -20,7 +20,7 @@ from typing import Annotated
 import torch
 import typer
 
-from twinrl_data.cli import quiet_encoders
+from twinrl_data.console import quiet_encoders
 from twinrl_learn.studies.pipeline import run_demo
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import typer
 
-from twinrl_data.cli import quiet_encoders
+from twinrl_data.console import quiet_encoders
 from twinrl_learn.agent import Agent
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer

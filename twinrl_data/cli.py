@@ -3,18 +3,17 @@
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from twinrl_data import catalog as catalog_lib
 from twinrl_data import schema as contract
+from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import (
     export_dataset,
@@ -43,31 +42,6 @@ DEFAULT_COLUMNS = (
     "return",
     "kind",
 )
-
-
-def quiet_encoders() -> None:
-    """Keep video encoders and dataset progress bars off the terminal."""
-    os.environ.setdefault("SVT_LOG", "1")
-    import av.logging
-    import datasets
-
-    av.logging.set_level(av.logging.ERROR)
-    datasets.disable_progress_bars()
-
-
-def progress(*fields: str, disable: bool = False) -> Progress:
-    """The progress bar of every long twinrl command (on stderr); ``fields`` are extra
-    task fields shown after the count, e.g. ``progress("loss")``."""
-    return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        *[TextColumn(f"{name} {{task.fields[{name}]}}") for name in fields],
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        transient=True,
-        disable=disable,
-    )
 
 
 def export_with_progress(

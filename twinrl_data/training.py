@@ -30,6 +30,7 @@ import PIL.Image
 import torch
 from torch.utils.data import ConcatDataset, DataLoader
 
+from twinrl_data.chunks import chunk_rows
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import iter_dataset_episodes, open_dataset
 from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, STATE
@@ -124,18 +125,6 @@ class FrameTable:
     def action_chunks(self, rows: np.ndarray, chunk: int) -> np.ndarray:
         """Actions rows..rows+chunk-1 of each row's episode, the last repeated past its end."""
         return self.action[chunk_rows(rows, self.episode_end[rows], chunk)[0]]
-
-
-def chunk_rows(
-    rows: np.ndarray, episode_end: np.ndarray, chunk: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of the action chunk that starts at each of ``rows``: ``(B, chunk)`` row
-    indices, the episode's last row repeated past its end (``episode_end`` is each
-    row's exclusive end row), and a mask of the entries inside the episode. Learners
-    that execute chunks (SFT, Q-chunking RL) index their tables with it."""
-    offsets = rows[:, None] + np.arange(chunk)[None]
-    inside = offsets < episode_end[:, None]
-    return np.minimum(offsets, episode_end[:, None] - 1), inside
 
 
 def load_frames(

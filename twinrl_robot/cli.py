@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from twinrl_data.cli import progress
+from twinrl_data.console import progress
 from twinrl_data.session import Session
 from twinrl_robot.backends import WORLDS
 from twinrl_robot.excitation import ExcitationSettings, run_excitation

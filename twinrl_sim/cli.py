@@ -13,7 +13,7 @@ from rich.table import Table
 
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
-from twinrl_data.cli import progress, quiet_encoders
+from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.schema import STATE, Episode
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS

@@ -45,7 +45,7 @@ from typing import Any
 
 import torch
 
-from twinrl_data.cli import quiet_encoders
+from twinrl_data.console import quiet_encoders
 from twinrl_data.executor import make_executor
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
