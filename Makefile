@@ -10,7 +10,7 @@ SYSTEM_PACKAGES := libusb-1.0-0 libegl1 libgl1 libosmesa6
 PYTHON ?= $(shell command -v python3.12 >/dev/null 2>&1 && python3.12 -c 'import sys' 2>/dev/null && echo python3.12 || echo "env PYENV_VERSION=3.12.1 python3.12")
 export MUJOCO_GL ?= egl
 
-.PHONY: help setup system-libs test test-slow demo bench lint clean
+.PHONY: help setup system-libs test test-slow demo bench docs lint clean
 
 help:
 	@echo "make demo   set up, run every task's scripted expert in the twin and the plant, record,"
@@ -20,6 +20,7 @@ help:
 	@echo "make test   set up, then lint and run the test suite (all but the slow end-to-end runs)"
 	@echo "make test-slow  set up, then run the slow end-to-end tests (CI runs both)"
 	@echo "make bench  set up, then run the benchmarks"
+	@echo "make docs   set up, then build the documentation site into build/site (warnings are errors)"
 
 setup: system-libs $(STAMP)
 
@@ -77,6 +78,10 @@ bench: setup
 	$(BIN)/python bench/bench_rl_update.py --updates 20
 	@rm -rf out/bench_stage1   # the benchmark's own output from a previous run
 	$(BIN)/twinrl bench stage1 --out out/bench_stage1 --policies state
+
+# The site: guides, results, benchmarks, and the CLI and API references generated from the code.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir build/site
 
 lint: setup
 	$(BIN)/ruff check .

@@ -181,8 +181,7 @@ class Agent:
                 self.alpha_opt.step()
                 metrics["alpha"] = self.alpha.item()
         if beta > 0 and bool(demo_rows.any()):
-            # The same augmentation as SFT: without it the imitation term alone wore down
-            # the SFT policy's OOD success in twin RL (41 -> 27 %, 64 plant episodes each).
+            # The same augmentation as SFT; without it OOD wore down (docs/results/defaults.md).
             demo = p.augment({k: v[demo_rows] for k, v in t["obs"].items()}, self.generator)
             l_il = p.imitation_loss(demo, t["actions"][demo_rows])
             loss = loss + beta * l_il

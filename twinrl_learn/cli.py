@@ -13,6 +13,7 @@ from rich.table import Table
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (torch, the simulator, the datasets) when it runs.
 from twinrl_data import cli as data_cli
+from twinrl_data.console import progress, quiet_encoders
 from twinrl_learn.replay import RewardSettings
 from twinrl_learn.settings import DEFAULTS, METHODS, RLConfig, SFTConfig
 from twinrl_robot import cli as robot_cli
@@ -134,7 +135,7 @@ def train_sft_command(
     missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
     if missing:
         raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
-    with data_cli.progress("loss", "rate") as bar:
+    with progress("loss", "rate") as bar:
         # A resumed run without --steps reports its own length.
         total = None if resume and steps is None else steps or DEFAULTS[policy].steps
         job = bar.add_task(f"SFT {policy}", total=total, loss="-", rate="-")
@@ -214,7 +215,7 @@ def eval_command(
     if effects is not None and not effects.is_file():
         raise ValueError(f"--effects {effects} does not exist")
     runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
-    with data_cli.progress("success") as bar:
+    with progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
         done = {"n": 0, "ok": 0}
 
@@ -280,7 +281,7 @@ def locate_command(
     from twinrl_learn.locating import band_labels, locating_errors
 
     labelled = _sources(sources)
-    with data_cli.progress() as bar:
+    with progress() as bar:
         job = bar.add_task("replaying episodes", total=None)
         report = locating_errors(
             checkpoint,
@@ -404,8 +405,8 @@ def train_twin_rl_command(
         rl=rl,
     )
     torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
-    data_cli.quiet_encoders()
-    with data_cli.progress("ID", "OOD", "q") as bar:
+    quiet_encoders()
+    with progress("ID", "OOD", "q") as bar:
         offline = bar.add_task("offline updates", total=rl.offline_steps, ID="", OOD="", q="")
         job = bar.add_task("twin steps", total=steps, ID="-", OOD="-", q="-")
 
@@ -583,9 +584,9 @@ def train_real_rl_command(
     )
     # Small networks: one thread each for the actor and the learner.
     torch.set_num_threads(1)
-    data_cli.quiet_encoders()
+    quiet_encoders()
     job_run = RealRL.resume(settings) if resume else RealRL.start(settings)
-    with data_cli.progress("ID", "OOD", "interventions") as bar:
+    with progress("ID", "OOD", "interventions") as bar:
         offline = bar.add_task(
             "offline updates",
             total=job_run.run_state.agent.config.offline_steps,
@@ -637,7 +638,7 @@ def demo_command(
         str | None,
         typer.Option(
             help="State policy's inputs: absolute or relative (see train sft; default: the "
-            "preset's, absolute)."
+            "preset's: relative in quick, absolute in smoke)."
         ),
     ] = None,
     workers: Annotated[
@@ -661,8 +662,8 @@ def demo_command(
         raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     chosen = _int_list(seeds, "--seeds") if seeds else None
     torch.set_num_threads(1)
-    data_cli.quiet_encoders()
-    with data_cli.progress("ID", "OOD") as bar:
+    quiet_encoders()
+    with progress("ID", "OOD") as bar:
         jobs: dict[tuple[str, int], int] = {}
         steps = PRESETS[preset].plant_steps
 
@@ -821,7 +822,7 @@ def bench_stage1(
         state_inputs=inputs,
         seed=seed,
     )
-    data_cli.quiet_encoders()
+    quiet_encoders()
     run_stage1(settings, out, log=lambda line: console.print(line))
     console.print((out / "table1.md").read_text())
 
@@ -857,8 +858,8 @@ def bench_stages(
         finals=finals,
     )
     torch.set_num_threads(1)
-    data_cli.quiet_encoders()
-    with data_cli.progress() as bar:
+    quiet_encoders()
+    with progress() as bar:
         task = bar.add_task("measuring", total=None)
 
         def on_evaluation(done: int, total: int, label: str) -> None:

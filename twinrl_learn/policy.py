@@ -95,15 +95,10 @@ class PolicyConfig:
     inputs: str = "absolute"  # the state policy's view of the objects (see the module doc)
     # Acting, the i-th oldest prediction for a step weighs exp(-temporal_ensemble * i)
     # (module doc; ACT's 0.01: older ones weigh slightly more); None: chunks open-loop.
-    # Measured with the state policy (relative inputs, SFT seeds 0-2, 64 plant episodes
-    # per region): 89 / 89, 91 / 83 and 89 / 91 % (ID / OOD) against 80 / 75, 72 / 75 and
-    # 80 / 89 % open-loop.
+    # Ensembling measured better than open-loop chunks (docs/results/defaults.md).
     temporal_ensemble: float | None = 0.01
-    # Acting, hold the arm while the gripper closes (HoldRule). Measured with four
-    # state policies of a quick run (Stage I, Stage II, two after real RL; 64 plant
-    # episodes per region each): 398 successes in 512 episodes against 387 without, and
-    # no policy lost any; with Table I's four image policies (32 per region), whose
-    # grasps miss for want of locating the object, 42 of 256 against 45.
+    # Acting, hold the arm while the gripper closes (HoldRule).
+    # State policies gained successes with it, none lost any (docs/results/defaults.md).
     grasp_hold: bool = True
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)

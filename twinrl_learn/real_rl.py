@@ -85,9 +85,8 @@ class RealRLSettings:
     task: str
     init: str  # policy checkpoint to start from (Stage I SFT or a Stage II agent)
     out: str
-    # Start from the critic of ``init`` when it is a Stage II agent. Off by default: over
-    # 4 plant minutes (seeds 0-2) runs ended at 69 / 70 % (ID / OOD, mean) with it and at
-    # 66 / 77 % without; over 12 (seed 1) it fell to 52 / 77 %, a new critic held 78 / 77 %.
+    # Start from the critic of ``init`` when it is a Stage II agent.
+    # Off by default: a new critic measured better (docs/results/defaults.md).
     keep_critic: bool = False
     robot: str = "plant"
     effects: str | None = None  # the plant's hidden effects (None: the built-in plant)

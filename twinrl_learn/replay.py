@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.chunks import chunk_rows
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.schema import (
     ACTION,
@@ -39,7 +40,6 @@ from twinrl_data.schema import (
     SUCCESS,
     Episode,
 )
-from twinrl_data.training import chunk_rows
 
 DEMO_SOURCES = ("teleop", "twin_demo")  # episodes whose every action is a demonstration
 
@@ -53,9 +53,7 @@ class RewardSettings:
 
     success: float = 10.0
     step: float = -0.05
-    # Measured over 4 plant minutes of real RL from a quick run's Stage II policy (seeds
-    # 0-2, 64 evaluation episodes per region): ending the stretch at a takeover, the runs
-    # ended at 66 / 77 % (ID / OOD, mean) against 54 / 59 % when it ran on.
+    # Ending the stretch at a takeover measured better than not (docs/results/defaults.md).
     takeover: float | None = 0.0
 
 

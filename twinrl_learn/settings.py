@@ -39,7 +39,7 @@ class Defaults(NamedTuple):
 
 # Enough for 30-120 episodes in a few minutes on 2 cores. The state policy's final
 # weights were a noisy iterate at a constant rate; the image policy's were better at one
-# (the README's SFT section has the figures).
+# (docs/results/sft.md has the figures).
 DEFAULTS = {
     "state": Defaults(steps=3000, batch_size=256, lr=1e-3, lr_schedule="cosine"),
     "vla": Defaults(steps=5000, batch_size=64, lr=5e-4, lr_schedule="constant"),
@@ -69,9 +69,7 @@ class SFTConfig:
     inputs: str = "absolute"  # the state policy's inputs: absolute or relative (policy.py)
     image_size: int = 128  # vla: images are resized to this on load (64 or 128)
     # vla: weight of the auxiliary object-locating loss (0: off). Its squared error is in
-    # decimetres (a 1 cm miss costs 0.01), so at 1 it barely shaped the features: on Table
-    # I's 30 / 60 data (64 plant episodes per region) 10 gave 41 / 41 and 33 / 28 % (ID /
-    # OOD, SFT seeds 0 and 1) against 33 / 14 % with 1, and 30 gave 22 / 20 %.
+    # decimetres (a 1 cm miss costs 0.01); 10 beat 1 and 30 (docs/results/defaults.md).
     locate_weight: float = 10.0
     seed: int = 0
     checkpoint_every: int = 500
@@ -117,14 +115,12 @@ class RLConfig:
     critics: int = 2
     hidden: int = 256
     batch_size: int = 64  # as in the paper
-    # Small, because the actor is a fine-tuned SFT policy: 10 plant minutes of real RL with
-    # imitation alone (eta 0) took it from 44 / 44 % (ID / OOD) to 38 / 6 % at 3e-4 and
-    # to 50 / 38 % at 3e-5 (seed 0). SAC without an imitation term keeps 3e-4.
+    # Small: 3e-4 wore the fine-tuned SFT policy down in real RL (docs/results/defaults.md).
+    # SAC without an imitation term keeps 3e-4.
     actor_lr: float = 3e-5
     critic_lr: float = 3e-4
     beta: float = 1.0  # weight of L_IL
-    # Weight of L_Q. Kept small: at 1 the young critic pulled the SFT policy off its demos
-    # within the first plant minute (ID success 50 -> 12 %); 0.1 held it.
+    # Weight of L_Q; at 1 the young critic undid the SFT policy (docs/results/defaults.md).
     eta: float = 0.1
     beta_online: float | None = None  # beta after the offline phase (None: unchanged)
     cql_alpha: float = 0.1

@@ -68,9 +68,7 @@ class OperatorRule:
     funnel: float = 0.015  # m across the object's axis a closing gripper may be off (0: off)
     # A take-over low beside the object within this distance (m) of the expert's grasp
     # corrects the arm straight to it instead of backing off to the approach pose (0:
-    # always back off). Measured over 10 plant minutes of real RL from 56 % ID / 44 % OOD
-    # (seed 0, 16 evaluation episodes per region): backing off ended at 44 / 25 %,
-    # correcting at 62 / 38 %.
+    # always back off). Correcting measured better (docs/results/defaults.md).
     correct_within: float = 0.06
 
     def __post_init__(self) -> None:

@@ -23,8 +23,7 @@ ACTION_DIM = 7
 MAX_TRANSLATION = 0.05  # m per control step (0.5 m/s at 10 Hz)
 MAX_ROTATION = 0.25  # rad per control step
 # How fast (rad per control step) the arm's wrist turns without falling behind its
-# command, where the arm does not travel far: about 2 degrees behind in the plant at
-# this rate, and ever further behind above it (0.12: 6 degrees after 8 steps).
+# command, where the arm does not travel far; faster lags more (docs/results/defaults.md).
 # Demonstrators turn no faster (the scripted expert also paces its turn by the measured
 # yaw): a policy sees only the measured pose, and demos that had commanded a whole turn
 # while the arm was a third of the way round taught it to stop turning early.

@@ -56,25 +56,19 @@ PRESETS = {
     ),
     "quick": Preset(
         policy="state",
-        # Objects seen from the TCP: measured better at every stage than absolute poses.
+        # Objects seen from the TCP: better at every stage (docs/results/defaults.md).
         inputs="relative",
         real_demos=30,
-        # 105 + 105 twin demos: SFT on them reached 61 / 70 % (ID / OOD) in the plant
-        # against 41 / 56 % with 30 + 30; synthesized without cameras, they fit the time.
+        # More twin demos made a better SFT policy (docs/results/defaults.md).
         twin_id=105,
         twin_ood=105,
-        # Twin RL is where RL is cheap: from the same SFT policy (44 / 44 % ID / OOD in
-        # the plant, 64 episodes per region), 1600 twin steps reached 61 / 75 % and 9600
-        # (4 min) 75 / 91 %.
+        # Twin RL is where RL is cheap: more steps kept climbing (docs/results/defaults.md).
         twin_rl_steps=9600,
         twin_envs=8,
         mining_grid=(4, 4),
         mining_episodes=2,
         plant_steps=2400,
-        # 32 episodes per region per evaluation, each at its own configuration (95 %
-        # takes 31 of 32): with 16 (4x4, 2 each) the final TwinRL policies of a run
-        # measured 88-94 % in each region, and 94-98 % over 64 (8x8, 2 each). Every 2
-        # plant minutes keeps the preset under 20 minutes.
+        # 32 episodes per region, every 2 plant minutes (docs/results/defaults.md).
         eval_every=1200,
         eval_grid=(8, 8),
         eval_episodes=1,

@@ -62,8 +62,7 @@ class Stage1Settings:
     fit_look: bool = False  # synthesize in the twin with the appearance fitted to real demos
     detours: float = 0.0  # share of the twin demos that stray beside the object first
     # The state policy's inputs (twinrl_learn.policy): objects seen from the TCP, as the
-    # quick pipeline's; with absolute poses and 30-90 demos which mix did best moved with
-    # the demos drawn (pick_place 30 real + 30 / 60 twin: 47 % and then 9 % OOD).
+    # quick pipeline's: with absolute poses the best mix varied (docs/results/defaults.md).
     state_inputs: str = "relative"
     seed: int = 0
 
