@@ -37,7 +37,7 @@ class Learner:
         self.run = run
         self.metrics: dict[str, float] = {}
         self._lock = threading.Lock()  # held for each update and each boundary operation
-        self._work = threading.Condition()
+        self._work = threading.Condition()  # guards the counters of steps and updates
         self._stopping = False
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._serve, name="twinrl-learner", daemon=True)
@@ -45,11 +45,11 @@ class Learner:
 
     # ------------------------------------------------------------------ actor side
     def grant(self, env_steps: int) -> None:
-        """Count ``env_steps`` new robot steps; the learner runs the updates they buy."""
+        """Count ``env_steps`` new robot steps; the learner runs the updates they buy.
+        Never waits for an update in progress."""
         self._raise_if_failed()
         with self._work:
-            with self._lock:
-                self.run.count_steps(env_steps)
+            self.run.count_steps(env_steps)
             self._work.notify()
 
     def wait(self, timeout_s: float | None = None) -> bool:
@@ -92,10 +92,10 @@ class Learner:
                     if self._stopping:
                         return
                 with self._lock:
-                    metrics = self.run.update_due()
-                if metrics:
-                    self.metrics = metrics
+                    metrics = self.run.update()
+                self.metrics = metrics
                 with self._work:
+                    self.run.update_done()
                     self._work.notify_all()
         except BaseException as error:  # handed to the actor at its next call
             with self._work:

@@ -142,8 +142,12 @@ class OnlineRun:
     def update_due(self) -> dict[str, float]:
         """Run one update that the counted steps bought."""
         metrics = self.update()
-        self._pending_updates -= 1
+        self.update_done()
         return metrics
+
+    def update_done(self) -> None:
+        """Count one bought update as run."""
+        self._pending_updates -= 1
 
     def update(self) -> dict[str, float]:
         """One gradient update on an RLPD batch."""

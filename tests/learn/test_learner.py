@@ -51,20 +51,25 @@ def test_the_learner_runs_utd_updates_per_granted_step(demos, tmp_path):
 
 
 def test_acting_never_waits_for_an_update(demos, tmp_path):
-    """Every update blocks until released: the robot still steps through the episode."""
+    """An update hangs until released: meanwhile the robot steps on, granting more."""
     run = small_run(demos, tmp_path / "run", utd=1)
-    release = threading.Event()
+    entered, release = threading.Event(), threading.Event()
     update = run.update
 
-    def blocked_update():
+    def hanging_update():
+        entered.set()
         release.wait()
         return update()
 
-    run.update = blocked_update
+    run.update = hanging_update
     learner = Learner(run)
     try:
-        for _ in range(50):  # fifty control steps while the first update hangs
-            learner.grant(1)
+        learner.grant(1)
+        assert entered.wait(timeout=60)  # the learner is inside its first update
+        actor = threading.Thread(target=lambda: [learner.grant(1) for _ in range(49)])
+        actor.start()
+        actor.join(timeout=10)
+        assert not actor.is_alive(), "granting steps waited for the update in progress"
         assert run.agent.updates == 0 and run.agent.env_steps == 50
         assert not learner.wait(timeout_s=0.05)
         release.set()
