@@ -1,0 +1,57 @@
+"""Acting one observation at a time from a policy that predicts action chunks.
+
+With ``chunk > 1`` and ``temporal_ensemble`` set, a chunk is predicted at every step
+and the executed action is the weighted average of every prediction made for this step
+(temporal ensembling, as ACT does); without it each chunk is executed in turn before
+looking again. With ``grasp_hold`` the arm holds while the gripper closes
+(:class:`~twinrl_robot.wrappers.HoldRule`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from twinrl_learn.policy.config import PolicyConfig
+from twinrl_robot.wrappers import HoldRule
+
+
+class ChunkedActing:
+    """The state of one episode's acting: the unexecuted rest of each chunk predicted
+    so far, and the gripper's (see the module docstring). :meth:`reset` at each start."""
+
+    def __init__(self, config: PolicyConfig) -> None:
+        self.config = config
+        self.reset()
+
+    def reset(self) -> None:
+        self._predictions: list[np.ndarray] = []
+        self._hold = HoldRule()
+
+    def act(
+        self, observation: dict[str, Any], predict: Callable[[dict[str, Any]], np.ndarray]
+    ) -> np.ndarray:
+        """The action for ``observation``; ``predict`` maps a batch of one observation to
+        its chunk (chunk, A) in physical units."""
+        action = self._next_action(observation, predict)
+        if self.config.grasp_hold:
+            action = self._hold(np.asarray(observation["observation.state"]), action)
+        return action
+
+    def _next_action(
+        self, observation: dict[str, Any], predict: Callable[[dict[str, Any]], np.ndarray]
+    ) -> np.ndarray:
+        coefficient = self.config.temporal_ensemble
+        # Each earlier prediction moves on by the step executed since.
+        self._predictions = [rest[1:] for rest in self._predictions if len(rest) > 1]
+        if coefficient is None and self._predictions:
+            return self._predictions[0][0]
+        chunk = predict({k: np.asarray(v)[None] for k, v in observation.items()})
+        self._predictions.append(chunk)
+        if coefficient is None:
+            return chunk[0]
+        for_now = np.stack([rest[0] for rest in self._predictions])  # oldest first
+        weights = np.exp(-coefficient * np.arange(len(for_now)))
+        return (weights @ for_now / weights.sum()).astype(np.float32)
