@@ -191,3 +191,25 @@ def test_stage1_bad_input(args, message, tmp_path):
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "x").exists()  # nothing written
+
+
+def test_only_the_projects_errors_become_one_line(monkeypatch, capsys):
+    """Bad input (a project error) is one red line and status 2; a bug keeps its traceback."""
+    import twinrl_learn.cli as cli
+    from twinrl_data.errors import DataError
+
+    def failing(error):
+        def command():
+            raise error
+
+        return command
+
+    monkeypatch.setattr(sys, "argv", ["twinrl"])
+    monkeypatch.setattr(cli, "app", failing(DataError("the session is damaged; recover it")))
+    with pytest.raises(SystemExit) as stopped:
+        cli.main()
+    assert stopped.value.code == 2
+    assert "error: the session is damaged; recover it" in capsys.readouterr().err
+    monkeypatch.setattr(cli, "app", failing(ValueError("an internal slip")))
+    with pytest.raises(ValueError, match="an internal slip"):
+        cli.main()

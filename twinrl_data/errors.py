@@ -16,3 +16,7 @@ class DataError(TwinrlError):
 
 class McapError(DataError):
     """An MCAP file is missing, not MCAP, truncated or not an episode log."""
+
+
+class UsageError(TwinrlError):
+    """A command was given options it cannot use together, or a value it cannot read."""

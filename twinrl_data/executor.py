@@ -26,6 +26,8 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Protocol, TypeVar
 
+from twinrl_data.errors import TwinrlError
+
 Job = TypeVar("Job")
 Result = TypeVar("Result")
 Send = Callable[[Any], None]
@@ -94,7 +96,7 @@ class ProcessExecutor:
 
     def __init__(self, workers: int, *, initializer: Callable[[], None] | None = None) -> None:
         if workers < 1:
-            raise ValueError(f"an executor needs at least one worker, got {workers}")
+            raise TwinrlError(f"an executor needs at least one worker, got {workers}")
         self.workers = workers
         context = multiprocessing.get_context("spawn")
         self._messages = context.Queue()
@@ -153,5 +155,5 @@ def make_executor(
     """An executor with ``workers`` workers: in this process for one, processes beyond
     (``initializer`` runs in each worker process, not in this one)."""
     if workers < 1:
-        raise ValueError(f"an executor needs at least one worker, got {workers}")
+        raise TwinrlError(f"an executor needs at least one worker, got {workers}")
     return InlineExecutor() if workers == 1 else ProcessExecutor(workers, initializer=initializer)

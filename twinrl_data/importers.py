@@ -91,34 +91,34 @@ class ColumnMap:
         if self.tcp and len(self.tcp) != 6:
             problems.append(f"tcp needs 6 columns (x y z rx ry rz), got {len(self.tcp)}")
         if problems:
-            raise ValueError("column map: " + "; ".join(problems))
+            raise DataError("column map: " + "; ".join(problems))
 
     @classmethod
     def load(cls, path: str | Path) -> ColumnMap:
         """Read a column map YAML file; unknown keys are an error."""
         path = Path(path)
         if not path.is_file():
-            raise ValueError(f"column map {path} does not exist")
+            raise DataError(f"column map {path} does not exist")
         try:
             data = yaml.safe_load(path.read_text()) or {}
         except yaml.YAMLError as err:
-            raise ValueError(f"{path}: not valid YAML ({err})") from None
+            raise DataError(f"{path}: not valid YAML ({err})") from None
         if not isinstance(data, dict):
-            raise ValueError(
+            raise DataError(
                 f"{path}: a column map is a mapping (see `twinrl data import-csv --help`)"
             )
         unknown = sorted(set(data) - set(cls.__dataclass_fields__))
         if unknown:
-            raise ValueError(
+            raise DataError(
                 f"{path}: unknown key(s) {unknown}; known: {sorted(cls.__dataclass_fields__)}"
             )
         missing = [k for k in ("time", "commanded", "measured") if k not in data]
         if missing:
-            raise ValueError(f"{path}: missing key(s) {missing}")
+            raise DataError(f"{path}: missing key(s) {missing}")
         try:
             return cls(**data)
         except ValueError as err:
-            raise ValueError(f"{path}: {err}") from None
+            raise DataError(f"{path}: {err}") from None
 
 
 RTDE_MAP = ColumnMap(
@@ -137,7 +137,7 @@ def _delimiter(path: Path) -> str:
     with path.open(newline="") as f:
         header = f.readline()
     if not header.strip():
-        raise ValueError(f"{path} is empty")
+        raise DataError(f"{path} is empty")
     try:
         return csv.Sniffer().sniff(header, delimiters=",; \t").delimiter
     except csv.Error:
@@ -148,25 +148,25 @@ def read_table(path: str | Path) -> pa.Table:
     """The CSV as an Arrow table (delimiter sniffed from the header line)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"CSV file {path} does not exist")
+        raise DataError(f"CSV file {path} does not exist")
     parse = pacsv.ParseOptions(delimiter=_delimiter(path))
     try:
         return pacsv.read_csv(path, parse_options=parse)
     except pa.ArrowInvalid as err:
-        raise ValueError(f"{path}: not a readable CSV ({str(err).splitlines()[0]})") from None
+        raise DataError(f"{path}: not a readable CSV ({str(err).splitlines()[0]})") from None
 
 
 def _columns(table: pa.Table, columns: list[str], path: Path) -> dict[str, np.ndarray]:
     missing = [c for c in columns if c not in table.column_names]
     if missing:
         shown = ", ".join(table.column_names[:12]) + (" ..." if table.num_columns > 12 else "")
-        raise ValueError(f"{path}: column(s) {missing} not found; the file has: {shown}")
+        raise DataError(f"{path}: column(s) {missing} not found; the file has: {shown}")
     out = {}
     for c in columns:
         try:
             out[c] = table.column(c).to_numpy(zero_copy_only=False).astype(float)
         except (pa.ArrowInvalid, ValueError):
-            raise ValueError(f"{path}: column '{c}' is not numeric") from None
+            raise DataError(f"{path}: column '{c}' is not numeric") from None
     return out
 
 
@@ -181,7 +181,7 @@ def _signals(
     need = [cmap.time, cmap.signal_column, cmap.value_column]
     missing = [c for c in need if c not in table.column_names]
     if missing:
-        raise ValueError(f"{path}: long layout needs columns {need}; missing {missing}")
+        raise DataError(f"{path}: long layout needs columns {need}; missing {missing}")
     times = _columns(table, [cmap.time], path)[cmap.time]
     values = _columns(table, [cmap.value_column], path)[cmap.value_column]
     names = np.asarray(table.column(cmap.signal_column).to_pylist(), dtype=object).astype(str)
@@ -190,7 +190,7 @@ def _signals(
     for signal in wanted:
         rows = names == signal
         if not rows.any():
-            raise ValueError(
+            raise DataError(
                 f"{path}: signal '{signal}' has no rows in column '{cmap.signal_column}'"
             )
         t, v = times[rows], values[rows]
@@ -237,11 +237,11 @@ def import_csv(
     keep = np.concatenate([[True], np.diff(times) > 0])  # drop repeated stamps
     times = times[keep] - times[0]  # relative: epoch stamps lose precision in arithmetic
     if len(times) < 2:
-        raise ValueError(f"{path}: needs at least two time stamps, got {len(times)}")
+        raise DataError(f"{path}: needs at least two time stamps, got {len(times)}")
     rate = float(f"{1.0 / float(np.median(np.diff(times))):.4g}")  # 125 Hz, not 124.99998
     fps = float(fps or rate)
     if not fps > 0:
-        raise ValueError(f"--fps must be positive, got {fps}")
+        raise DataError(f"--fps must be positive, got {fps}")
     clock = np.arange(0.0, times[-1] + 1e-9, 1.0 / fps)
     at = {c: np.interp(clock, times, v[order][keep]) for c, v in values.items()}
     angle = ANGLE_UNITS[cmap.angle_unit]
@@ -262,7 +262,7 @@ def import_csv(
         tcp_pos = np.array([p for p, _ in poses])
         tcp_quat = np.array([r for _, r in poses])
     else:
-        raise ValueError(
+        raise DataError(
             f"{path}: the TCP pose is neither logged nor computable; give tcp columns "
             "in the column map or a robot model for forward kinematics"
         )

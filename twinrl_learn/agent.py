@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import TransitionBatch
 from twinrl_learn.settings import RLConfig
@@ -228,7 +229,7 @@ class Agent:
             self.critic.load_state_dict(state["critic"])
             self.target.load_state_dict(state["target"])
         except RuntimeError as error:
-            raise ValueError(
+            raise LearnError(
                 f"the critic in {folder} does not fit {self.config.critics} critics of width "
                 f"{self.config.hidden} on this policy's inputs; use the settings it was "
                 "trained with, or a new critic"
@@ -276,7 +277,7 @@ class Agent:
     def load(cls, folder: str | Path) -> Agent:
         folder = Path(folder)
         if not (folder / "agent.pt").is_file():
-            raise ValueError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
+            raise LearnError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
         agent = cls(Policy.from_pretrained(folder), RLConfig.load(folder))
         agent.load_state_dict(torch.load(folder / "agent.pt", weights_only=False))
         return agent

@@ -14,6 +14,7 @@ from rich.table import Table
 # is quick; each command loads the rest (torch, the simulator, the datasets) when it runs.
 from twinrl_data import cli as data_cli
 from twinrl_data.console import progress, quiet_encoders
+from twinrl_data.errors import TwinrlError, UsageError
 from twinrl_learn.replay import RewardSettings
 from twinrl_learn.settings import DEFAULTS, METHODS, RLConfig, SFTConfig
 from twinrl_robot import cli as robot_cli
@@ -115,7 +116,7 @@ def train_sft_command(
     from twinrl_learn.sft import train_sft
 
     if policy not in DEFAULTS:
-        raise ValueError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
+        raise UsageError(f"--policy must be one of {', '.join(DEFAULTS)}, got '{policy}'")
     parsed = [float(w) for w in weights.split(",")] if weights else None
     config = SFTConfig(  # checks --inputs against --policy
         datasets=[str(d) for d in dataset],
@@ -134,7 +135,7 @@ def train_sft_command(
     )
     missing = [str(d) for d in dataset if not (d / "meta" / "info.json").is_file()]
     if missing:
-        raise ValueError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
+        raise UsageError(f"--dataset {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     with progress("loss", "rate") as bar:
         # A resumed run without --steps reports its own length.
         total = None if resume and steps is None else steps or DEFAULTS[policy].steps
@@ -167,9 +168,9 @@ def _grid(text: str, flag: str = "--grid") -> tuple[int, int]:
     try:
         rows, cols = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"{flag} must look like 8x8, got '{text}'") from None
+        raise UsageError(f"{flag} must look like 8x8, got '{text}'") from None
     if rows < 1 or cols < 1:
-        raise ValueError(f"{flag} needs positive sizes, got '{text}'")
+        raise UsageError(f"{flag} needs positive sizes, got '{text}'")
     return rows, cols
 
 
@@ -209,11 +210,11 @@ def eval_command(
     if task not in TASKS:
         make_task(task)  # raises with the nearest task name
     if world not in ("twin", "plant"):
-        raise ValueError(f"--world must be twin or plant, got '{world}'")
+        raise UsageError(f"--world must be twin or plant, got '{world}'")
     if world == "twin" and effects is not None:
-        raise ValueError("--effects applies to --world plant only")
+        raise UsageError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
-        raise ValueError(f"--effects {effects} does not exist")
+        raise UsageError(f"--effects {effects} does not exist")
     runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
     with progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
@@ -253,11 +254,11 @@ def _sources(texts: list[str]) -> dict[str, Path]:
         path = Path(path)
         label = label or (path.parent.name if path.name == "session" else path.name)
         if not path.exists():
-            raise ValueError(
+            raise UsageError(
                 f"{path} does not exist (give a session, .mcap, catalog or LeRobot dataset)"
             )
         if label in sources:
-            raise ValueError(f"two sources are labelled '{label}'; name them LABEL=PATH")
+            raise UsageError(f"two sources are labelled '{label}'; name them LABEL=PATH")
         sources[label] = path
     return sources
 
@@ -331,7 +332,7 @@ ResumeOption = Annotated[
 
 def _rl_config(method: str, **options) -> RLConfig:
     if method not in METHODS:
-        raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
+        raise UsageError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
     return RLConfig.for_method(method, **{k: v for k, v in options.items() if v is not None})
 
 
@@ -372,14 +373,14 @@ def train_twin_rl_command(
 
     make_task(task)
     if not resume and init is None:
-        raise ValueError("--init SFT_CHECKPOINT is needed to start a run (or pass --resume)")
+        raise UsageError("--init SFT_CHECKPOINT is needed to start a run (or pass --resume)")
     if init is not None and not is_checkpoint(init):
-        raise ValueError(
+        raise UsageError(
             f"--init {init} is not a twinrl policy checkpoint; train one with `twinrl train sft`"
         )
     missing = [str(d) for d in demos or [] if not (d / "meta" / "info.json").is_file()]
     if missing:
-        raise ValueError(f"--demos {missing[0]} is not a LeRobotDataset (no meta/info.json)")
+        raise UsageError(f"--demos {missing[0]} is not a LeRobotDataset (no meta/info.json)")
     if resume:
         rl = RLConfig.load(out / "agent")
     else:
@@ -538,12 +539,12 @@ def train_real_rl_command(
 
     make_task(task)
     if not resume and init is None:
-        raise ValueError("--init CHECKPOINT is needed to start a run (or pass --resume)")
+        raise UsageError("--init CHECKPOINT is needed to start a run (or pass --resume)")
     if init is not None and not is_checkpoint(init):
-        raise ValueError(f"--init {init} is not a twinrl policy checkpoint")
+        raise UsageError(f"--init {init} is not a twinrl policy checkpoint")
     for flag, path in [("--demos", d) for d in demos or []] + [("--twin-buffer", twin_buffer)]:
         if path is not None and not (path / "meta" / "info.json").is_file():
-            raise ValueError(f"{flag} {path} is not a LeRobotDataset (no meta/info.json)")
+            raise UsageError(f"{flag} {path} is not a LeRobotDataset (no meta/info.json)")
     if targets is not None:
         load_targets(targets)
     # A resumed run keeps the RL settings it started with (RealRL.resume loads them).
@@ -659,7 +660,7 @@ def demo_command(
 
     make_task(task)
     if preset not in PRESETS:
-        raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+        raise UsageError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     chosen = _int_list(seeds, "--seeds") if seeds else None
     torch.set_num_threads(1)
     quiet_encoders()
@@ -707,7 +708,7 @@ def _int_list(text: str, flag: str) -> tuple[int, ...]:
     try:
         return tuple(int(part) for part in text.split(","))
     except ValueError:
-        raise ValueError(
+        raise UsageError(
             f"{flag} takes comma-separated integers, e.g. 0,1,2; got '{text}'"
         ) from None
 
@@ -869,14 +870,11 @@ def bench_stages(
     console.print((out / "stages.md").read_text(), markup=False)
 
 
-USER_ERRORS = (ValueError, FileNotFoundError, KeyError)  # a bad scene spec is a ValueError
-
-
 def main() -> None:
-    """Entry point: user mistakes become one red line and exit status 2."""
+    """Entry point: the project's errors (bad input of any kind) become one red line and
+    exit status 2; anything else is a bug and keeps its traceback."""
     try:
         app()
-    except USER_ERRORS as err:
-        message = err.args[0] if isinstance(err, KeyError) and err.args else str(err)
-        Console(stderr=True).print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
+    except TwinrlError as err:
+        Console(stderr=True).print(f"[red]error:[/red] {err}", highlight=False, soft_wrap=True)
         sys.exit(2)

@@ -23,6 +23,7 @@ import torch
 
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
+from twinrl_learn.errors import LearnError
 from twinrl_learn.runners import Runner, RunnerSource
 from twinrl_robot.backends import open_robot
 from twinrl_robot.loop import privileged_success, run_episode
@@ -120,7 +121,7 @@ def evaluate(
     """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another --out")
     task = make_task(task_name)
     robot = open_robot(world, task, effects=effects, seed=seed, cameras=runner.cameras)
     cells = grid_cells(task_name, grid)

@@ -29,6 +29,7 @@ import torch
 
 from twinrl_data import schema as contract
 from twinrl_data.sources import open_episodes
+from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
 
 # TCP-to-object distances (cm) that split the frames: grasping, approaching, reaching.
@@ -101,13 +102,13 @@ def locating_errors(
     after each episode."""
     policy = Policy.from_pretrained(checkpoint)
     if not policy.locates:
-        raise ValueError(
+        raise LearnError(
             f"{checkpoint} has no locating head: train it with --policy vla and "
             "--locate-weight > 0 on data holding object poses"
         )
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another --out")
     opened = {label: open_episodes(Path(source)) for label, source in sources.items()}
     if on_start is not None:
         on_start(sum(count for _, count in opened.values()))
@@ -115,14 +116,14 @@ def locating_errors(
     for label, source in sources.items():
         for episode in opened[label][0]:
             if contract.ENVIRONMENT_STATE not in episode.data:
-                raise ValueError(
+                raise LearnError(
                     f"{source}: episode {episode.meta.episode_id} has no "
                     f"{contract.ENVIRONMENT_STATE}; the error needs the objects' true poses "
                     "(twin and plant episodes have them)"
                 )
             missing = [c for c in policy.config.cameras if c not in episode.images]
             if missing:
-                raise ValueError(
+                raise LearnError(
                     f"{source}: episode {episode.meta.episode_id} has no camera(s) "
                     f"{', '.join(missing)}, which the policy reads"
                 )

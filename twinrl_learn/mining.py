@@ -31,6 +31,7 @@ from scipy.stats import beta as beta_dist
 from twinrl_data.catalog import query
 from twinrl_data.mcap_log import read_meta
 from twinrl_data.session import Session
+from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate, grid_cells
 from twinrl_learn.runners import Runner
 from twinrl_sim.tasks import make_task
@@ -96,12 +97,12 @@ def select_targets(
     """Cells and ranked targets from ``(config, region, success)`` outcomes; each
     outcome falls into the grid cell nearest its target position."""
     if not 0 < tau <= 1:
-        raise ValueError(f"--tau must be in (0, 1], got {tau}")
+        raise LearnError(f"--tau must be in (0, 1], got {tau}")
     if k < 1:
-        raise ValueError(f"--k must be at least 1, got {k}")
+        raise LearnError(f"--k must be at least 1, got {k}")
     cells = grid_cells(task_name, grid)
     if not cells:
-        raise ValueError(f"the {grid[0]}x{grid[1]} grid has no cell inside a region")
+        raise LearnError(f"the {grid[0]}x{grid[1]} grid has no cell inside a region")
     centres = np.array([[c.x, c.y] for c in cells])
     members: list[list[tuple[dict[str, Any], bool]]] = [[] for _ in cells]
     for config, _, success in outcomes:
@@ -144,7 +145,7 @@ def logged_outcomes(
         )
     ]
     if not outcomes:
-        raise ValueError(
+        raise LearnError(
             f"the catalog {catalog} has no twin evaluations of '{policy}' on {task}; "
             "run `twinrl eval ... --world twin` and `twinrl data index` first, or mine "
             "without --episodes-from"
@@ -174,9 +175,9 @@ def mine(
     (a ``.json`` file; the evaluation, when run, goes beside it)."""
     out = Path(out)
     if out.suffix != ".json":
-        raise ValueError(f"--out must be a .json file, got {out}")
+        raise LearnError(f"--out must be a .json file, got {out}")
     if out.exists():
-        raise ValueError(f"{out} exists; choose another --out (targets are never overwritten)")
+        raise LearnError(f"{out} exists; choose another --out (targets are never overwritten)")
     make_task(task)
     if catalog is not None:
         outcomes = logged_outcomes(catalog, task, runner.name)
@@ -204,9 +205,9 @@ def load_targets(path: str | Path) -> list[Target]:
     """The ordered reset targets of a ``targets.json``."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"targets file {path} does not exist; create it with `twinrl mine`")
+        raise LearnError(f"targets file {path} does not exist; create it with `twinrl mine`")
     try:
         data = json.loads(path.read_text())
         return [Target(**t) for t in data["targets"]]
     except (json.JSONDecodeError, KeyError, TypeError) as err:
-        raise ValueError(f"{path} is not a targets file written by `twinrl mine` ({err})") from None
+        raise LearnError(f"{path} is not a targets file written by `twinrl mine` ({err})") from None

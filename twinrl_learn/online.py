@@ -28,6 +28,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
+from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import MixedSampler, ReplayBuffer
 
 RUN_FILE = "run.json"
@@ -73,7 +74,7 @@ class OnlineRun:
         """A new run; ``online`` pre-fills the online buffer (Stage III's D_real <- D_twin)."""
         out = Path(out)
         if out.exists() and any(out.iterdir()):
-            raise ValueError(f"{out} already holds a run; pass --resume or choose another --out")
+            raise LearnError(f"{out} already holds a run; pass --resume or choose another --out")
         session = Session.create(out / "session")
         if online is None:
             online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
@@ -88,7 +89,7 @@ class OnlineRun:
         ``online`` is the same pre-filled buffer the run started with, if any."""
         out = Path(out)
         if not (out / RUN_FILE).is_file():
-            raise ValueError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
+            raise LearnError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
         state = json.loads((out / RUN_FILE).read_text())
         agent = Agent.load(out / "agent")
         session = Session(out / "session")

@@ -52,6 +52,7 @@ import torch
 
 from twinrl_data.recorder import Recorder
 from twinrl_learn.agent import Agent
+from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
@@ -115,16 +116,16 @@ class RealRLSettings:
 
     def __post_init__(self) -> None:
         if self.robot not in ROBOTS:
-            raise ValueError(
+            raise LearnError(
                 f"--robot {self.robot} is not available; use one of {', '.join(ROBOTS)} "
                 "(a real UR arm needs its driver behind twinrl_robot.Robot)"
             )
         if not 0 <= self.target_ratio <= 1:
-            raise ValueError(f"--target-ratio must be in [0, 1], got {self.target_ratio}")
+            raise LearnError(f"--target-ratio must be in [0, 1], got {self.target_ratio}")
         if self.refresh_every < 0 or self.eval_every < 0:
-            raise ValueError("--refresh-every and --eval-every must be >= 0")
+            raise LearnError("--refresh-every and --eval-every must be >= 0")
         if self.plant_steps < 1:
-            raise ValueError(f"--plant-steps must be at least 1, got {self.plant_steps}")
+            raise LearnError(f"--plant-steps must be at least 1, got {self.plant_steps}")
 
 
 @dataclass
@@ -242,7 +243,7 @@ class RealRL:
         demo, twin = _buffers(settings, policy)
         agent = Agent(policy, settings.rl)
         if settings.keep_critic and not agent.adopt_critic(settings.init):
-            raise ValueError(f"--keep-critic: {settings.init} is not an RL agent (no agent.pt)")
+            raise LearnError(f"--keep-critic: {settings.init} is not an RL agent (no agent.pt)")
         run = OnlineRun.start(settings.out, agent, demo, twin)
         if settings.targets:
             load_targets(settings.targets)  # fail early on a bad file
@@ -258,7 +259,7 @@ class RealRL:
         """Continue the run in ``settings.out`` with the RL settings it started with."""
         out = Path(settings.out)
         if not (out / RUN_FILE).is_file():
-            raise ValueError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
+            raise LearnError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
         policy = Policy.from_pretrained(out / "agent")
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)
@@ -491,7 +492,7 @@ def minutes_to(evaluations: list[EvalPoint], region: str, level: float = 0.95) -
 def load_evaluations(folder: str | Path) -> list[EvalPoint]:
     path = Path(folder) / EVALUATIONS_FILE
     if not path.is_file():
-        raise ValueError(f"{folder} holds no {EVALUATIONS_FILE}; it is not a real-RL run")
+        raise LearnError(f"{folder} holds no {EVALUATIONS_FILE}; it is not a real-RL run")
     return [EvalPoint(**p) for p in json.loads(path.read_text())]
 
 

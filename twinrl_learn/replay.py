@@ -40,6 +40,7 @@ from twinrl_data.schema import (
     SUCCESS,
     Episode,
 )
+from twinrl_learn.errors import LearnError
 
 DEMO_SOURCES = ("teleop", "twin_demo")  # episodes whose every action is a demonstration
 
@@ -110,12 +111,12 @@ class ReplayBuffer:
     def add(self, episode: Episode) -> None:
         missing = [c for c in self.cameras if c not in episode.images]
         if missing:
-            raise ValueError(
+            raise LearnError(
                 f"episode {episode.meta.episode_id} has no camera(s) {missing} "
                 f"(it has {episode.cameras}); record with images or use a state policy"
             )
         if SUCCESS not in episode.data:
-            raise ValueError(
+            raise LearnError(
                 f"episode {episode.meta.episode_id} has no next.success; a replay buffer "
                 "needs the outcome of every step to compute rewards"
             )
@@ -146,7 +147,7 @@ class ReplayBuffer:
         that only some of its episodes log (``observation.effort``) is left out.
         """
         if not self.episodes:
-            raise ValueError("the replay buffer is empty; nothing to save")
+            raise LearnError("the replay buffer is empty; nothing to save")
         shared = set.intersection(*(set(e.data) for e in self.episodes))
         export_dataset(
             (
@@ -229,7 +230,7 @@ class ReplayBuffer:
         """``size`` transitions drawn uniformly from the valid starts."""
         starts = self.valid_starts(chunk, gamma)
         if len(starts) == 0:
-            raise ValueError("the replay buffer has no complete transition to sample yet")
+            raise LearnError("the replay buffer has no complete transition to sample yet")
         return self.transitions(starts[rng.integers(len(starts), size=size)], chunk, gamma)
 
     def transitions(self, rows: np.ndarray, chunk: int, gamma: float) -> TransitionBatch:
@@ -305,9 +306,9 @@ class MixedSampler:
 
     def __post_init__(self) -> None:
         if len(self.buffers) != len(self.ratios):
-            raise ValueError("one sampling ratio per buffer is needed")
+            raise LearnError("one sampling ratio per buffer is needed")
         if any(r < 0 for r in self.ratios) or sum(self.ratios) <= 0:
-            raise ValueError("sampling ratios must be non-negative and not all zero")
+            raise LearnError("sampling ratios must be non-negative and not all zero")
 
     def sample(
         self, size: int, rng: np.random.Generator, *, chunk: int, gamma: float
@@ -319,7 +320,7 @@ class MixedSampler:
             if r > 0 and len(b.valid_starts(chunk, gamma))
         ]
         if not ready:
-            raise ValueError("no replay buffer has transitions to sample yet")
+            raise LearnError("no replay buffer has transitions to sample yet")
         weights = np.array([r for _, r in ready]) / sum(r for _, r in ready)
         counts = np.floor(weights * size).astype(int)
         counts[0] += size - counts.sum()

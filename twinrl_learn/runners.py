@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, is_checkpoint
 from twinrl_sim.tasks import Task, TaskConfig
 
@@ -146,7 +147,7 @@ def load_runner(
         (grasp_hold is not None, "--grasp-hold/--no-grasp-hold"),
     ):
         if asked and not is_checkpoint(path):
-            raise ValueError(
+            raise LearnError(
                 f"{flag} applies to a twinrl checkpoint, not {spec} (the expert acts step by "
                 "step, and a lerobot policy acts as its own config says)"
             )
@@ -167,7 +168,7 @@ def load_runner(
         (path / "config.json").read_text()
     ):
         return LeRobotRunner(path)
-    raise ValueError(
+    raise LearnError(
         f"{path} is not a policy checkpoint: give a twinrl SFT output folder, a lerobot "
         "pretrained_model folder, or 'expert'"
     )

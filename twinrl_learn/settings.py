@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import RewardSettings
 
 INPUTS = ("absolute", "relative")
@@ -20,9 +21,9 @@ def check_inputs(inputs: str, kind: str) -> None:
     """Refuse ``inputs`` that are unknown or that the policy ``kind`` cannot have: the
     one check behind SFT, its CLI and the pipeline, made before any work starts."""
     if inputs not in INPUTS:
-        raise ValueError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
+        raise LearnError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
     if inputs != "absolute" and kind != "state":
-        raise ValueError(
+        raise LearnError(
             f"--inputs applies to --policy state only: {inputs} inputs need the state policy "
             "(the vla policy sees images)"
         )
@@ -78,14 +79,14 @@ class SFTConfig:
     def __post_init__(self) -> None:
         check_inputs(self.inputs, self.policy)
         if self.image_size not in IMAGE_SIZES:
-            raise ValueError(
+            raise LearnError(
                 f"--image-size must be one of {', '.join(map(str, IMAGE_SIZES))}, "
                 f"got {self.image_size}"
             )
         if self.locate_weight < 0:
-            raise ValueError(f"--locate-weight must be >= 0, got {self.locate_weight}")
+            raise LearnError(f"--locate-weight must be >= 0, got {self.locate_weight}")
         if self.lr_schedule not in (None, *LR_SCHEDULES):
-            raise ValueError(
+            raise LearnError(
                 f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{self.lr_schedule}'"
             )
 
@@ -140,20 +141,20 @@ class RLConfig:
         if isinstance(self.rewards, dict):
             self.rewards = RewardSettings(**self.rewards)
         if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got '{self.method}'")
+            raise LearnError(f"method must be one of {', '.join(METHODS)}, got '{self.method}'")
         if self.critics < 2:
-            raise ValueError(f"the critic ensemble needs at least 2 members, got {self.critics}")
+            raise LearnError(f"the critic ensemble needs at least 2 members, got {self.critics}")
         if not 0 <= self.demo_ratio <= 1:
-            raise ValueError(f"demo_ratio must be in [0, 1], got {self.demo_ratio}")
+            raise LearnError(f"demo_ratio must be in [0, 1], got {self.demo_ratio}")
         if self.beta < 0 or self.eta < 0:
-            raise ValueError("beta and eta must be non-negative")
+            raise LearnError("beta and eta must be non-negative")
 
     @classmethod
     def load(cls, folder: str | Path) -> RLConfig:
         """The settings an RL checkpoint folder was trained with."""
         path = Path(folder) / "rl_config.json"
         if not path.is_file():
-            raise ValueError(f"{folder} holds no rl_config.json; it is not an RL checkpoint")
+            raise LearnError(f"{folder} holds no rl_config.json; it is not an RL checkpoint")
         return cls(**json.loads(path.read_text()))
 
     @classmethod

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from twinrl_data.training import FrameTable, load_frames
+from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, PolicyConfig
 from twinrl_learn.settings import STEM_STRIDES, SFTConfig
 
@@ -103,11 +104,11 @@ def train_sft(
     out = Path(config.out)
     state_file = out / "training_state.pt"
     if out.exists() and any(out.iterdir()) and not resume:
-        raise ValueError(
+        raise LearnError(
             f"{out} already holds a run; pass --resume to continue it or choose another --out"
         )
     if resume and not state_file.is_file():
-        raise ValueError(f"--resume: {state_file} does not exist (nothing to continue)")
+        raise LearnError(f"--resume: {state_file} does not exist (nothing to continue)")
     saved = torch.load(state_file, weights_only=False) if resume else None
     if saved is not None:
         _check_same_network(saved["config"], config.resolved(), out)
@@ -128,7 +129,7 @@ def train_sft(
         else []
     )
     if config.policy == "state" and not frames.environment_complete:
-        raise ValueError(
+        raise LearnError(
             "the state policy reads object poses (observation.environment_state), which "
             "some --dataset lacks; train --policy vla on it, or leave that dataset out"
         )
@@ -220,7 +221,7 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
     values, or other datasets, would not continue it exactly and are refused (only
     ``steps`` may differ: it extends the run)."""
     if len(config.datasets) != len(saved["datasets"]):
-        raise ValueError(
+        raise LearnError(
             f"--resume: {out} was trained on {len(saved['datasets'])} --dataset folders, not "
             f"{len(config.datasets)}; resume it with the same ones"
         )
@@ -232,7 +233,7 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
             differ.append(f"--{key.replace('_', '-')} {saved_value}")
         own[key] = saved_value
     if differ:
-        raise ValueError(
+        raise LearnError(
             f"--resume: {out} was trained with {', '.join(differ)}; resume it without those options"
         )
     return replace(config, steps=config.steps or saved["steps"], **own)
@@ -244,16 +245,16 @@ def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
     recorded; other weights are refused); ``None``: in proportion to the datasets' frames."""
     count = len(config.datasets)
     if config.weights is not None and len(config.weights) != count:
-        raise ValueError(f"--weights needs {count} values, one per --dataset")
+        raise LearnError(f"--weights needs {count} values, one per --dataset")
     given = None if config.weights is None else np.asarray(config.weights, np.float64)
     if given is not None and ((given < 0).any() or given.sum() == 0):
-        raise ValueError("--weights must be non-negative and not all zero")
+        raise LearnError("--weights must be non-negative and not all zero")
     if saved is None:
         return None if given is None else given / given.sum()
     saved_weights = np.asarray(saved.get("weights") or [1.0] * count, np.float64)
     saved_weights = saved_weights / saved_weights.sum()
     if given is not None and not np.allclose(given / given.sum(), saved_weights):
-        raise ValueError(
+        raise LearnError(
             f"--resume: {config.out} was trained with --weights "
             f"{','.join(f'{w:.4g}' for w in saved_weights)}; resume it without --weights"
         )
@@ -277,7 +278,7 @@ def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
             flag = "--" + key.replace("_", "-")
             differ.append((f"{flag} {before}", str(getattr(config, key))))
     if differ:
-        raise ValueError(
+        raise LearnError(
             f"--resume: {out} was trained with {', '.join(d[0] for d in differ)}, not "
             f"{', '.join(d[1] for d in differ)}; resume it with the same options"
         )

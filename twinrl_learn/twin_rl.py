@@ -28,6 +28,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import step_record
 from twinrl_learn.agent import Agent
+from twinrl_learn.errors import LearnError
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
@@ -69,7 +70,7 @@ def run_twin_rl(
     for region in settings.regions:
         task.region(region)
     if settings.envs < 1:
-        raise ValueError(f"--envs must be at least 1, got {settings.envs}")
+        raise LearnError(f"--envs must be at least 1, got {settings.envs}")
     if resume:
         policy = Policy.from_pretrained(Path(settings.out) / "agent")
         run = OnlineRun.resume(settings.out, load_demo_buffer(settings.demos, policy, settings.rl))

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from twinrl_robot.errors import RobotError
 from twinrl_robot.plant import hidden_effects
 from twinrl_robot.robot import Robot
 from twinrl_robot.simulated import SimulatedCell
@@ -49,12 +50,12 @@ def open_robot(
             expert needs.
     """
     if world not in WORLDS:
-        raise ValueError(
+        raise RobotError(
             f"unknown robot '{world}': use one of {', '.join(WORLDS)} (a real arm needs its "
             "driver behind twinrl_robot.Robot)"
         )
     if world == "twin" and effects is not None:
-        raise ValueError("effects apply to the plant only; the twin runs its own scene spec")
+        raise RobotError("effects apply to the plant only; the twin runs its own scene spec")
     task = make_task(task, scene) if isinstance(task, str) else task
     hidden = hidden_effects(effects) if world == "plant" else None
     robot: Robot = SimulatedCell(task, effects=hidden, cameras=cameras, effort=effort, world=world)

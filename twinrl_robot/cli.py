@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from twinrl_data.console import progress
+from twinrl_data.errors import UsageError
 from twinrl_data.session import Session
 from twinrl_robot.backends import WORLDS
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
@@ -62,19 +63,19 @@ def expert(
     worlds = world or ["twin"]
     tasks = list(TASKS) if task == "all" else [task_class(task).name]
     if region is not None and region not in REGION_NAMES:
-        raise ValueError(f"--region must be one of {', '.join(REGION_NAMES)}, got '{region}'")
+        raise UsageError(f"--region must be one of {', '.join(REGION_NAMES)}, got '{region}'")
     unknown = [w for w in worlds if w not in WORLDS]
     if unknown:
-        raise ValueError(f"--world must be one of {', '.join(WORLDS)}, got '{unknown[0]}'")
+        raise UsageError(f"--world must be one of {', '.join(WORLDS)}, got '{unknown[0]}'")
     if effects is not None and "plant" not in worlds:
-        raise ValueError("--effects applies to --world plant only")
+        raise UsageError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
-        raise ValueError(f"--effects {effects} does not exist")
+        raise UsageError(f"--effects {effects} does not exist")
     regions = (region,) if region else REGION_NAMES
     scene = None
     if twin is not None:
         if len(tasks) != 1:
-            raise ValueError("--twin is the cell of one task; name the task instead of 'all'")
+            raise UsageError("--twin is the cell of one task; name the task instead of 'all'")
         scene = task_on_twin(tasks[0], twin)
     session = Session.create(out, exist_ok=append) if out is not None else None
     reports: list[ExpertReport] = []
@@ -139,13 +140,13 @@ def excite(
 ) -> None:
     """Record safe multi-sine joint motions (source ``excitation``) for identification."""
     if world not in WORLDS:
-        raise ValueError(f"--world must be {' or '.join(WORLDS)}, got '{world}'")
+        raise UsageError(f"--world must be {' or '.join(WORLDS)}, got '{world}'")
     if effects is not None and not effects.is_file():
-        raise ValueError(f"--effects {effects} does not exist")
+        raise UsageError(f"--effects {effects} does not exist")
     settings = ExcitationSettings(duration=duration, amplitude=amplitude)
     scene = task_on_twin(task, twin) if twin is not None else None
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise UsageError(f"{out} exists and is not empty; choose another --out")
     session = Session.create(out)
     with progress() as bar:
         job = bar.add_task(f"excite {task} in the {world}", total=episodes)

@@ -26,6 +26,7 @@ import numpy as np
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import JointCommand, run_episode
 from twinrl_sim.build import CompiledScene, compile_scene
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec
@@ -56,11 +57,11 @@ class ExcitationSettings:
 
     def __post_init__(self) -> None:
         if self.duration <= 2 * self.fade:
-            raise ValueError(f"--duration must exceed twice the fade ({2 * self.fade} s)")
+            raise RobotError(f"--duration must exceed twice the fade ({2 * self.fade} s)")
         if self.harmonics < 1:
-            raise ValueError(f"harmonics must be at least 1, got {self.harmonics}")
+            raise RobotError(f"harmonics must be at least 1, got {self.harmonics}")
         if not 0 < self.amplitude <= 2:
-            raise ValueError(f"--amplitude must be in (0, 2], got {self.amplitude}")
+            raise RobotError(f"--amplitude must be in (0, 2], got {self.amplitude}")
 
 
 def joint_ranges(scene: CompiledScene) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +135,7 @@ def safe_trajectory(
         tcp = np.array([fk(q)[0] for q in targets])
         if (tcp >= low).all() and (tcp <= high).all():
             return targets
-    raise ValueError(
+    raise RobotError(
         "no safe excitation found (workspace box, joint limits or speed); lower "
         "--amplitude, enlarge the workspace box or move the home pose away from the limits"
     )
@@ -186,7 +187,7 @@ def run_excitation(
     or ``scene`` (any cell spec, e.g. with a custom robot MJCF) with the task's objects
     placed as the task places them."""
     if episodes < 1:
-        raise ValueError(f"--episodes must be at least 1, got {episodes}")
+        raise RobotError(f"--episodes must be at least 1, got {episodes}")
     spec_task = make_task(task, scene)
     robot = open_robot(world, spec_task, effects=effects, seed=seed, effort=True)
     scene = compile_scene(spec_task.scene)

@@ -19,6 +19,7 @@ import numpy as np
 
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Robot, Sent, require_privileged
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 
@@ -89,7 +90,7 @@ def run_episode(
     simulated one steps as fast as it can and counts its own time.
     """
     if (recorder is None) != (meta is None):
-        raise ValueError("give both a recorder and the episode's metadata, or neither")
+        raise RobotError("give both a recorder and the episode's metadata, or neither")
     limit = task.max_steps if max_steps is None else max_steps
     period = 1.0 / robot.control_hz
     observation = robot.reset(config)

@@ -32,6 +32,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from twinrl_robot.errors import RobotError
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 from twinrl_sim.tasks.expert import ObsView, ScriptedExpert
 
@@ -74,7 +75,7 @@ class OperatorRule:
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
             if value < 0:
-                raise ValueError(f"operator {name} must be >= 0, got {value}")
+                raise RobotError(f"operator {name} must be >= 0, got {value}")
 
 
 class SimulatedOperator:
@@ -110,7 +111,7 @@ class SimulatedOperator:
         if self.task is None:
             raise RuntimeError("reset the operator at the start of each episode")
         if progress is None:
-            raise ValueError("the simulated operator judges the task's progress; pass it")
+            raise RobotError("the simulated operator judges the task's progress; pass it")
         value = float(sum(progress.terms.values()))
         closing = self._fingers_closing(observation)
         if self.expert is not None:

@@ -22,12 +22,8 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from twinrl_data.errors import TwinrlError
+from twinrl_robot.errors import PrivilegedStateError
 from twinrl_sim.tasks import Progress
-
-
-class PrivilegedStateError(TwinrlError):
-    """Code that needs a simulation's hidden state was given a robot without it."""
 
 
 @dataclass(frozen=True)

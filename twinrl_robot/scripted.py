@@ -13,6 +13,7 @@ import numpy as np
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import privileged_success, run_episode
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
@@ -111,7 +112,7 @@ def run_scripted_expert(
     built-in cell (e.g. one built by ``twinrl twin build``) in both worlds.
     """
     if episodes < 1:
-        raise ValueError(f"episodes must be at least 1, got {episodes}")
+        raise RobotError(f"episodes must be at least 1, got {episodes}")
     recording = session is not None
     # The expert stands in for a person teleoperating the (stand-in) real cell, whose
     # controller reports joint torques as a UR's does (the gap workflow uses them).

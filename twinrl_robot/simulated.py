@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, effort_names
+from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -46,7 +47,7 @@ class SimulatedCell:
         unknown = [c for c in cameras if c not in self.cell.layout.cameras]
         if unknown:
             cameras_here = list(self.cell.layout.cameras)
-            raise ValueError(f"unknown camera(s) {unknown}; this cell has {cameras_here}")
+            raise RobotError(f"unknown camera(s) {unknown}; this cell has {cameras_here}")
         self.cameras = tuple(cameras)
         self.effort = effort
         self.control_hz = task.scene.physics.control_hz

@@ -24,6 +24,7 @@ import numpy as np
 
 from twinrl_data.schema import ACTION, STATE, Episode
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.errors import TwinError
 from twinrl_sim.planar import wrap_angle, yaw_of
 from twinrl_sim.tasks.base import TaskConfig
 from twinrl_sim.tasks.expert import GRIPPER_CLOSED, grasp_yaw
@@ -76,7 +77,7 @@ def commanded_path(episode: Episode) -> tuple[np.ndarray, np.ndarray]:
     try:
         index = [names.index(f"tcp.{c}") for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
     except ValueError:
-        raise ValueError(
+        raise TwinError(
             "the demo's observation.state has no tcp.x ... tcp.qz entries to re-target"
         ) from None
     start = episode.data[STATE][0][index]
@@ -94,7 +95,7 @@ def keyframes(episode: Episode, releases_object: bool) -> tuple[int, int]:
     gripper = episode.data[ACTION][:, 6]
     closed = np.flatnonzero(gripper >= GRIPPER_CLOSED)
     if len(closed) == 0:
-        raise ValueError("the demo never closes the gripper: nothing to re-target")
+        raise TwinError("the demo never closes the gripper: nothing to re-target")
     grasp = int(closed[0])
     if releases_object:
         opened = np.flatnonzero((gripper < GRIPPER_CLOSED) & (np.arange(len(gripper)) > grasp))

@@ -31,6 +31,7 @@ from mujoco import batch as mj_batch
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
+from twinrl_sim.errors import TwinError
 from twinrl_sim.tasks import Task, TaskConfig, make_task
 
 STATE = mujoco.mjtState.mjSTATE_INTEGRATION
@@ -92,14 +93,14 @@ class BatchRollout:
         targets = np.asarray(joint_targets, float)
         n_arm = len(self.cell.arm_act)
         if targets.ndim != 3 or targets.shape[2] != n_arm:
-            raise ValueError(f"joint_targets must have shape (B, T, {n_arm}), got {targets.shape}")
+            raise TwinError(f"joint_targets must have shape (B, T, {n_arm}), got {targets.shape}")
         batch, steps, _ = targets.shape
         control = np.zeros((batch, steps, self.model.nu))
         control[..., self.cell.arm_act] = targets
         if self.cell.gripper_act is not None:
             grip = np.zeros((batch, steps)) if gripper is None else np.asarray(gripper, float)
             if grip.shape != (batch, steps):
-                raise ValueError(f"gripper must have shape ({batch}, {steps}), got {grip.shape}")
+                raise TwinError(f"gripper must have shape ({batch}, {steps}), got {grip.shape}")
             control[..., self.cell.gripper_act] = grip
         return np.repeat(control[:, :, None, :], self.cell.substeps, axis=2)
 
@@ -111,7 +112,7 @@ class BatchRollout:
     ) -> BatchResult:
         """Replay ``joint_targets`` (B, T, n_arm) from each configuration."""
         if len(configs) != len(joint_targets):
-            raise ValueError(f"{len(configs)} configs but {len(joint_targets)} target sequences")
+            raise TwinError(f"{len(configs)} configs but {len(joint_targets)} target sequences")
         control = self.controls(joint_targets, gripper)
         batch_size, steps, substeps, _ = control.shape
         out = np.empty((batch_size, steps + 1, self.nstate))
@@ -151,7 +152,7 @@ class BatchEnv:
         cameras: tuple[str, ...] = (),
     ) -> None:
         if num_envs < 1:
-            raise ValueError(f"num_envs must be at least 1, got {num_envs}")
+            raise TwinError(f"num_envs must be at least 1, got {num_envs}")
         self.task = make_task(task) if isinstance(task, str) else task
         scene = compile_scene(self.task.scene, extra_effects=effects)
         self.cells = [Cell(scene) for _ in range(num_envs)]
@@ -175,7 +176,7 @@ class BatchEnv:
 
     def reset(self, configs: list[TaskConfig | dict]) -> dict[str, np.ndarray]:
         if len(configs) != self.num_envs:
-            raise ValueError(f"reset needs {self.num_envs} configs, got {len(configs)}")
+            raise TwinError(f"reset needs {self.num_envs} configs, got {len(configs)}")
         for i, (cell, config) in enumerate(zip(self.cells, configs, strict=True)):
             self._trackers[i] = self.task.start(cell, TaskConfig.from_dict(config))
         self._steps[:] = 0
@@ -186,7 +187,7 @@ class BatchEnv:
     ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         actions = np.clip(np.asarray(actions, float), self._low, self._high)
         if actions.shape != (self.num_envs, len(self._low)):
-            raise ValueError(
+            raise TwinError(
                 f"actions must have shape ({self.num_envs}, {len(self._low)}), got {actions.shape}"
             )
         targets = np.empty((self.num_envs, len(self.cells[0].arm_act)))

@@ -14,6 +14,7 @@ from rich.table import Table
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.console import progress, quiet_encoders
+from twinrl_data.errors import UsageError
 from twinrl_data.schema import STATE, Episode
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
@@ -35,7 +36,7 @@ def parse_config(text: str) -> TaskConfig:
     try:
         data = json.loads(source)
     except json.JSONDecodeError as err:
-        raise ValueError(
+        raise UsageError(
             "--config must be JSON like "
             '\'{"object": [0.45, -0.2, 0.3], "target": [0.5, -0.1, 0]}\' '
             f"or a .json file ({err.msg})"
@@ -45,7 +46,7 @@ def parse_config(text: str) -> TaskConfig:
 
 def refuse_overwrite(path: Path, force: bool) -> None:
     if path.exists() and not force:
-        raise ValueError(
+        raise UsageError(
             f"{path} already exists; pass --force to overwrite it or choose another --out"
         )
 
@@ -69,7 +70,7 @@ def show(
 
     out = out or Path(f"{task}.png")
     if out.suffix.lower() != ".png":
-        raise ValueError(f"--out must end in .png, got {out}")
+        raise UsageError(f"--out must end in .png, got {out}")
     refuse_overwrite(out, force)
     env = TwinEnv(task, region=region)
     try:
@@ -136,7 +137,7 @@ def view(
     link_frames = twin_link_frames(episodes[0])
     if save is not None:
         if save.suffix != ".rrd":
-            raise ValueError(f"--save must end in .rrd, got {save}")
+            raise UsageError(f"--save must end in .rrd, got {save}")
         save_rrd(episodes, save, link_frames=link_frames, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
     else:
@@ -279,13 +280,13 @@ def import_csv_command(
     from twinrl_sim.kinematics import TcpKinematics
 
     if format not in ("rtde", "generic"):
-        raise ValueError(f"--format must be rtde or generic, got '{format}'")
+        raise UsageError(f"--format must be rtde or generic, got '{format}'")
     if format == "generic" and column_map is None:
-        raise ValueError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
+        raise UsageError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
     cmap = ColumnMap.load(column_map) if column_map else RTDE_MAP
     kinematics = TcpKinematics(compile_scene(twin_scene(twin)))
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise UsageError(f"{out} exists and is not empty; choose another --out")
     episodes = [
         import_csv(f, cmap, fps=fps, task=task, world=world, forward_kinematics=kinematics)
         for f in files
@@ -327,7 +328,7 @@ def localize_command(
     scene = twin_scene(twin)
     episodes = discover_episodes(measured)
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise UsageError(f"{out} exists and is not empty; choose another --out")
     replays = []
     with progress() as bar:
         job = bar.add_task("replay in the twin", total=len(episodes))
@@ -416,7 +417,7 @@ def diagnose_command(
         [e.strip() for e in effects_allowed.split(",") if e.strip()] if effects_allowed else None
     )
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise UsageError(f"{out} exists and is not empty; choose another --out")
     images = allowed is None or any(e in allowed for e in IMAGE_EFFECTS)
     episodes = discover_episodes(measured, images=images)
     with progress() as bar:
@@ -483,7 +484,7 @@ def parse_assignments(values: list[str] | None, option: str) -> dict[str, str]:
     for value in values or []:
         name, sep, rest = value.partition("=")
         if not sep or not name.strip() or not rest.strip():
-            raise ValueError(f"{option} '{value}' must look like NAME=VALUE")
+            raise UsageError(f"{option} '{value}' must look like NAME=VALUE")
         parsed[name.strip()] = rest.strip()
     return parsed
 
@@ -492,12 +493,12 @@ def parse_numbers(text: str, option: str) -> tuple[float, ...]:
     try:
         return tuple(float(v) for v in text.replace(",", " ").split())
     except ValueError:
-        raise ValueError(f"{option} '{text}' must be numbers separated by spaces") from None
+        raise UsageError(f"{option} '{text}' must be numbers separated by spaces") from None
 
 
 def _tag_id(text: str) -> int:
     if not text.isdigit():
-        raise ValueError(f"--tag-point '{text}=...' must start with a tag id, e.g. 3=0.4,0.2,0")
+        raise UsageError(f"--tag-point '{text}=...' must start with a tag id, e.g. 3=0.4,0.2,0")
     return int(text)
 
 

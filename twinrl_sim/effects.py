@@ -25,6 +25,8 @@ import mujoco
 import numpy as np
 import yaml
 
+from twinrl_sim.errors import TwinError
+
 if TYPE_CHECKING:
     from twinrl_sim.layout import CellLayout
 
@@ -56,7 +58,7 @@ class EffectDef:
 
 def _arm_joints(spec: mujoco.MjSpec, layout: CellLayout, values: list[float], what: str):
     if len(values) != len(layout.arm_joints):
-        raise ValueError(
+        raise TwinError(
             f"{what} needs {len(layout.arm_joints)} values (one per arm joint "
             f"{', '.join(layout.arm_joints)}), got {len(values)}"
         )
@@ -179,7 +181,7 @@ def apply_camera_pose(
     if camera not in layout.cameras:
         close = difflib.get_close_matches(camera, layout.cameras, n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""
-        raise ValueError(f"camera_pose.camera '{camera}' is not a camera of this cell{hint}")
+        raise TwinError(f"camera_pose.camera '{camera}' is not a camera of this cell{hint}")
     cam = spec.camera(camera)
     quat = np.asarray(cam.quat, float)
     quat /= np.linalg.norm(quat)
@@ -196,7 +198,7 @@ def apply_camera_pose(
 def apply_gripper_force(spec: mujoco.MjSpec, layout: CellLayout, scale: float) -> None:
     """The gripper's maximum closing force relative to nominal."""
     if layout.gripper_actuator is None:
-        raise ValueError("gripper_force needs a gripper; this cell has none")
+        raise TwinError("gripper_force needs a gripper; this cell has none")
     act = spec.actuator(layout.gripper_actuator)
     act.forcerange = np.asarray(act.forcerange) * scale
 
@@ -226,7 +228,7 @@ def apply_appearance(
 
 def _object_geoms(spec: mujoco.MjSpec, layout: CellLayout) -> list[mujoco.MjsGeom]:
     if not layout.manipulated:
-        raise ValueError("this cell has no manipulated object")
+        raise TwinError("this cell has no manipulated object")
     geoms = []
     for name in layout.manipulated:
         geoms.extend(g for g in spec.body(name).geoms if g.contype or g.conaffinity)
@@ -326,7 +328,7 @@ def validate_effects(effects: Any) -> dict[str, dict[str, Any]]:
     Returns the effects with every value converted to plain floats/lists.
     """
     if not isinstance(effects, dict):
-        raise ValueError(
+        raise TwinError(
             f"effects must be a mapping name: {{param: value}}, got {type(effects).__name__}"
         )
     problems: list[str] = []
@@ -357,7 +359,7 @@ def validate_effects(effects: Any) -> dict[str, dict[str, Any]]:
                     problems.append(f"{name}.{key}: {problem}")
                 clean[name][key] = value
     if problems:
-        raise ValueError("; ".join(problems))
+        raise TwinError("; ".join(problems))
     return clean
 
 
@@ -396,15 +398,15 @@ def load_effects(path: str | Path) -> dict[str, dict[str, Any]]:
     """Read and validate an effects YAML file (``name: {param: value}``)."""
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"effects file {path} does not exist")
+        raise TwinError(f"effects file {path} does not exist")
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
-        raise ValueError(f"{path}: not valid YAML ({err})") from None
+        raise TwinError(f"{path}: not valid YAML ({err})") from None
     try:
         return validate_effects(data)
     except ValueError as err:
-        raise ValueError(f"{path}: {err}") from None
+        raise TwinError(f"{path}: {err}") from None
 
 
 def describe_effects() -> list[tuple[str, str, str]]:

@@ -27,6 +27,7 @@ import numpy as np
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
+from twinrl_sim.errors import TwinError
 from twinrl_sim.replay import ReplayResult, replay
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import Task, TaskConfig, make_task
@@ -66,7 +67,7 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ) -> None:
         self.task = make_task(task, scene) if isinstance(task, str) else task
         if reward not in ("sparse", "dense"):
-            raise ValueError(f"reward must be 'sparse' or 'dense', got '{reward}'")
+            raise TwinError(f"reward must be 'sparse' or 'dense', got '{reward}'")
         if region is not None:
             self.task.region(region)
         self.reward_mode = reward
@@ -78,7 +79,7 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.cameras = tuple(cameras) if cameras is not None else (available if images else ())
         unknown = [c for c in self.cameras if c not in available]
         if unknown:
-            raise ValueError(f"unknown camera(s) {unknown}; this cell has {list(available)}")
+            raise TwinError(f"unknown camera(s) {unknown}; this cell has {list(available)}")
         low, high = action_bounds()
         self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
         spaces: dict[str, gym.Space] = {
@@ -112,7 +113,7 @@ class TwinEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         options = dict(options or {})
         unknown = set(options) - {"config", "region"}
         if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; use 'config' or 'region'")
+            raise TwinError(f"unknown reset option(s) {sorted(unknown)}; use 'config' or 'region'")
         if options.get("config") is not None:
             config = TaskConfig.from_dict(options["config"])
         else:

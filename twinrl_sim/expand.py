@@ -37,6 +37,7 @@ from twinrl_data.schema import Episode, EpisodeMeta, step_record
 from twinrl_data.session import Session
 from twinrl_sim.augment import retarget
 from twinrl_sim.env import TwinEnv
+from twinrl_sim.errors import TwinError
 from twinrl_sim.planner import plan_demo
 from twinrl_sim.randomize import check_kinds, randomize_scene
 from twinrl_sim.spec import SceneSpec
@@ -196,32 +197,32 @@ def expand(
     """
     make_task(task, scene)
     if method not in METHODS:
-        raise ValueError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
+        raise TwinError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
     if method == "augment":
         if from_demo is None:
-            raise ValueError(
+            raise TwinError(
                 "--method augment needs --from-demo EPISODE.mcap (a recorded demonstration)"
             )
         demo = read_episode(from_demo)
         if demo.meta.task != task:
-            raise ValueError(f"--from-demo is a {demo.meta.task} episode, not {task}")
+            raise TwinError(f"--from-demo is a {demo.meta.task} episode, not {task}")
     elif from_demo is not None:
-        raise ValueError("--from-demo is only used with --method augment")
+        raise TwinError("--from-demo is only used with --method augment")
     if not 0.0 <= detours <= 1.0:
-        raise ValueError(f"--detours is a share of the demos, from 0 to 1; got {detours}")
+        raise TwinError(f"--detours is a share of the demos, from 0 to 1; got {detours}")
     if detours and method != "plan":
-        raise ValueError("--detours applies to --method plan (a re-targeted demo keeps its path)")
+        raise TwinError("--detours applies to --method plan (a re-targeted demo keeps its path)")
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
-        raise ValueError("ask for at least one demonstration (--id N and/or --ood M)")
+        raise TwinError("ask for at least one demonstration (--id N and/or --ood M)")
     check_kinds(randomize)
     if randomize and not images:
-        raise ValueError(
+        raise TwinError(
             "--randomize changes only what the cameras see; drop it or drop --no-images"
         )
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not force:
-            raise ValueError(f"{out} exists and is not empty; pass --force to replace it")
+            raise TwinError(f"{out} exists and is not empty; pass --force to replace it")
         shutil.rmtree(out)
     session = Session.create(out / "session")
     report = ExpandReport(task=task, method=method, requested={"ID": id_count, "OOD": ood_count})

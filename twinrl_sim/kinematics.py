@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.build import CompiledScene
+from twinrl_sim.errors import TwinError
 
 
 class LinkFrames:
@@ -22,7 +23,7 @@ class LinkFrames:
         joints = [j for j in scene.layout.arm_joints if f"q.{j}" in index]
         if len(joints) != len(scene.layout.arm_joints):
             missing = sorted(set(scene.layout.arm_joints) - set(joints))
-            raise ValueError(
+            raise TwinError(
                 f"the logged state lacks joint positions q.{missing[0]} (and maybe more)"
             )
         self._state_index = np.array([index[f"q.{j}"] for j in joints])

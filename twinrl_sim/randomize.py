@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SceneSpec
 
 KINDS = ("lighting", "colors", "textures", "camera")
@@ -23,7 +24,7 @@ KINDS = ("lighting", "colors", "textures", "camera")
 def check_kinds(kinds: tuple[str, ...] | list[str]) -> tuple[str, ...]:
     unknown = [k for k in kinds if k not in KINDS]
     if unknown:
-        raise ValueError(f"unknown randomisation {unknown[0]!r}; choose from {', '.join(KINDS)}")
+        raise TwinError(f"unknown randomisation {unknown[0]!r}; choose from {', '.join(KINDS)}")
     return tuple(kinds)
 
 

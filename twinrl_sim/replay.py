@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinrl_sim.cell import Cell
+from twinrl_sim.errors import TwinError
 from twinrl_sim.tasks.base import Task, TaskConfig
 
 
@@ -31,7 +32,7 @@ class ReplayResult:
     def __post_init__(self) -> None:
         rows = {len(self.state), len(self.environment_state), len(self.success)}
         if len(rows) != 1:
-            raise ValueError(f"replay signals disagree in length: {sorted(rows)}")
+            raise TwinError(f"replay signals disagree in length: {sorted(rows)}")
 
 
 def replay(
@@ -50,10 +51,10 @@ def replay(
     targets = np.asarray(joint_targets, float)
     n_arm = len(cell.layout.arm_joints)
     if targets.ndim != 2 or targets.shape[1] != n_arm:
-        raise ValueError(f"joint_targets must have shape (T, {n_arm}), got {targets.shape}")
+        raise TwinError(f"joint_targets must have shape (T, {n_arm}), got {targets.shape}")
     grip = np.zeros(len(targets)) if gripper is None else np.asarray(gripper, float)
     if grip.shape != (len(targets),):
-        raise ValueError(f"gripper must have shape ({len(targets)},), got {grip.shape}")
+        raise TwinError(f"gripper must have shape ({len(targets)},), got {grip.shape}")
     tracker = task.start(cell, config)
     states = [cell.state_vector()]
     env_states = [cell.environment_vector()]

@@ -35,6 +35,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from twinrl_sim.effects import validate_effects
+from twinrl_sim.errors import TwinError
 
 SCHEMA_VERSION = 1
 
@@ -48,7 +49,7 @@ Rgba = tuple[
 Positive = Annotated[float, Field(gt=0)]
 
 
-class SpecError(ValueError):
+class SpecError(TwinError):
     """A scene spec (or an effects file) is invalid; the message says where and why."""
 
 
@@ -80,13 +81,13 @@ class GeomSpec(_Strict):
     def _check_size(self) -> GeomSpec:
         if self.type == "mesh":
             if self.file is None or self.size:
-                raise ValueError("a mesh geom needs 'file' (OBJ or STL) and no 'size'")
+                raise TwinError("a mesh geom needs 'file' (OBJ or STL) and no 'size'")
             return self
         if self.file is not None:
-            raise ValueError(f"'file' is for mesh geoms only, not a {self.type}")
+            raise TwinError(f"'file' is for mesh geoms only, not a {self.type}")
         expected = {"box": 3, "cylinder": 2, "capsule": 2, "sphere": 1, "prism": 2}[self.type]
         if len(self.size) != expected:
-            raise ValueError(f"a {self.type} needs {expected} size value(s), got {len(self.size)}")
+            raise TwinError(f"a {self.type} needs {expected} size value(s), got {len(self.size)}")
         return self
 
 
@@ -108,7 +109,7 @@ class ObjectSpec(_Strict):
     @model_validator(mode="after")
     def _mass_for_free_bodies(self) -> ObjectSpec:
         if self.role == "manipulated" and self.mass is None:
-            raise ValueError(f"manipulated object '{self.name}' needs a mass (kg)")
+            raise TwinError(f"manipulated object '{self.name}' needs a mass (kg)")
         return self
 
 
@@ -137,15 +138,15 @@ class RobotSpec(_Strict):
                 k for k in ("joints", "actuators", "flange_body") if getattr(self, k) is None
             ]
             if missing:
-                raise ValueError(
+                raise TwinError(
                     f"a custom robot mjcf needs {', '.join(missing)} (names in that file)"
                 )
             if self.actuators is not None and len(self.actuators) != len(self.joints or []):
-                raise ValueError("robot.actuators must name one actuator per joint, in order")
+                raise TwinError("robot.actuators must name one actuator per joint, in order")
             if self.gripper == "none" and self.tcp_site is None:
-                raise ValueError("a custom robot without the built-in gripper needs tcp_site")
+                raise TwinError("a custom robot without the built-in gripper needs tcp_site")
         elif self.builtin is None:
-            raise ValueError("robot needs either 'builtin: ur5e' or 'mjcf: PATH'")
+            raise TwinError("robot needs either 'builtin: ur5e' or 'mjcf: PATH'")
         return self
 
     @property
@@ -205,7 +206,7 @@ class WorkspaceSpec(_Strict):
     @model_validator(mode="after")
     def _ordered(self) -> WorkspaceSpec:
         if any(lo >= hi for lo, hi in zip(self.low, self.high, strict=True)):
-            raise ValueError(f"workspace.low {self.low} must be below workspace.high {self.high}")
+            raise TwinError(f"workspace.low {self.low} must be below workspace.high {self.high}")
         return self
 
 
@@ -217,7 +218,7 @@ class PhysicsSpec(_Strict):
     def _whole_substeps(self) -> PhysicsSpec:
         ratio = 1.0 / (self.control_hz * self.timestep)
         if abs(ratio - round(ratio)) > 1e-6:
-            raise ValueError(
+            raise TwinError(
                 f"control period 1/{self.control_hz} s is not a whole number of "
                 f"{self.timestep} s physics steps"
             )
@@ -258,7 +259,7 @@ class SceneSpec(_Strict):
         ):
             dupes = sorted({n for n in names if names.count(n) > 1})
             if dupes:
-                raise ValueError(f"duplicate {kind} name(s): {', '.join(dupes)}")
+                raise TwinError(f"duplicate {kind} name(s): {', '.join(dupes)}")
         return self
 
     def object(self, name: str) -> ObjectSpec:
@@ -266,7 +267,7 @@ class SceneSpec(_Strict):
         for obj in self.objects:
             if obj.name == name:
                 return obj
-        raise KeyError(f"no object '{name}' in scene '{self.name}' (has: {self.object_names})")
+        raise SpecError(f"no object '{name}' in scene '{self.name}' (has: {self.object_names})")
 
     @property
     def object_names(self) -> list[str]:

@@ -8,8 +8,8 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import PrivilegedStateError
 from twinrl_robot.loop import JointCommand, privileged_success, run_episode
-from twinrl_robot.robot import PrivilegedStateError
 from twinrl_robot.scripted import ExpertSource
 from twinrl_robot.wrappers import OperatorTakeover
 from twinrl_sim.tasks import make_task

@@ -6,8 +6,9 @@ import pytest
 
 from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, STATE
 from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import PrivilegedStateError
 from twinrl_robot.operator import SimulatedOperator
-from twinrl_robot.robot import PrivilegedStateError, Robot, Sent, require_privileged
+from twinrl_robot.robot import Robot, Sent, require_privileged
 from twinrl_robot.simulated import SimulatedCell
 from twinrl_robot.wrappers import (
     GraspHold,

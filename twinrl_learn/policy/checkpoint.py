@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.policy.config import KINDS, PolicyConfig
 
 CONFIG_FILE = "config.json"
@@ -35,7 +36,7 @@ def load_checkpoint(path: str | Path) -> tuple[PolicyConfig, dict[str, torch.Ten
     error naming what it lacks."""
     path = Path(path)
     if not (path / CONFIG_FILE).is_file() or not (path / WEIGHTS_FILE).is_file():
-        raise ValueError(
+        raise LearnError(
             f"{path} is not a twinrl policy checkpoint (needs {CONFIG_FILE} and {WEIGHTS_FILE})"
         )
     config = PolicyConfig(**json.loads((path / CONFIG_FILE).read_text()))

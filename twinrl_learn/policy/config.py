@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.settings import check_inputs
 
 KINDS = ("vla", "state")
@@ -54,23 +55,23 @@ class PolicyConfig:
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
-            raise ValueError(f"policy kind must be one of {', '.join(KINDS)}, got '{self.kind}'")
+            raise LearnError(f"policy kind must be one of {', '.join(KINDS)}, got '{self.kind}'")
         if self.kind == "state" and self.env_dim == 0:
-            raise ValueError("the state policy needs observation.environment_state (env_dim > 0)")
+            raise LearnError("the state policy needs observation.environment_state (env_dim > 0)")
         check_inputs(self.inputs, self.kind)
         if self.stem_stride not in CONV_KERNELS:
-            raise ValueError(
+            raise LearnError(
                 f"stem_stride must be one of {sorted(CONV_KERNELS)}, got {self.stem_stride}"
             )
         if self.locate_weight < 0:
-            raise ValueError(f"locate_weight must be >= 0, got {self.locate_weight}")
+            raise LearnError(f"locate_weight must be >= 0, got {self.locate_weight}")
         if self.temporal_ensemble is not None and not 0 <= self.temporal_ensemble < math.inf:
-            raise ValueError(
+            raise LearnError(
                 f"temporal_ensemble must be a finite number >= 0 (or None: chunks open-loop), "
                 f"got {self.temporal_ensemble}"
             )
         if self.locate_weight > 0 and self.kind != "vla":
-            raise ValueError(
+            raise LearnError(
                 "locate_weight applies to the vla policy (the state policy reads poses)"
             )
         for needs, use in (
@@ -78,7 +79,7 @@ class PolicyConfig:
             (self.inputs == "relative", "relative inputs need"),
         ):
             if needs and (self.tcp_index < 0 or not self.object_indices):
-                raise ValueError(
+                raise LearnError(
                     f"{use} a dataset whose state has the TCP pose (tcp.x ...) and whose "
                     "environment state has object poses (<name>.x ...)"
                 )

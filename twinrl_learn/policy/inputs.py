@@ -9,6 +9,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.language import InstructionCache
 from twinrl_learn.policy.config import PolicyConfig
 from twinrl_learn.policy.normalization import Normalizer
@@ -69,7 +70,7 @@ class InputEncoder:
                 batch[f"image.{camera}"] = self.prepare_images(torch.as_tensor(images[camera]))
         else:
             if environment_state is None:
-                raise ValueError("the state policy needs observation.environment_state")
+                raise LearnError("the state policy needs observation.environment_state")
             env = torch.as_tensor(np.asarray(environment_state, np.float32))
             batch["env"] = self.normalizer.normalize("env", env)
             batch["relative"] = self.relative_poses(state, env)

@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 from twinrl_learn.policy.acting import ChunkedActing
 from twinrl_learn.policy.augmentation import augment
@@ -210,7 +211,7 @@ class Policy(nn.Module):
         """Where the image policy sees each object relative to the TCP: (B, 3 x objects)
         in decimetres along the base axes, the scale of :meth:`relative_poses`."""
         if not self.locates:
-            raise ValueError("this policy has no locating head (trained with locate_weight 0)")
+            raise LearnError("this policy has no locating head (trained with locate_weight 0)")
         return self.locator(self.features(batch))
 
     def rsample(

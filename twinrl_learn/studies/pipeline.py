@@ -47,6 +47,7 @@ import torch
 
 from twinrl_data.console import quiet_encoders
 from twinrl_data.executor import make_executor
+from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
 from twinrl_learn.real_rl import RealRL, RealRLSettings
@@ -91,20 +92,20 @@ def run_demo(
     ``on_progress`` hears from every real-RL run after each of its episodes."""
     make_task(task)
     if workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {workers}")
+        raise LearnError(f"--workers must be at least 1, got {workers}")
     if isinstance(preset, Preset):
         p, preset = preset, "custom"
     elif preset in PRESETS:
         p = PRESETS[preset]
     else:
-        raise ValueError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+        raise LearnError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
     if inputs is not None:
         check_inputs(inputs, p.policy)
         p = replace(p, inputs=inputs)
     seeds = tuple(seeds) if seeds else p.seeds
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not resume:
-        raise ValueError(f"{out} exists and is not empty; pass --resume or choose another --out")
+        raise LearnError(f"{out} exists and is not empty; pass --resume or choose another --out")
     recorded = {"task": task, "preset": preset, "inputs": p.inputs}
     if preset == "custom":  # a custom run resumes only with the very same scale
         recorded["settings"] = json.loads(json.dumps(asdict(p)))
@@ -131,7 +132,7 @@ def _check_same_run(path: Path, settings: dict[str, Any]) -> None:
         recorded = json.loads(path.read_text())
         for key, value in settings.items():
             if recorded.get(key) != value:
-                raise ValueError(
+                raise LearnError(
                     f"--resume: {path.parent} is a run with {key} {recorded.get(key)!r}, "
                     f"not {value!r}; resume it with the same options or choose another --out"
                 )
@@ -159,13 +160,13 @@ def run_preset(out: Path) -> Preset:
     """The preset a run in ``out`` was made with (its ``run.json``)."""
     path = Path(out) / "run.json"
     if not path.is_file():
-        raise ValueError(f"{out} is not a `twinrl demo` run folder (no run.json)")
+        raise LearnError(f"{out} is not a `twinrl demo` run folder (no run.json)")
     recorded = json.loads(path.read_text())
     if "settings" in recorded:  # a custom preset
         fields = recorded["settings"]
         return Preset(**{k: tuple(v) if isinstance(v, list) else v for k, v in fields.items()})
     if recorded["preset"] not in PRESETS:
-        raise ValueError(
+        raise LearnError(
             f"{out} was made with preset '{recorded['preset']}', which this version lacks"
         )
     return replace(PRESETS[recorded["preset"]], inputs=recorded["inputs"])

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL
@@ -62,7 +63,7 @@ def _candidates(run: Path, finals: bool) -> list[_Candidate]:
     stage1 = stage1_paths(run / "stage1", run_preset(run).policy)
     stage2 = run / "stage2"
     if not stage1["sft_twin"].is_dir() or not (stage2 / ".done").is_file():
-        raise ValueError(
+        raise LearnError(
             f"{run} has not finished Stage II; continue it with `twinrl demo --out {run} "
             "--resume` first"
         )
@@ -111,13 +112,13 @@ def measure_stages(
     ``on_evaluation(done, total, label)`` hears before each evaluation."""
     s = settings
     if not s.seeds:
-        raise ValueError("--seeds needs at least one seed")
+        raise LearnError("--seeds needs at least one seed")
     if s.episodes < 1:
-        raise ValueError(f"--episodes must be at least 1, got {s.episodes}")
+        raise LearnError(f"--episodes must be at least 1, got {s.episodes}")
     candidates = _candidates(s.run, s.finals)
     out = Path(s.out)
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another --out")
     task = json.loads((s.run / "run.json").read_text())["task"]
     rates: dict[str, list[dict[str, float]]] = {c.label: [] for c in candidates}
     total = len(s.seeds) * len(candidates)

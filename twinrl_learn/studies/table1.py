@@ -34,6 +34,7 @@ import numpy as np
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
+from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.settings import SFTConfig, check_inputs
@@ -124,7 +125,7 @@ def run_stage1(
 ) -> list[Stage1Row]:
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     n = lambda count: max(1, round(count * settings.scale))  # noqa: E731 - tiny local helper
     rows: list[Stage1Row] = []

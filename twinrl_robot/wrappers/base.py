@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Privileged, Robot, Sent
 
 
@@ -110,7 +111,7 @@ def restore_random_states(robot: Robot, states: dict[str, Any]) -> None:
     """Put back what :func:`random_states` saved; a stack of another shape is an error."""
     current = random_states(robot)
     if set(current) != set(states):
-        raise ValueError(
+        raise RobotError(
             f"the saved random streams {sorted(states)} do not match this robot's "
             f"{sorted(current)}; resume with the settings the run started with"
         )

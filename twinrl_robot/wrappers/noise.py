@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, STATE
+from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Robot
 from twinrl_robot.wrappers.base import ObservationWrapper
 
@@ -24,7 +25,7 @@ class NoiseLevels:
     def __post_init__(self) -> None:
         for name in ("joint_noise", "velocity_noise", "tcp_noise", "object_noise", "torque_noise"):
             if getattr(self, name) < 0:
-                raise ValueError(f"noise level {name} must be >= 0, got {getattr(self, name)}")
+                raise RobotError(f"noise level {name} must be >= 0, got {getattr(self, name)}")
 
 
 class SensorNoise(ObservationWrapper):

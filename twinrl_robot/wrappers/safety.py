@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Robot
 from twinrl_robot.wrappers.base import ActionWrapper
 from twinrl_sim.control import action_bounds
@@ -23,7 +24,7 @@ class SafetyLimits(ActionWrapper):
 
     def action(self, action: np.ndarray) -> np.ndarray:
         if action.shape != self.low.shape:
-            raise ValueError(
+            raise RobotError(
                 f"an action is {self.low.shape[0]} numbers (dxyz, drotation, gripper), "
                 f"got shape {action.shape}"
             )

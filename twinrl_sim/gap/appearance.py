@@ -20,6 +20,7 @@ from mujoco import sysid
 
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_appearance, apply_effects
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.camera import Frames, colours, render_measured
 from twinrl_sim.gap.identify import least_squares
 from twinrl_sim.spec import SceneSpec
@@ -49,7 +50,7 @@ class AppearanceFit:
         fixed: dict[str, dict] | None = None,
     ) -> None:
         if not frames:
-            raise ValueError("the appearance fit needs logged images of at least one camera")
+            raise TwinError("the appearance fit needs logged images of at least one camera")
         self.frames, self.noise = frames, noise
         fixed = dict(fixed or {})
         current = fixed.pop("appearance", None) or scene.effects.get("appearance")

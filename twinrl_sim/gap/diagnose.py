@@ -34,6 +34,7 @@ from mujoco.rollout import Rollout
 from twinrl_data import schema as contract
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import EFFECTS
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
@@ -130,9 +131,9 @@ def split_episodes(
 ) -> tuple[list[int], list[int]]:
     """Indices of training and held-out episodes (at least one each), drawn by seed."""
     if not 0 < heldout < 1:
-        raise ValueError(f"--heldout must be a fraction between 0 and 1, got {heldout}")
+        raise TwinError(f"--heldout must be a fraction between 0 and 1, got {heldout}")
     if len(episodes) < 2:
-        raise ValueError(
+        raise TwinError(
             f"the gap workflow needs at least 2 episodes (one to fit, one held out), got "
             f"{len(episodes)}; record more with twinrl sim excite"
         )
@@ -152,7 +153,7 @@ def candidate_pool(
         if unknown:
             known = ", ".join([*CANDIDATES, *IMAGE_EFFECTS])
             effect = "an effect" if unknown[0] in EFFECTS else "not an effect"
-            raise ValueError(
+            raise TwinError(
                 f"--effects-allowed: '{unknown[0]}' is {effect} the workflow fits; "
                 f"choose among {known}"
             )
@@ -206,7 +207,7 @@ def diagnose(
     train = windows.subset(np.isin(windows.episode, train_idx))
     held = windows.subset(np.isin(windows.episode, held_idx))
     if not len(train) or not len(held):
-        raise ValueError(
+        raise TwinError(
             "the training or held-out episodes are all shorter than one window; record "
             "longer episodes or pass a smaller --window"
         )
@@ -217,7 +218,7 @@ def diagnose(
     for effect in IMAGE_EFFECTS:
         if wanted[effect] and not logged:
             if allowed:
-                raise ValueError(
+                raise TwinError(
                     f"{effect} needs camera images in every episode; record with images "
                     "(twinrl sim expert --out records both cameras)"
                 )

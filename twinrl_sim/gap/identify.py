@@ -37,6 +37,7 @@ from mujoco.rollout import Rollout
 from twinrl_data import schema as contract
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_effects
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.candidates import CANDIDATES, Candidate
 from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
@@ -72,15 +73,15 @@ class NoiseFloor:
         for item in filter(None, (p.strip() for p in text.split(","))):
             key, _, value = item.partition("=")
             if key not in known:
-                raise ValueError(
+                raise TwinError(
                     f"--noise: unknown signal family '{key}'; use {', '.join(sorted(known))}"
                 )
             try:
                 values[key] = float(value)
             except ValueError:
-                raise ValueError(f"--noise: '{item}' needs a number, e.g. {key}=1e-3") from None
+                raise TwinError(f"--noise: '{item}' needs a number, e.g. {key}=1e-3") from None
             if not values[key] > 0:
-                raise ValueError(f"--noise: {key} must be positive, got {value}")
+                raise TwinError(f"--noise: {key} must be positive, got {value}")
         return cls(**values)
 
 
@@ -172,7 +173,7 @@ def cut_windows(
     episodes log ``observation.effort``; object positions when all log them.
     """
     if window < 2:
-        raise ValueError(f"--window must be at least 2 steps, got {window}")
+        raise TwinError(f"--window must be at least 2 steps, got {window}")
     arm = layout.arm_joints
     for episode in episodes:
         _check_episode(episode, arm, control_hz)
@@ -232,7 +233,7 @@ def cut_windows(
             parts["episode"].append(e_index)
             parts["start"].append(start)
     if not parts["q0"]:
-        raise ValueError(
+        raise TwinError(
             f"no episode is longer than one window ({window} steps); record longer "
             "episodes or pass a smaller --window"
         )
@@ -276,7 +277,7 @@ def _effort(episode: contract.Episode, arm: Sequence[str]) -> np.ndarray:
     col = {n: i for i, n in enumerate(names)}
     missing = [j for j in arm if f"tau.{j}" not in col]
     if missing:
-        raise ValueError(
+        raise TwinError(
             f"episode {episode.meta.episode_id}: observation.effort lacks tau.{missing[0]}"
         )
     return episode.data[contract.EFFORT].astype(float)[:, [col[f"tau.{j}"] for j in arm]]
@@ -285,7 +286,7 @@ def _effort(episode: contract.Episode, arm: Sequence[str]) -> np.ndarray:
 def _check_episode(episode: contract.Episode, arm: Sequence[str], control_hz: float) -> None:
     ident = episode.meta.episode_id
     if contract.JOINT_TARGET not in episode.data:
-        raise ValueError(
+        raise TwinError(
             f"episode {ident} has no command.joint_target; the gap workflow re-sends the "
             "joint targets that were logged"
         )
@@ -293,9 +294,9 @@ def _check_episode(episode: contract.Episode, arm: Sequence[str], control_hz: fl
     missing = [n for j in arm for n in (f"q.{j}", f"qd.{j}") if n not in names]
     missing += [n for n in ("tcp.x", "tcp.y", "tcp.z") if n not in names]
     if missing:
-        raise ValueError(f"episode {ident} lacks {missing[0]} in observation.state")
+        raise TwinError(f"episode {ident} lacks {missing[0]} in observation.state")
     if abs(episode.meta.fps - control_hz) > 1e-6 * control_hz:
-        raise ValueError(
+        raise TwinError(
             f"episode {ident} is at {episode.meta.fps:g} Hz but the twin's control runs at "
             f"{control_hz:g} Hz; import it with --fps {control_hz:g}"
         )

@@ -22,6 +22,7 @@ import numpy as np
 
 from twinrl_data import schema as contract
 from twinrl_sim.build import CompiledScene, compile_scene
+from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SceneSpec
 
 PREFIX = "tau_id."  # signal names of the comparison: tau_id.<joint>
@@ -51,7 +52,7 @@ def inverse_dynamics(episode: contract.Episode, twin: CompiledScene) -> InverseD
     if contract.EFFORT not in episode.data:
         return None
     if names.get(contract.EFFORT) != contract.effort_names(arm):
-        raise ValueError(
+        raise TwinError(
             f"episode {episode.meta.episode_id} logs torques of {names.get(contract.EFFORT)}, "
             f"not of the twin's arm joints {list(arm)}"
         )

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.inverse import PREFIX as INVERSE_PREFIX
 from twinrl_sim.gap.shooting import ShootingReplay
 
@@ -105,7 +106,7 @@ def _regimes(replay: ShootingReplay, joint: str | None) -> dict[str, np.ndarray]
 def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
     """The localisation table over several episodes, largest RMS (in each unit) first."""
     if not replays:
-        raise ValueError("no episodes to compare")
+        raise TwinError("no episodes to compare")
     rows = []
     names = replays[0].names
     for i, name in enumerate(names):

@@ -17,6 +17,7 @@ import numpy as np
 from twinrl_data import schema as contract
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.inverse import inverse_dynamics, inverse_model
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import TASKS, TaskConfig, make_task
@@ -47,7 +48,7 @@ def _cell_for(scene: SceneSpec, effects: dict | None, fps: float) -> Cell:
     cell = Cell(compile_scene(scene, extra_effects=effects or None))
     steps = 1.0 / (fps * scene.physics.timestep)
     if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
-        raise ValueError(
+        raise TwinError(
             f"the episode's {fps:g} Hz is not a whole number of the twin's "
             f"{scene.physics.timestep} s physics steps; import it with --fps "
             f"{scene.physics.control_hz:g} (or another divisor of {1 / scene.physics.timestep:g})"
@@ -66,10 +67,10 @@ def replay_windows(
     """Replay ``episode`` in the twin built from ``scene`` (plus ``effects``), restarting
     from the measured joints every ``window`` steps."""
     if window < 2:
-        raise ValueError(f"--window must be at least 2 steps, got {window}")
+        raise TwinError(f"--window must be at least 2 steps, got {window}")
     names = list(episode.meta.names.get(contract.STATE, []))
     if contract.JOINT_TARGET not in episode.data:
-        raise ValueError(
+        raise TwinError(
             f"episode {episode.meta.episode_id} has no command.joint_target; replay needs "
             "the joint targets that were sent"
         )
@@ -79,7 +80,7 @@ def replay_windows(
         index = {n: i for i, n in enumerate(names)}
         missing = [f"q.{j}" for j in arm if f"q.{j}" not in index]
         if missing:
-            raise ValueError(f"episode {episode.meta.episode_id} lacks {missing[0]} in its state")
+            raise TwinError(f"episode {episode.meta.episode_id} lacks {missing[0]} in its state")
         q_cols = [index[f"q.{j}"] for j in arm]
         qd_cols = [index.get(f"qd.{j}") for j in arm]
         measured = episode.data[contract.STATE].astype(float)

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 import open3d as o3d
 
+from twinrl_sim.errors import TwinError
 from twinrl_sim.reconstruct.frames import CaptureError
 from twinrl_sim.reconstruct.sfm import SparseModel
 from twinrl_sim.reconstruct.tag import corners_in_tag_frame, detect, other_families_seen
@@ -197,18 +198,18 @@ def align_to_tag(
 def check_reference_points(points: dict[int, tuple[float, ...]]) -> None:
     """Refuse tag centres that cannot fix a frame: too few, malformed, or on a line."""
     if len(points) < 3:
-        raise ValueError(
+        raise TwinError(
             f"--tag-point was given for {len(points)} tag(s); give the centres of 3 or more "
             "tags spread over the table"
         )
     for tag_id, xyz in points.items():
         if len(xyz) != 3:
-            raise ValueError(f"--tag-point {tag_id} needs 3 numbers x,y,z, got {len(xyz)}")
+            raise TwinError(f"--tag-point {tag_id} needs 3 numbers x,y,z, got {len(xyz)}")
     centred = np.array(list(points.values()), float)
     centred -= centred.mean(axis=0)
     spread = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(points))
     if spread < MIN_POINT_SPREAD / 2:
-        raise ValueError(
+        raise TwinError(
             "--tag-point: the tag centres lie (almost) on a line, which leaves the frame's "
             f"rotation open; place the tags at least {100 * MIN_POINT_SPREAD:.0f} cm off "
             "the line through the others"

@@ -22,6 +22,8 @@ import av
 import cv2
 import numpy as np
 
+from twinrl_sim.errors import TwinError
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 MIN_SHARPNESS = 15.0  # variance of the Laplacian below which a frame is a blur
 MIN_TRAVEL = 0.25  # median image motion over the clip, in image widths
@@ -29,7 +31,7 @@ MIN_FRAMES = 12
 FLOW_WIDTH = 640  # px: kept frames are shrunk to this width to measure camera travel
 
 
-class CaptureError(ValueError):
+class CaptureError(TwinError):
     """A clip or photo set that reconstruction cannot use; says what to capture instead."""
 
 

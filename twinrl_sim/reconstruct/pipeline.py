@@ -18,6 +18,7 @@ import numpy as np
 import open3d as o3d
 
 from twinrl_sim.build import compile_scene
+from twinrl_sim.errors import TwinError
 from twinrl_sim.reconstruct.align import (
     Alignment,
     Similarity,
@@ -87,50 +88,50 @@ class BuildSettings:
 def check_settings(settings: BuildSettings, out: Path) -> None:
     """Refuse bad arguments before any work is done (one line each)."""
     if settings.tag_pose is not None and settings.tag_points:
-        raise ValueError("give either --tag-pose (one tag) or --tag-point (3+ tags), not both")
+        raise TwinError("give either --tag-pose (one tag) or --tag-point (3+ tags), not both")
     if settings.tag_points:
         check_reference_points(settings.tag_points)
     elif settings.tag_pose is None:
-        raise ValueError(
+        raise TwinError(
             "tie the cell to the robot base: give --tag-size and --tag-pose of one tag, or "
             "--tag-point ID=x,y,z for 3+ tags"
         )
     else:
         if settings.tag_size is None:
-            raise ValueError("--tag-pose needs --tag-size, the edge of the tag's black square")
+            raise TwinError("--tag-pose needs --tag-size, the edge of the tag's black square")
         if len(settings.tag_pose) != 7:
-            raise ValueError(
+            raise TwinError(
                 f"--tag-pose needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
             )
         if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
-            raise ValueError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
+            raise TwinError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
-        raise ValueError(
+        raise TwinError(
             f"--tag-size {settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"
         )
     if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists and is not empty; choose another --out")
+        raise TwinError(f"{out} exists and is not empty; choose another --out")
     for what, files in (
         ("--object-mesh", settings.object_meshes),
         ("--camera-image", settings.camera_images),
     ):
         for name, path in files.items():
             if not Path(path).is_file():
-                raise ValueError(f"{what} {name}={path}: no such file")
+                raise TwinError(f"{what} {name}={path}: no such file")
     for name, density in settings.densities.items():
         if not 10 <= density <= 25000:
-            raise ValueError(f"--density {name}={density:g} is not a density in kg/m^3")
+            raise TwinError(f"--density {name}={density:g} is not a density in kg/m^3")
     task_scene = make_task(settings.task).scene if settings.task is not None else None
     for camera in _base_cameras(task_scene):
         if camera.name in settings.camera_images and camera.mount != "world":
-            raise ValueError(
+            raise TwinError(
                 f"--camera-image {camera.name}: that camera is on the {camera.mount}; only "
                 "fixed cameras can be placed from a photo"
             )
     if task_scene is not None:
         for name in settings.object_meshes:
             if name not in task_scene.object_names:
-                raise ValueError(
+                raise TwinError(
                     f"--object-mesh {name}: task '{settings.task}' has no object '{name}' "
                     f"(has: {', '.join(task_scene.object_names)})"
                 )

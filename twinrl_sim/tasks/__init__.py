@@ -5,7 +5,8 @@ from __future__ import annotations
 import difflib
 from pathlib import Path
 
-from twinrl_sim.spec import SceneSpec, load_spec
+from twinrl_sim.errors import TwinError
+from twinrl_sim.spec import SceneSpec, SpecError, load_spec
 from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
 from twinrl_sim.tasks.base import Progress as Progress
 from twinrl_sim.tasks.base import Region as Region
@@ -26,7 +27,7 @@ def task_class(name: str) -> type[Task]:
     if name not in TASKS:
         close = difflib.get_close_matches(name, list(TASKS), n=1)
         hint = f" (did you mean '{close[0]}'?)" if close else ""
-        raise ValueError(f"unknown task '{name}'{hint}; tasks: {', '.join(TASKS)}")
+        raise TwinError(f"unknown task '{name}'{hint}; tasks: {', '.join(TASKS)}")
     return TASKS[name]
 
 
@@ -44,7 +45,7 @@ def twin_scene(twin: str) -> SceneSpec:
         return load_spec(twin)
     close = difflib.get_close_matches(twin, list(TASKS), n=1)
     hint = f" (did you mean '{close[0]}'?)" if close else ""
-    raise ValueError(
+    raise TwinError(
         f"--twin '{twin}' is neither a built-in cell{hint} ({', '.join(TASKS)}) "
         "nor a scene spec file"
     )
@@ -55,8 +56,8 @@ def task_on_twin(task: str, twin: str) -> SceneSpec:
     scene = twin_scene(twin)
     try:
         make_task(task, scene)
-    except KeyError as err:
-        raise ValueError(
+    except SpecError as err:
+        raise TwinError(
             f"--twin {twin}: {err.args[0]}; pick the task it is built for (--task)"
         ) from None
     return scene

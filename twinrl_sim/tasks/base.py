@@ -20,6 +20,7 @@ import numpy as np
 from twinrl_data.schema import EpisodeMeta
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
+from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SceneSpec, load_spec
 
 if TYPE_CHECKING:
@@ -63,7 +64,7 @@ class TaskConfig:
         for key in ("object", "target"):
             value = getattr(self, key)
             if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
-                raise ValueError(
+                raise TwinError(
                     f"config.{key} must be three finite numbers (x m, y m, yaw rad), got {value!r}"
                 )
             object.__setattr__(self, key, tuple(float(v) for v in value))
@@ -77,12 +78,12 @@ class TaskConfig:
         if isinstance(data, TaskConfig):
             return data
         if not isinstance(data, dict):
-            raise ValueError(
+            raise TwinError(
                 f"a config is a mapping {{object: [x, y, yaw], target: [x, y, yaw]}}, got {data!r}"
             )
         keys = set(data)
         if keys != {"object", "target"}:
-            raise ValueError(
+            raise TwinError(
                 f"config needs exactly the keys object and target (got {sorted(keys)}); "
                 "each is [x m, y m, yaw rad]"
             )
@@ -164,7 +165,7 @@ class Task(ABC):
 
     def region(self, name: str) -> Region:
         if name not in self.regions:
-            raise ValueError(f"unknown region '{name}'; choose one of {', '.join(self.regions)}")
+            raise TwinError(f"unknown region '{name}'; choose one of {', '.join(self.regions)}")
         return self.regions[name]
 
     def region_of(self, config: TaskConfig) -> str | None:
@@ -208,7 +209,7 @@ class Task(ABC):
             weights = settings["dense_weights"]
             reward += sum(weights.get(k, 0.0) * v for k, v in progress.terms.items())
         elif mode != "sparse":
-            raise ValueError(f"reward mode must be 'sparse' or 'dense', got '{mode}'")
+            raise TwinError(f"reward mode must be 'sparse' or 'dense', got '{mode}'")
         return reward
 
     @abstractmethod
