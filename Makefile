@@ -76,6 +76,7 @@ bench: setup
 	$(BIN)/python bench/bench_pipeline.py --preset smoke --workers 2
 	$(BIN)/python bench/bench_cli_startup.py --runs 5
 	$(BIN)/python bench/bench_rl_update.py --updates 20
+	$(BIN)/python bench/bench_control_loop.py --steps 300
 	@rm -rf out/bench_stage1   # the benchmark's own output from a previous run
 	$(BIN)/twinrl bench stage1 --out out/bench_stage1 --policies state
 
