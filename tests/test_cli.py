@@ -184,6 +184,24 @@ def test_train_and_eval_commands(tmp_path):
             ["bench", "stage1", "--out", "x", "--inputs", "sideways"],
             "--inputs must be one of absolute, relative, got 'sideways'",
         ),
+        # Options derived from the run's settings: the settings' checks name the flag.
+        (
+            ["train", "real-rl", "--task", "pick_place", "--out", "x", "--plant-steps", "0"],
+            "--plant-steps must be at least 1, got 0",
+        ),
+        (
+            ["train", "real-rl", "--task", "pick_place", "--out", "x", "--eval-grid", "4"],
+            "a grid is written ROWSxCOLS",
+        ),
+        (
+            ["train", "real-rl", "--task", "pick_place", "--out", "x", "--method", "sarsa"],
+            "--method must be one of twinrl, conrft, hil-serl",
+        ),
+        (["train", "real-rl", "--task", "pick_place", "--out", "x"], "--init is needed"),
+        (
+            ["train", "twin-rl", "--task", "pick_place", "--out", "x", "--envs", "0"],
+            "--envs must be at least 1, got 0",
+        ),
     ],
 )
 def test_stage1_bad_input(args, message, tmp_path):

@@ -20,3 +20,16 @@ class McapError(DataError):
 
 class UsageError(TwinrlError):
     """A command was given options it cannot use together, or a value it cannot read."""
+
+
+class SettingError(TwinrlError):
+    """A setting (a field of a settings record) has a value it cannot take.
+
+    The message names the setting as the record does (``plant_steps must be at least
+    1``); the command line, which derives its options from the same records, names it by
+    its flag instead (``--plant-steps must be at least 1``).
+    """
+
+    def __init__(self, setting: str, problem: str) -> None:
+        super().__init__(f"{setting} {problem}")
+        self.setting, self.problem = setting, problem

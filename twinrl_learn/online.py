@@ -74,7 +74,7 @@ class OnlineRun:
         """A new run; ``online`` pre-fills the online buffer (Stage III's D_real <- D_twin)."""
         out = Path(out)
         if out.exists() and any(out.iterdir()):
-            raise LearnError(f"{out} already holds a run; pass --resume or choose another --out")
+            raise LearnError(f"{out} already holds a run; resume it or choose another folder")
         session = Session.create(out / "session")
         if online is None:
             online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
@@ -89,7 +89,7 @@ class OnlineRun:
         ``online`` is the same pre-filled buffer the run started with, if any."""
         out = Path(out)
         if not (out / RUN_FILE).is_file():
-            raise LearnError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
+            raise LearnError(f"{out / RUN_FILE} does not exist: there is no run to resume")
         state = json.loads((out / RUN_FILE).read_text())
         agent = Agent.load(out / "agent")
         session = Session(out / "session")

@@ -43,13 +43,14 @@ import json
 import shutil
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 import torch
 
+from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
 from twinrl_learn.agent import Agent
 from twinrl_learn.errors import LearnError
@@ -60,10 +61,10 @@ from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import RLConfig
+from twinrl_learn.settings import RealRLSettings, RLConfig
 from twinrl_robot.backends import open_robot
 from twinrl_robot.loop import privileged_success, run_episode
-from twinrl_robot.operator import Operator, OperatorRule, SimulatedOperator
+from twinrl_robot.operator import Operator, SimulatedOperator
 from twinrl_robot.robot import Robot
 from twinrl_robot.wrappers import (
     GraspHold,
@@ -74,58 +75,8 @@ from twinrl_robot.wrappers import (
 from twinrl_sim.env import TwinEnv
 from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
 
-ROBOTS = ("plant",)
 EVALUATIONS_FILE = "evaluations.json"
 TIMING_FILE = "timing.json"
-
-
-@dataclass
-class RealRLSettings:
-    """What to run: ``plant_steps`` robot steps of human-in-the-loop RL."""
-
-    task: str
-    init: str  # policy checkpoint to start from (Stage I SFT or a Stage II agent)
-    out: str
-    # Start from the critic of ``init`` when it is a Stage II agent.
-    # Off by default: a new critic measured better (docs/results/defaults.md).
-    keep_critic: bool = False
-    robot: str = "plant"
-    effects: str | None = None  # the plant's hidden effects (None: the built-in plant)
-    demos: list[str] = field(default_factory=list)  # real demos: the demo buffer
-    twin_buffer: str | None = None  # Stage II's twin buffer: the replay buffer's start
-    targets: str | None = None  # targets.json from `twinrl mine` (None: uniform resets)
-    target_ratio: float = 0.7  # share of resets drawn from the targets
-    # Episodes between re-minings of the targets in the twin (0: never; without
-    # ``targets`` the resets stay uniform and nothing is mined).
-    refresh_every: int = 10
-    mining_grid: tuple[int, int] = (4, 4)
-    mining_episodes: int = 1
-    tau: float = 0.8
-    k: int = 20
-    plant_steps: int = 6000
-    eval_every: int = 600  # robot steps between evaluations (0: only at the start and end)
-    eval_grid: tuple[int, int] = (4, 4)
-    eval_episodes: int = 1  # per grid cell
-    operator: OperatorRule | None = field(default_factory=OperatorRule)  # None: no operator
-    show_resets: bool = True  # render each reset configuration to a Rerun recording
-    # Between episodes, wait for the learner to run every update the episode bought
-    # (exactly ``utd`` per robot step, so a seed gives the same run); off, the actor
-    # takes whatever weights the learner has reached (a cell that cannot wait).
-    learner_sync: bool = True
-    rl: RLConfig = field(default_factory=RLConfig)
-
-    def __post_init__(self) -> None:
-        if self.robot not in ROBOTS:
-            raise LearnError(
-                f"--robot {self.robot} is not available; use one of {', '.join(ROBOTS)} "
-                "(a real UR arm needs its driver behind twinrl_robot.Robot)"
-            )
-        if not 0 <= self.target_ratio <= 1:
-            raise LearnError(f"--target-ratio must be in [0, 1], got {self.target_ratio}")
-        if self.refresh_every < 0 or self.eval_every < 0:
-            raise LearnError("--refresh-every and --eval-every must be >= 0")
-        if self.plant_steps < 1:
-            raise LearnError(f"--plant-steps must be at least 1, got {self.plant_steps}")
 
 
 @dataclass
@@ -239,14 +190,21 @@ class RealRL:
     # ------------------------------------------------------------ lifecycle
     @classmethod
     def start(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+        if not settings.init:
+            raise SettingError(
+                "init", "is needed to start a run: a policy checkpoint to start from"
+            )
+        if settings.targets:
+            load_targets(settings.targets)  # fail before anything is written
         policy = Policy.from_pretrained(settings.init)
         demo, twin = _buffers(settings, policy)
         agent = Agent(policy, settings.rl)
         if settings.keep_critic and not agent.adopt_critic(settings.init):
-            raise LearnError(f"--keep-critic: {settings.init} is not an RL agent (no agent.pt)")
+            raise SettingError(
+                "keep_critic", f"needs an RL agent as init; {settings.init} holds no agent.pt"
+            )
         run = OnlineRun.start(settings.out, agent, demo, twin)
         if settings.targets:
-            load_targets(settings.targets)  # fail early on a bad file
             kept = run.out / "mining" / "initial.json"
             kept.parent.mkdir(parents=True)
             shutil.copyfile(settings.targets, kept)
@@ -259,7 +217,7 @@ class RealRL:
         """Continue the run in ``settings.out`` with the RL settings it started with."""
         out = Path(settings.out)
         if not (out / RUN_FILE).is_file():
-            raise LearnError(f"--resume: {out / RUN_FILE} does not exist (nothing to continue)")
+            raise LearnError(f"{out / RUN_FILE} does not exist: there is no run to resume")
         policy = Policy.from_pretrained(out / "agent")
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)

@@ -53,9 +53,13 @@ class RewardSettings:
     operator's steps)."""
 
     success: float = 10.0
+    """Reward of the step that completes the task."""
     step: float = -0.05
-    # Ending the stretch at a takeover measured better than not (docs/results/defaults.md).
+    """Reward of every other step."""
     takeover: float | None = 0.0
+    """Reward of the policy's last step before a takeover, which ends its stretch for the
+    critic (a success earns 10); ending the stretch measured better than running on
+    (docs/results/defaults.md)."""
 
 
 @dataclass

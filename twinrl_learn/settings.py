@@ -1,4 +1,4 @@
-"""The settings records of SFT and RL, with their defaults and checks.
+"""The settings records of SFT, RL, twin RL and real RL, with their defaults and checks.
 
 They live apart from the networks (``sft``, ``agent``, ``policy``) so that the command
 line can show their defaults, and refuse bad values, without loading torch.
@@ -11,8 +11,11 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
+from twinrl_data.errors import SettingError
 from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import RewardSettings
+from twinrl_robot.operator import OperatorRule
+from twinrl_sim.tasks import REGION_NAMES, task_class
 
 INPUTS = ("absolute", "relative")
 
@@ -21,11 +24,12 @@ def check_inputs(inputs: str, kind: str) -> None:
     """Refuse ``inputs`` that are unknown or that the policy ``kind`` cannot have: the
     one check behind SFT, its CLI and the pipeline, made before any work starts."""
     if inputs not in INPUTS:
-        raise LearnError(f"--inputs must be one of {', '.join(INPUTS)}, got '{inputs}'")
+        raise SettingError("inputs", f"must be one of {', '.join(INPUTS)}, got '{inputs}'")
     if inputs != "absolute" and kind != "state":
-        raise LearnError(
-            f"--inputs applies to --policy state only: {inputs} inputs need the state policy "
-            "(the vla policy sees images)"
+        raise SettingError(
+            "inputs",
+            f"applies to the state policy only: {inputs} inputs need the state policy (the vla "
+            "policy sees images)",
         )
 
 
@@ -59,36 +63,63 @@ class SFTConfig:
     in a resumed run the run's own settings."""
 
     datasets: list[str]
+    """LeRobotDataset folder; repeat to mix datasets."""
     out: str
+    """Checkpoint folder to create (or continue with resume)."""
     policy: str = "vla"
+    """vla (cameras + language + proprio) or state (privileged)."""
     weights: list[float] | None = None
+    """Sampling weight per dataset, e.g. 1,2 (default: by their frames, as if they were one
+    dataset; a resumed run keeps its own)."""
     steps: int | None = None
+    """Training steps (default: 5000 vla, 3000 state; a resumed run: its own, more extends
+    it)."""
     batch_size: int | None = None
+    """Batch size (default by policy; a resumed run: its own)."""
     lr: float | None = None
-    lr_schedule: str | None = None  # cosine (decay to zero) or constant; None: by policy
+    """Learning rate (default by policy; a resumed run: its own)."""
+    lr_schedule: str | None = None
+    """cosine (the rate decays towards zero at the end of the run) or constant (default:
+    cosine for state, constant for vla; a resumed run keeps its own)."""
     chunk: int = 8
-    inputs: str = "absolute"  # the state policy's inputs: absolute or relative (policy.py)
-    image_size: int = 128  # vla: images are resized to this on load (64 or 128)
-    # vla: weight of the auxiliary object-locating loss (0: off). Its squared error is in
-    # decimetres (a 1 cm miss costs 0.01); 10 beat 1 and 30 (docs/results/defaults.md).
+    """Actions predicted and executed per look (action chunking)."""
+    inputs: str = "absolute"
+    """State policy only: absolute (object poses in the base frame, joint angles) or
+    relative (objects relative to the TCP and tool; evens out generalisation from few
+    demos)."""
+    image_size: int = 128
+    """vla only: image size the cameras are resized to, 64 or 128."""
     locate_weight: float = 10.0
+    """vla only: weight of the auxiliary loss that locates the objects relative to the TCP
+    from the images (needs object poses in the data; 0 turns it off). Its squared error is
+    in decimetres (a 1 cm miss costs 0.01); 10 beat 1 and 30 (docs/results/defaults.md)."""
     seed: int = 0
+    """Seed (initialisation, sampling, augmentation)."""
     checkpoint_every: int = 500
+    """Steps between checkpoints."""
     log_every: int = 25
+    """Steps between progress reports."""
 
     def __post_init__(self) -> None:
+        if self.policy not in DEFAULTS:
+            raise SettingError(
+                "policy", f"must be one of {', '.join(DEFAULTS)}, got '{self.policy}'"
+            )
         check_inputs(self.inputs, self.policy)
         if self.image_size not in IMAGE_SIZES:
-            raise LearnError(
-                f"--image-size must be one of {', '.join(map(str, IMAGE_SIZES))}, "
-                f"got {self.image_size}"
+            raise SettingError(
+                "image_size",
+                f"must be one of {', '.join(map(str, IMAGE_SIZES))}, got {self.image_size}",
             )
         if self.locate_weight < 0:
-            raise LearnError(f"--locate-weight must be >= 0, got {self.locate_weight}")
+            raise SettingError("locate_weight", f"must be >= 0, got {self.locate_weight}")
         if self.lr_schedule not in (None, *LR_SCHEDULES):
-            raise LearnError(
-                f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got '{self.lr_schedule}'"
+            raise SettingError(
+                "lr_schedule",
+                f"must be one of {', '.join(LR_SCHEDULES)}, got '{self.lr_schedule}'",
             )
+        if self.chunk < 1:
+            raise SettingError("chunk", f"must be at least 1, got {self.chunk}")
 
     def resolved(self) -> SFTConfig:
         defaults = DEFAULTS[self.policy]
@@ -111,43 +142,67 @@ class RLConfig:
     """Hyper-parameters of the agent (defaults: TwinRL's where the paper gives them)."""
 
     method: str = "twinrl"
+    """Objective: twinrl, conrft or hil-serl (see for_method)."""
     gamma: float = 0.98
+    """Discount per control step."""
     tau: float = 0.005
+    """Soft update rate of the target critics."""
     critics: int = 2
+    """Members of the critic ensemble."""
     hidden: int = 256
-    batch_size: int = 64  # as in the paper
-    # Small: 3e-4 wore the fine-tuned SFT policy down in real RL (docs/results/defaults.md).
-    # SAC without an imitation term keeps 3e-4.
+    """Width of the critics' hidden layers."""
+    batch_size: int = 64
+    """Transitions per update (as in the paper)."""
     actor_lr: float = 3e-5
+    """Actor learning rate: small, since 3e-4 wore a fine-tuned SFT policy down in real RL
+    (docs/results/defaults.md); SAC without an imitation term keeps 3e-4."""
     critic_lr: float = 3e-4
-    beta: float = 1.0  # weight of L_IL
-    # Weight of L_Q; at 1 the young critic undid the SFT policy (docs/results/defaults.md).
+    """Critic learning rate."""
+    beta: float = 1.0
+    """Weight of the imitation term (L_IL)."""
     eta: float = 0.1
-    beta_online: float | None = None  # beta after the offline phase (None: unchanged)
+    """Weight of the Q term (L_Q); at 1 the young critic undid the SFT policy
+    (docs/results/defaults.md)."""
+    beta_online: float | None = None
+    """Weight of the imitation term after the offline phase (None: unchanged)."""
     cql_alpha: float = 0.1
+    """Weight of the Cal-QL regulariser in the offline phase."""
     cql_actions: int = 4
-    entropy: bool = False  # SAC temperature term in the actor and the TD target
+    """Sampled actions per state in the Cal-QL regulariser."""
+    entropy: bool = False
+    """SAC's temperature term in the actor and the TD target."""
     target_entropy_per_dim: float = -1.0
-    demo_ratio: float = 0.5  # share of each batch from demos + interventions (RLPD)
-    # Rollouts sample with the policy's spread times this: a spread learned by BC from
-    # noisy teleop is too wide for mm-precise tasks (SAC learns its own: 1.0).
+    """SAC's target entropy per action dimension."""
+    demo_ratio: float = 0.5
+    """Share of each batch from demos and interventions (RLPD)."""
     exploration: float = 0.3
-    utd: float = 1.0  # gradient updates per environment step
+    """Rollout spread as a multiple of the policy's: a spread learned by imitation from
+    noisy teleop is too wide for millimetre tasks (SAC learns its own: 1.0)."""
+    utd: float = 1.0
+    """Gradient updates per environment (robot) step."""
     offline_steps: int = 500
+    """Offline (Cal-QL + imitation) updates before the first rollout."""
     rewards: RewardSettings = field(default_factory=RewardSettings)
+    """The reward of each step (see RewardSettings)."""
     seed: int = 0
+    """Seed (networks, sampling, resets, sensor noise)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.rewards, dict):
             self.rewards = RewardSettings(**self.rewards)
         if self.method not in METHODS:
-            raise LearnError(f"method must be one of {', '.join(METHODS)}, got '{self.method}'")
+            raise SettingError(
+                "method", f"must be one of {', '.join(METHODS)}, got '{self.method}'"
+            )
         if self.critics < 2:
-            raise LearnError(f"the critic ensemble needs at least 2 members, got {self.critics}")
+            raise SettingError("critics", f"must be at least 2 (an ensemble), got {self.critics}")
         if not 0 <= self.demo_ratio <= 1:
-            raise LearnError(f"demo_ratio must be in [0, 1], got {self.demo_ratio}")
-        if self.beta < 0 or self.eta < 0:
-            raise LearnError("beta and eta must be non-negative")
+            raise SettingError("demo_ratio", f"must be in [0, 1], got {self.demo_ratio}")
+        for name in ("beta", "eta", "utd", "exploration"):
+            if getattr(self, name) < 0:
+                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
+        if self.offline_steps < 0:
+            raise SettingError("offline_steps", f"must be >= 0, got {self.offline_steps}")
 
     @classmethod
     def load(cls, folder: str | Path) -> RLConfig:
@@ -172,3 +227,112 @@ class RLConfig:
                 "actor_lr": 3e-4,
             }
         return cls(**(base | overrides))
+
+
+@dataclass
+class TwinRLSettings:
+    """What to run: ``steps`` twin environment steps in rounds of ``envs`` episodes."""
+
+    task: str
+    """Task (pick_place, insert_hexagon, insert_triple_column, erase_whiteboard)."""
+    init: str
+    """SFT checkpoint to start from (an RL checkpoint folder's policy works too)."""
+    out: str
+    """Run folder to create (or continue with resume)."""
+    demos: list[str] = field(default_factory=list)
+    """LeRobotDataset(s) for the demo buffer (the SFT data)."""
+    envs: int = 8
+    """Parallel twin environments."""
+    steps: int = 8000
+    """Twin environment steps in all."""
+    regions: tuple[str, ...] = REGION_NAMES
+    """Regions the configurations are drawn from."""
+    failures: int = 0
+    """Failed rollouts to add to the exported twin buffer (at most)."""
+    rl: RLConfig = field(default_factory=RLConfig)
+    """The agent's settings."""
+
+    def __post_init__(self) -> None:
+        task_class(self.task)  # an unknown task: the nearest name
+        for name in ("envs", "steps"):
+            if getattr(self, name) < 1:
+                raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")
+        if self.failures < 0:
+            raise SettingError("failures", f"must be >= 0, got {self.failures}")
+
+
+ROBOTS = ("plant",)
+
+
+@dataclass
+class RealRLSettings:
+    """What to run: ``plant_steps`` robot steps of human-in-the-loop RL."""
+
+    task: str
+    """Task (pick_place, insert_hexagon, insert_triple_column, erase_whiteboard)."""
+    init: str
+    """Policy to start from: an SFT checkpoint or a twin-rl run's agent/ (not needed to
+    resume)."""
+    out: str
+    """Run folder to create (or continue with resume)."""
+    keep_critic: bool = False
+    """Keep the critic of the twin-rl agent given as init (default: a new critic, which
+    measured better: docs/results/defaults.md)."""
+    robot: str = "plant"
+    """Robot to learn on: plant."""
+    effects: str | None = None
+    """The plant's hidden effects (YAML; default: the built-in plant)."""
+    demos: list[str] = field(default_factory=list)
+    """LeRobotDataset(s) of real demos: the demo buffer; repeatable."""
+    twin_buffer: str | None = None
+    """Stage II's twin buffer (twin-rl's twin_buffer/): the replay buffer's start."""
+    targets: str | None = None
+    """targets.json from `twinrl mine` (default: uniform resets over the regions)."""
+    target_ratio: float = 0.7
+    """Share of resets drawn from the targets."""
+    refresh_every: int = 10
+    """Episodes between re-minings of the targets in the twin (0: never; without targets
+    the resets stay uniform and nothing is mined)."""
+    mining_grid: tuple[int, int] = (4, 4)
+    """Grid of configurations the targets are mined over."""
+    mining_episodes: int = 1
+    """Twin episodes per mining grid cell."""
+    tau: float = 0.8
+    """Mining: a cell whose estimated success is below this is a failure."""
+    k: int = 20
+    """Mining: targets kept."""
+    plant_steps: int = 6000
+    """Robot steps to learn for (10 Hz: 600 = 1 min)."""
+    eval_every: int = 600
+    """Robot steps between evaluations on a fixed grid (0: only at the start and end)."""
+    eval_grid: tuple[int, int] = (4, 4)
+    """Evaluation grid over ID and OOD."""
+    eval_episodes: int = 1
+    """Evaluation episodes per grid cell."""
+    operator: OperatorRule | None = field(default_factory=OperatorRule)
+    """When the simulated operator takes the controls (None: nobody does)."""
+    show_resets: bool = True
+    """Render each reset configuration from the twin to a Rerun recording."""
+    learner_sync: bool = True
+    """Between episodes, wait for the learner (its own thread) to run every update the
+    episode bought, so a seed gives the same run; off, take the weights it has reached.
+    The robot loop never waits for an update either way."""
+    rl: RLConfig = field(default_factory=RLConfig)
+    """The agent's settings."""
+
+    def __post_init__(self) -> None:
+        task_class(self.task)  # an unknown task: the nearest name
+        if self.robot not in ROBOTS:
+            raise SettingError(
+                "robot",
+                f"{self.robot} is not available; use one of {', '.join(ROBOTS)} (a real UR arm "
+                "needs its driver behind twinrl_robot.Robot)",
+            )
+        if not 0 <= self.target_ratio <= 1:
+            raise SettingError("target_ratio", f"must be in [0, 1], got {self.target_ratio}")
+        for name in ("refresh_every", "eval_every"):
+            if getattr(self, name) < 0:
+                raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("plant_steps", "eval_episodes", "mining_episodes", "k"):
+            if getattr(self, name) < 1:
+                raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")

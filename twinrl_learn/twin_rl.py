@@ -18,39 +18,23 @@ Outputs (besides :mod:`twinrl_learn.online`'s)::
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import step_record
 from twinrl_learn.agent import Agent
-from twinrl_learn.errors import LearnError
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
-from twinrl_learn.settings import RLConfig
+from twinrl_learn.settings import RLConfig, TwinRLSettings
 from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.batch import BatchEnv
-from twinrl_sim.tasks import REGION_NAMES, Progress, make_task
-
-
-@dataclass
-class TwinRLSettings:
-    """What to run: ``steps`` twin environment steps in rounds of ``envs`` episodes."""
-
-    task: str
-    init: str  # SFT checkpoint (or an RL checkpoint folder's policy)
-    out: str
-    demos: list[str] = field(default_factory=list)  # LeRobotDatasets for the demo buffer
-    envs: int = 8
-    steps: int = 8000
-    regions: tuple[str, ...] = REGION_NAMES
-    failures: int = 0  # failed rollouts added to the exported twin buffer (at most)
-    rl: RLConfig = field(default_factory=RLConfig)
+from twinrl_sim.tasks import Progress, make_task
 
 
 def load_demo_buffer(demos: list[str], policy: Policy, rl: RLConfig) -> ReplayBuffer:
@@ -69,12 +53,16 @@ def run_twin_rl(
     task = make_task(settings.task)
     for region in settings.regions:
         task.region(region)
-    if settings.envs < 1:
-        raise LearnError(f"--envs must be at least 1, got {settings.envs}")
     if resume:
+        # A resumed run keeps the RL settings it started with.
+        settings.rl = RLConfig.load(Path(settings.out) / "agent")
         policy = Policy.from_pretrained(Path(settings.out) / "agent")
         run = OnlineRun.resume(settings.out, load_demo_buffer(settings.demos, policy, settings.rl))
     else:
+        if not settings.init:
+            raise SettingError(
+                "init", "is needed to start a run: a policy checkpoint to start from"
+            )
         policy = Policy.from_pretrained(settings.init)
         demo = load_demo_buffer(settings.demos, policy, settings.rl)
         run = OnlineRun.start(settings.out, Agent(policy, settings.rl), demo)

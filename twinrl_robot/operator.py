@@ -32,6 +32,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_robot.errors import RobotError
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 from twinrl_sim.tasks.expert import ObsView, ScriptedExpert
@@ -59,23 +60,32 @@ class Operator(Protocol):
 class OperatorRule:
     """When the simulated operator takes over and hands back (see the module doc)."""
 
-    patience: int = 10  # steps without progress before taking over
-    min_progress: float = 0.02  # what counts as progress
-    regression: float = 0.5  # a drop from the best progress that triggers a takeover
-    delay: int = 3  # reaction time (steps) between noticing and acting
-    handback_gain: float = 1.0  # progress above the policy's best before handing back (a grasp)
-    min_control: int = 5  # steps held at least once taken over
-    noise: float = 0.002  # hand jitter, m per step (rotation: 5x in rad)
-    funnel: float = 0.015  # m across the object's axis a closing gripper may be off (0: off)
-    # A take-over low beside the object within this distance (m) of the expert's grasp
-    # corrects the arm straight to it instead of backing off to the approach pose (0:
-    # always back off). Correcting measured better (docs/results/defaults.md).
+    patience: int = 10
+    """Steps without progress before taking over."""
+    min_progress: float = 0.02
+    """What counts as progress."""
+    regression: float = 0.5
+    """A drop from the best progress that triggers a takeover."""
+    delay: int = 3
+    """Reaction time (steps) between noticing and acting."""
+    handback_gain: float = 1.0
+    """Progress above the policy's best before handing back (a grasp)."""
+    min_control: int = 5
+    """Steps held at least, once taken over."""
+    noise: float = 0.002
+    """Hand jitter, m per step (rotation: 5x in rad)."""
+    funnel: float = 0.015
+    """Operator: metres across the object a closing gripper may be from the expert's grasp
+    before it takes over (0: only when the policy stalls)."""
     correct_within: float = 0.06
+    """Operator: metres from the expert's grasp within which a low arm is corrected
+    straight to it instead of backed off to the approach (0: never); correcting measured
+    better (docs/results/defaults.md)."""
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
             if value < 0:
-                raise RobotError(f"operator {name} must be >= 0, got {value}")
+                raise SettingError(name, f"must be >= 0, got {value}")
 
 
 class SimulatedOperator:

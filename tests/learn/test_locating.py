@@ -11,7 +11,8 @@ from tests.conftest import record_demos
 from tests.test_cli import twinrl
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.cli import _sources, app
+from twinrl_learn.cli import app
+from twinrl_learn.cli.evaluation import labelled_sources
 from twinrl_learn.locating import BANDS_CM, episode_errors
 from twinrl_learn.policy import Policy
 from twinrl_learn.settings import SFTConfig
@@ -93,7 +94,7 @@ def test_locate_command_reports_each_source_and_refuses_bad_input(demos_and_poli
 def test_sources_are_paths_or_labelled_paths(tmp_path):
     (tmp_path / "lr=1" / "session").mkdir(parents=True)
     (tmp_path / "data").mkdir()
-    sources = _sources(
+    sources = labelled_sources(
         [str(tmp_path / "lr=1" / "session"), f"twin demos={tmp_path / 'data'}", f"x={tmp_path}"]
     )
     assert sources == {
@@ -102,4 +103,4 @@ def test_sources_are_paths_or_labelled_paths(tmp_path):
         "x": tmp_path,
     }
     with pytest.raises(ValueError, match="two sources are labelled 'data'"):
-        _sources([str(tmp_path / "data"), f"data={tmp_path}"])
+        labelled_sources([str(tmp_path / "data"), f"data={tmp_path}"])

@@ -101,7 +101,7 @@ def test_relative_inputs_are_the_same_reach_anywhere_on_the_table():
     assert not torch.allclose(poses((0.0, 0.0), 0.3, 1.4)[:, 3:], here[:, 3:])
     with pytest.raises(ValueError, match="relative inputs need the state policy"):
         PolicyConfig(kind="vla", state_dim=8, inputs="relative")
-    with pytest.raises(ValueError, match="--inputs applies to --policy state only"):
+    with pytest.raises(ValueError, match="inputs applies to the state policy only"):
         train_sft(SFTConfig(datasets=["nowhere"], out="x", policy="vla", inputs="relative"))
 
 
@@ -201,9 +201,9 @@ def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):
     assert not plain.locating and not hasattr(policy, "locator") and policy.config.stem_stride == 2
     with pytest.raises(ValueError, match="no locating head"):
         policy.locate({})
-    with pytest.raises(ValueError, match="--image-size must be one of 64, 128, got 96"):
+    with pytest.raises(ValueError, match="image_size must be one of 64, 128, got 96"):
         SFTConfig(datasets=["d"], out="x", image_size=96)
-    with pytest.raises(ValueError, match="--locate-weight must be >= 0, got -1"):
+    with pytest.raises(ValueError, match="locate_weight must be >= 0, got -1"):
         SFTConfig(datasets=["d"], out="x", locate_weight=-1)
     with pytest.raises(ValueError, match="locating the objects needs"):
         PolicyConfig(kind="vla", state_dim=8, locate_weight=1.0)
@@ -354,7 +354,7 @@ def test_the_learning_rate_decays_along_a_cosine_and_a_resumed_run_keeps_its_sch
     assert 0 < rates[2] < 1e-3 * config.lr
     constant = replace(config, lr_schedule="constant")
     assert learning_rate(constant, 0) == learning_rate(constant, 99) == config.lr
-    with pytest.raises(ValueError, match="--lr-schedule must be one of cosine, constant"):
+    with pytest.raises(ValueError, match="lr_schedule must be one of cosine, constant"):
         SFTConfig(datasets=[], out="", lr_schedule="linear")
     common = {"datasets": [str(dataset)], "policy": "state", "batch_size": 8}
     out = tmp_path / "run"

@@ -1,0 +1,229 @@
+"""Command-line options derived from settings dataclasses.
+
+One dataclass is the configuration, the command line and the help, as CleanRL's
+``Args`` is with tyro: a field's help is its docstring (the string written right under
+it in the class body), its flag is its name (``plant_steps`` -> ``--plant-steps``), its
+default the field's. :func:`options` turns fields into :class:`Option` records (nested
+settings flatten, e.g. ``rl.utd`` -> ``--utd``); :func:`settings_command` registers a
+typer command whose parameters are those options plus any the command adds, and hands
+the values, nested as the settings are, to a function that builds and runs them.
+
+Field types map to options: ``bool`` -> ``--x/--no-x``; ``int``, ``float``, ``str`` and
+their ``| None`` forms as they are; ``list[str]`` and ``tuple[str, ...]`` -> a
+repeatable option; ``tuple[int, int]`` -> ``AxB`` (a grid); ``list[float] | None`` ->
+comma-separated numbers.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import textwrap
+import types
+import typing
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import typer
+
+from twinrl_data.errors import SettingError, TwinrlError, UsageError
+
+# The flag of every setting an option was derived for, by the setting's name: how an
+# error about a setting is worded on the command line (see :func:`describe`).
+FLAGS: dict[str, str] = {}
+
+
+@dataclass(frozen=True)
+class Option:
+    """One command-line option and the settings field it fills."""
+
+    path: str  # dotted path of the field in the settings, e.g. "rl.utd"
+    name: str  # the parameter's name; its flag is --name with dashes
+    annotation: Any  # the type typer parses
+    default: Any
+    help: str
+    parse: Callable[[Any], Any] | None = None  # the option's value -> the field's
+
+    @property
+    def flag(self) -> str:
+        return flag_of(self.name)
+
+
+def flag_of(name: str) -> str:
+    """The flag of an option named ``name``: ``plant_steps`` -> ``--plant-steps``."""
+    return "--" + name.replace("_", "-")
+
+
+def describe(error: TwinrlError) -> str:
+    """An error as the command line says it: a setting is named by its flag."""
+    if isinstance(error, SettingError) and error.setting in FLAGS:
+        return f"{FLAGS[error.setting]} {error.problem}"
+    return str(error)
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstrings of a dataclass's fields (base classes' included), one line each."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        body = ast.parse(textwrap.dedent(inspect.getsource(klass))).body[0]
+        assert isinstance(body, ast.ClassDef)
+        for node, following in zip(body.body, body.body[1:], strict=False):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(following, ast.Expr)
+                and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(following.value.value.split())
+    return docs
+
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """``"4x4"`` -> ``(4, 4)``."""
+    try:
+        rows, cols = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise UsageError(f"a grid is written ROWSxCOLS, e.g. 8x8; got '{text}'") from None
+    if rows < 1 or cols < 1:
+        raise UsageError(f"a grid needs at least one row and column, got '{text}'")
+    return rows, cols
+
+
+def parse_numbers(text: str | None) -> list[float] | None:
+    """``"1,2.5"`` -> ``[1.0, 2.5]``."""
+    if text is None:
+        return None
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UsageError(f"give numbers separated by commas, e.g. 1,2; got '{text}'") from None
+
+
+def _option_type(hint: Any, default: Any) -> tuple[Any, Any, Callable[[Any], Any] | None]:
+    """(typer type, typer default, parser) for a field's type hint and default."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (types.UnionType, typing.Union) and type(None) in args:
+        (inner,) = [a for a in args if a is not type(None)]
+        if typing.get_origin(inner) is list and typing.get_args(inner) == (float,):
+            return str | None, None, parse_numbers
+        return inner | None, default, None
+    if origin is tuple and args == (int, int):
+        return str, default if default is ... else f"{default[0]}x{default[1]}", parse_grid
+    if origin in (list, tuple) and args and args[0] is str:
+        kept = default if default is ... else (list(default) if default else None)
+        return list[str], kept, lambda v: list(v or [])
+    return hint, default, None
+
+
+def options(
+    cls: type,
+    *,
+    only: Sequence[str] | None = None,
+    prefix: str = "",
+    names: dict[str, str] | None = None,
+    defaults: dict[str, Any] | None = None,
+    help: dict[str, str] | None = None,
+) -> list[Option]:
+    """Options for the fields of ``cls`` (``only`` these, in that order), their paths
+    under ``prefix``; ``names`` renames a field's option (``datasets`` -> ``dataset``, a
+    repeatable flag), ``defaults`` and ``help`` override a field's own (a default of
+    ``None`` leaves the field to the settings' own choice, e.g. a method's)."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    by_name = {f.name: f for f in dataclasses.fields(cls)}
+    chosen = list(only) if only is not None else list(by_name)
+    made = []
+    for name in chosen:
+        field = by_name[name]
+        if defaults and name in defaults:
+            default = defaults[name]
+        elif field.default is not dataclasses.MISSING:
+            default = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            default = field.default_factory()
+        else:
+            default = ...  # required
+        hint = hints[name]
+        if default is None and typing.get_origin(hint) not in (types.UnionType, typing.Union):
+            hint = hint | None
+        annotation, option_default, parse = _option_type(hint, default)
+        text = (help or {}).get(name) or docs.get(name)
+        if not text:
+            raise TypeError(f"{cls.__name__}.{name} has no docstring to serve as its help")
+        option_name = (names or {}).get(name, name)
+        FLAGS[name] = flag_of(option_name)
+        made.append(
+            Option(
+                path=f"{prefix}.{name}" if prefix else name,
+                name=option_name,
+                annotation=annotation,
+                default=option_default,
+                help=text,
+                parse=parse,
+            )
+        )
+    return made
+
+
+def nested(values: dict[str, Any]) -> dict[str, Any]:
+    """``{"rl.utd": 2, "out": "x"}`` -> ``{"rl": {"utd": 2}, "out": "x"}``."""
+    tree: dict[str, Any] = {}
+    for path, value in values.items():
+        *parents, leaf = path.split(".")
+        node = tree
+        for parent in parents:
+            node = node.setdefault(parent, {})
+        node[leaf] = value
+    return tree
+
+
+def settings_command(
+    app: typer.Typer,
+    name: str,
+    made: Sequence[Option],
+    run: Callable[..., None],
+    *,
+    help: str,
+    extra: Sequence[inspect.Parameter] = (),
+) -> None:
+    """Register ``name`` on ``app``: its options are ``made`` then ``extra`` (plain typer
+    parameters). On a call, ``run`` gets the options' values nested by their paths (as
+    ``settings=``) and the extra parameters by name."""
+    seen = [o.name for o in made] + [p.name for p in extra]
+    doubled = sorted({n for n in seen if seen.count(n) > 1})
+    if doubled:
+        raise TypeError(f"command {name}: options {doubled} are declared twice")
+    parameters = []
+    for option in made:
+        info = typer.Option(help=option.help, show_default=option.default is not None)
+        default = inspect.Parameter.empty if option.default is ... else option.default
+        parameters.append(
+            inspect.Parameter(
+                option.name,
+                inspect.Parameter.KEYWORD_ONLY,
+                annotation=Annotated[option.annotation, info],
+                default=default,
+            )
+        )
+    parameters += [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in extra]
+    by_name = {o.name: o for o in made}
+
+    def command(**given: Any) -> None:
+        values = {}
+        for key, value in given.items():
+            option = by_name.get(key)
+            if option is not None:
+                values[option.path] = option.parse(value) if option.parse else value
+        rest = {k: v for k, v in given.items() if k not in by_name}
+        run(settings=nested(values), **rest)
+
+    command.__signature__ = inspect.Signature(parameters)  # type: ignore[attr-defined]
+    command.__annotations__ = {p.name: p.annotation for p in parameters}
+    command.__doc__ = help
+    command.__name__ = name.replace("-", "_")
+    app.command(name)(command)

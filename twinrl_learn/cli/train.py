@@ -1,0 +1,236 @@
+"""``twinrl train``: SFT, twin RL and real RL, their options derived from the settings
+records (:class:`~twinrl_learn.settings.SFTConfig`,
+:class:`~twinrl_learn.twin_rl.TwinRLSettings`,
+:class:`~twinrl_learn.real_rl.RealRLSettings`, :class:`~twinrl_learn.settings.RLConfig`):
+a field's docstring is its option's help."""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from twinrl_data.console import progress, quiet_encoders
+from twinrl_data.settings_cli import options, settings_command
+from twinrl_learn.cli.common import console
+from twinrl_learn.replay import RewardSettings
+from twinrl_learn.settings import RealRLSettings, RLConfig, SFTConfig, TwinRLSettings
+from twinrl_robot.operator import OperatorRule
+
+app = typer.Typer(help="Train policies: SFT, twin RL, real RL.", no_args_is_help=True)
+
+RESUME = inspect.Parameter(
+    "resume",
+    inspect.Parameter.KEYWORD_ONLY,
+    annotation=Annotated[bool, typer.Option(help="Continue the run in --out where it stopped.")],
+    default=False,
+)
+# The agent's settings a run's command line may change; the rest are the method's (None:
+# the method's own value, see RLConfig.for_method).
+RL_OPTIONS = ("method", "beta", "eta", "utd", "offline_steps", "exploration", "actor_lr")
+RL_DEFAULTS = {name: None for name in RL_OPTIONS if name != "method"}
+
+
+def rl_settings(given: dict[str, Any]) -> RLConfig:
+    """The agent's settings from the options given (those left out: the method's)."""
+    rewards = RewardSettings(**{k: v for k, v in given.pop("rewards", {}).items()})
+    chosen = {k: v for k, v in given.items() if v is not None}
+    return RLConfig.for_method(chosen.pop("method"), rewards=rewards, **chosen)
+
+
+# ------------------------------------------------------------------------------ sft
+def sft(settings: dict[str, Any], resume: bool) -> None:
+    from twinrl_learn.settings import DEFAULTS
+    from twinrl_learn.sft import train_sft
+
+    config = SFTConfig(**settings)
+    with progress("loss", "rate") as bar:
+        # A resumed run without --steps reports its own length.
+        steps = config.steps
+        total = None if resume and steps is None else steps or DEFAULTS[config.policy].steps
+        job = bar.add_task(f"SFT {config.policy}", total=total, loss="-", rate="-")
+
+        def report(step: int, metrics: dict[str, float]) -> None:
+            bar.update(
+                job,
+                completed=step,
+                total=metrics["steps"],
+                loss=f"{metrics['loss']:.3f}",
+                rate=f"{metrics['steps_per_s']:.0f}/s",
+            )
+
+        result = train_sft(config, resume=resume, progress=report)
+    tail = result.losses[-50:]
+    console.print(
+        f"{result.out}: {result.steps} steps in {result.seconds:.0f} s, final loss "
+        f"{sum(tail) / max(len(tail), 1):.3f}; curve {result.out / 'loss.png'}"
+    )
+    if config.policy == "vla" and config.locate_weight > 0 and not result.locating:
+        console.print(
+            "note: no dataset holds both the object poses (observation.environment_state) "
+            "and the TCP pose (tcp.x), so the policy learnt from the actions alone, "
+            "without locating the objects"
+        )
+
+
+SFT_FIELDS = (
+    "datasets", "out", "policy", "weights", "steps", "batch_size", "lr", "lr_schedule",
+    "chunk", "inputs", "image_size", "locate_weight", "seed",
+)  # fmt: skip
+settings_command(
+    app,
+    "sft",
+    options(SFTConfig, only=SFT_FIELDS, names={"datasets": "dataset"}),
+    sft,
+    help="Supervised fine-tuning on demonstrations (real and twin), with a loss curve.",
+    extra=[RESUME],
+)
+
+
+# -------------------------------------------------------------------------- twin-rl
+def twin_rl(settings: dict[str, Any], resume: bool) -> None:
+    import torch
+
+    from twinrl_learn.twin_rl import run_twin_rl
+
+    # A resumed run keeps the RL settings it started with (run_twin_rl loads them).
+    rl = settings.pop("rl")
+    config = TwinRLSettings(**settings, rl=RLConfig() if resume else rl_settings(rl))
+    torch.set_num_threads(1)  # small networks: one thread is fastest beside the simulation
+    quiet_encoders()
+    envs, steps = config.envs, config.steps
+    with progress("ID", "OOD", "q") as bar:
+        offline = bar.add_task(
+            "offline updates", total=config.rl.offline_steps, ID="", OOD="", q=""
+        )
+        job = bar.add_task("twin steps", total=steps, ID="-", OOD="-", q="-")
+
+        def on_round(record, run) -> None:
+            rates = run.success_rates(4 * envs)
+            bar.update(
+                job,
+                completed=min(record.env_steps, steps),
+                **{r: f"{100 * rates[r]:.0f} %" for r in rates},
+                q=f"{record.metrics.get('q', float('nan')):.2f}",
+            )
+
+        run = run_twin_rl(
+            config,
+            resume=resume,
+            on_round=on_round,
+            on_update=lambda n: bar.update(offline, completed=n),
+        )
+    out = Path(config.out)
+    rates = run.success_rates(4 * envs)
+    console.print(
+        f"{out}: {run.agent.env_steps} twin steps, {run.agent.updates} updates; recent success "
+        + ", ".join(f"{r} {100 * v:.0f} %" for r, v in rates.items())
+    )
+    buffer = out / "twin_buffer"
+    console.print(
+        f"policy {out / 'agent'}, curve {out / 'curve.png'}, "
+        + (f"twin buffer {buffer}" if buffer.exists() else "no successful rollout to export")
+    )
+
+
+TWIN_RL_FIELDS = ("task", "out", "init", "demos", "envs", "steps", "failures")
+settings_command(
+    app,
+    "twin-rl",
+    [
+        *options(TwinRLSettings, only=TWIN_RL_FIELDS, defaults={"init": ""}),
+        *options(
+            RLConfig,
+            only=(*RL_OPTIONS, "demo_ratio", "seed"),
+            prefix="rl",
+            defaults={**RL_DEFAULTS, "demo_ratio": None},
+        ),
+    ],
+    twin_rl,
+    help="Stage II: online RL in parallel twin envs; exports the twin buffer that seeds real RL.",
+    extra=[RESUME],
+)
+
+
+# -------------------------------------------------------------------------- real-rl
+OPERATOR = inspect.Parameter(
+    "operator",
+    inspect.Parameter.KEYWORD_ONLY,
+    annotation=Annotated[
+        bool, typer.Option(help="Simulated operator takes over when the policy strays.")
+    ],
+    default=True,
+)
+
+
+def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
+    import torch
+
+    from twinrl_learn.real_rl import RealRL
+
+    # A resumed run keeps the RL settings it started with (RealRL.resume loads them).
+    rl = settings.pop("rl")
+    rule = OperatorRule(**settings.pop("operator")) if operator else None
+    config = RealRLSettings(**settings, operator=rule, rl=RLConfig() if resume else rl_settings(rl))
+    # Small networks: one thread each for the actor and the learner.
+    torch.set_num_threads(1)
+    quiet_encoders()
+    job_run = RealRL.resume(config) if resume else RealRL.start(config)
+    steps = config.plant_steps
+    with progress("ID", "OOD", "interventions") as bar:
+        offline = bar.add_task(
+            "offline updates",
+            total=job_run.run_state.agent.config.offline_steps,
+            ID="",
+            OOD="",
+            interventions="",
+        )
+        job = bar.add_task("robot steps", total=steps, ID="-", OOD="-", interventions=0)
+
+        def on_episode(record, real) -> None:
+            rates = real.evaluations[-1].success_rate
+            bar.update(
+                job,
+                completed=min(record.env_steps, steps),
+                **{r: f"{100 * v:.0f} %" for r, v in rates.items()},
+                interventions=sum(r.interventions for r in real.run_state.history),
+            )
+
+        run = job_run.run(
+            on_episode=on_episode, on_update=lambda n: bar.update(offline, completed=n)
+        )
+    final, out = job_run.evaluations[-1], Path(config.out)
+    console.print(
+        f"{out}: {run.agent.env_steps} robot steps ({final.plant_minutes:.1f} plant min), "
+        f"{len(run.history)} episodes, "
+        f"{sum(r.interventions for r in run.history)} intervention steps; evaluation "
+        + ", ".join(f"{r} {100 * v:.0f} %" for r, v in final.success_rate.items())
+    )
+    console.print(f"policy {out / 'agent'}, curve {out / 'curve.png'}")
+
+
+REAL_RL_FIELDS = (
+    "task", "out", "init", "keep_critic", "robot", "effects", "demos", "twin_buffer",
+    "targets", "target_ratio", "refresh_every", "plant_steps", "eval_every", "eval_grid",
+    "eval_episodes", "learner_sync",
+)  # fmt: skip
+settings_command(
+    app,
+    "real-rl",
+    [
+        *options(RealRLSettings, only=REAL_RL_FIELDS, defaults={"init": ""}),
+        *options(RLConfig, only=(*RL_OPTIONS, "seed"), prefix="rl", defaults=RL_DEFAULTS),
+        *options(OperatorRule, only=("funnel", "correct_within"), prefix="operator"),
+        *options(
+            RewardSettings,
+            only=("takeover",),
+            prefix="rl.rewards",
+            names={"takeover": "takeover_reward"},
+        ),
+    ],
+    real_rl,
+    help="Stage III: human-in-the-loop RL on the robot with twin-mined resets.",
+    extra=[OPERATOR, RESUME],
+)

@@ -1,0 +1,71 @@
+"""``twinrl data import-csv``: logs recorded outside twinrl, as episodes (the twin gives
+the TCP pose)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+# Only what the options' help texts and defaults need loads here, so that `twinrl --help`
+# is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
+from twinrl_data.errors import UsageError
+from twinrl_sim.cli.common import console
+from twinrl_sim.tasks import twin_scene
+
+if TYPE_CHECKING:
+    pass
+
+
+def import_csv_command(
+    files: Annotated[list[Path], typer.Argument(help="CSV logs, one episode each.")],
+    out: Annotated[Path, typer.Option(help="Session folder to create with the episodes.")],
+    format: Annotated[
+        str, typer.Option("--format", help="rtde (UR's RTDE recorder columns) or generic.")
+    ] = "rtde",
+    column_map: Annotated[
+        Path | None,
+        typer.Option("--map", help="YAML column map (required with --format generic)."),
+    ] = None,
+    fps: Annotated[
+        float | None, typer.Option(help="Resample to this rate (default: the log's own).")
+    ] = None,
+    twin: Annotated[
+        str,
+        typer.Option(help="Built-in cell or scene spec whose robot computes missing TCP poses."),
+    ] = "pick_place",
+    world: Annotated[str, typer.Option(help="real or plant: where the log was measured.")] = "real",
+    task: Annotated[str, typer.Option(help="Task label of the episodes.")] = "arm",
+) -> None:
+    """Import joint logs recorded outside twinrl as episodes (source ``imported``).
+
+    A generic column map is YAML: ``time``, ``time_unit`` (s|ms|us|ns), ``angle_unit``
+    (rad|deg), ``layout`` (wide|long), ``commanded``/``measured`` (one column per joint),
+    optional ``velocity``, ``effort`` (N m), ``tcp`` (x y z rx ry rz), ``joints``.
+    """
+    from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
+    from twinrl_data.session import Session
+    from twinrl_sim.build import compile_scene
+    from twinrl_sim.kinematics import TcpKinematics
+
+    if format not in ("rtde", "generic"):
+        raise UsageError(f"--format must be rtde or generic, got '{format}'")
+    if format == "generic" and column_map is None:
+        raise UsageError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
+    cmap = ColumnMap.load(column_map) if column_map else RTDE_MAP
+    kinematics = TcpKinematics(compile_scene(twin_scene(twin)))
+    if out.exists() and any(out.iterdir()):
+        raise UsageError(f"{out} exists and is not empty; choose another --out")
+    episodes = [
+        import_csv(f, cmap, fps=fps, task=task, world=world, forward_kinematics=kinematics)
+        for f in files
+    ]  # every file is read before anything is written
+    session = Session.create(out)
+    for episode in episodes:
+        session.add(episode)
+        console.print(
+            f"{episode.meta.policy}: {len(episode)} steps at {episode.meta.fps:g} Hz, "
+            f"fields {', '.join(sorted(episode.data))}"
+        )
+    console.print(f"{out}: {len(episodes)} episodes imported")
