@@ -33,7 +33,7 @@ import pyarrow.csv as pacsv
 import yaml
 
 from twinrl_data import schema as contract
-from twinrl_data.errors import DataError
+from twinrl_data.errors import DataError, SettingError
 
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
@@ -241,7 +241,7 @@ def import_csv(
     rate = float(f"{1.0 / float(np.median(np.diff(times))):.4g}")  # 125 Hz, not 124.99998
     fps = float(fps or rate)
     if not fps > 0:
-        raise DataError(f"--fps must be positive, got {fps}")
+        raise SettingError("fps", f"must be positive, got {fps}")
     clock = np.arange(0.0, times[-1] + 1e-9, 1.0 / fps)
     at = {c: np.interp(clock, times, v[order][keep]) for c, v in values.items()}
     angle = ANGLE_UNITS[cmap.angle_unit]

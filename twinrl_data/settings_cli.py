@@ -57,9 +57,10 @@ def flag_of(name: str) -> str:
 
 
 def describe(error: TwinrlError) -> str:
-    """An error as the command line says it: a setting is named by its flag."""
-    if isinstance(error, SettingError) and error.setting in FLAGS:
-        return f"{FLAGS[error.setting]} {error.problem}"
+    """An error as the command line says it: a setting is named by its flag (the flag
+    its option was derived with, or the setting's own name as a flag)."""
+    if isinstance(error, SettingError):
+        return f"{FLAGS.get(error.setting, flag_of(error.setting))} {error.problem}"
     return str(error)
 
 

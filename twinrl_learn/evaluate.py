@@ -121,7 +121,7 @@ def evaluate(
     """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise LearnError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another output folder")
     task = make_task(task_name)
     robot = open_robot(world, task, effects=effects, seed=seed, cameras=runner.cameras)
     cells = grid_cells(task_name, grid)

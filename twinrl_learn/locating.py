@@ -108,7 +108,7 @@ def locating_errors(
         )
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise LearnError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another output folder")
     opened = {label: open_episodes(Path(source)) for label, source in sources.items()}
     if on_start is not None:
         on_start(sum(count for _, count in opened.values()))

@@ -29,6 +29,7 @@ import numpy as np
 from scipy.stats import beta as beta_dist
 
 from twinrl_data.catalog import query
+from twinrl_data.errors import SettingError
 from twinrl_data.mcap_log import read_meta
 from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
@@ -97,9 +98,9 @@ def select_targets(
     """Cells and ranked targets from ``(config, region, success)`` outcomes; each
     outcome falls into the grid cell nearest its target position."""
     if not 0 < tau <= 1:
-        raise LearnError(f"--tau must be in (0, 1], got {tau}")
+        raise SettingError("tau", f"must be in (0, 1], got {tau}")
     if k < 1:
-        raise LearnError(f"--k must be at least 1, got {k}")
+        raise SettingError("k", f"must be at least 1, got {k}")
     cells = grid_cells(task_name, grid)
     if not cells:
         raise LearnError(f"the {grid[0]}x{grid[1]} grid has no cell inside a region")
@@ -175,9 +176,9 @@ def mine(
     (a ``.json`` file; the evaluation, when run, goes beside it)."""
     out = Path(out)
     if out.suffix != ".json":
-        raise LearnError(f"--out must be a .json file, got {out}")
+        raise SettingError("out", f"must be a .json file, got {out}")
     if out.exists():
-        raise LearnError(f"{out} exists; choose another --out (targets are never overwritten)")
+        raise LearnError(f"{out} exists; choose another file (targets are never overwritten)")
     make_task(task)
     if catalog is not None:
         outcomes = logged_outcomes(catalog, task, runner.name)

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from twinrl_data.errors import SettingError
 from twinrl_data.training import FrameTable, load_frames
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, PolicyConfig
@@ -104,11 +105,9 @@ def train_sft(
     out = Path(config.out)
     state_file = out / "training_state.pt"
     if out.exists() and any(out.iterdir()) and not resume:
-        raise LearnError(
-            f"{out} already holds a run; pass --resume to continue it or choose another --out"
-        )
+        raise LearnError(f"{out} already holds a run; resume it or choose another folder")
     if resume and not state_file.is_file():
-        raise LearnError(f"--resume: {state_file} does not exist (nothing to continue)")
+        raise LearnError(f"{state_file} does not exist: there is no run to resume")
     saved = torch.load(state_file, weights_only=False) if resume else None
     if saved is not None:
         _check_same_network(saved["config"], config.resolved(), out)
@@ -245,10 +244,10 @@ def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
     recorded; other weights are refused); ``None``: in proportion to the datasets' frames."""
     count = len(config.datasets)
     if config.weights is not None and len(config.weights) != count:
-        raise LearnError(f"--weights needs {count} values, one per --dataset")
+        raise SettingError("weights", f"needs {count} values, one per dataset")
     given = None if config.weights is None else np.asarray(config.weights, np.float64)
     if given is not None and ((given < 0).any() or given.sum() == 0):
-        raise LearnError("--weights must be non-negative and not all zero")
+        raise SettingError("weights", "must be non-negative and not all zero")
     if saved is None:
         return None if given is None else given / given.sum()
     saved_weights = np.asarray(saved.get("weights") or [1.0] * count, np.float64)

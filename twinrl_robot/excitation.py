@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
@@ -57,11 +58,11 @@ class ExcitationSettings:
 
     def __post_init__(self) -> None:
         if self.duration <= 2 * self.fade:
-            raise RobotError(f"--duration must exceed twice the fade ({2 * self.fade} s)")
+            raise SettingError("duration", f"must exceed twice the fade ({2 * self.fade} s)")
         if self.harmonics < 1:
             raise RobotError(f"harmonics must be at least 1, got {self.harmonics}")
         if not 0 < self.amplitude <= 2:
-            raise RobotError(f"--amplitude must be in (0, 2], got {self.amplitude}")
+            raise SettingError("amplitude", f"must be in (0, 2], got {self.amplitude}")
 
 
 def joint_ranges(scene: CompiledScene) -> tuple[np.ndarray, np.ndarray]:
@@ -187,7 +188,7 @@ def run_excitation(
     or ``scene`` (any cell spec, e.g. with a custom robot MJCF) with the task's objects
     placed as the task places them."""
     if episodes < 1:
-        raise RobotError(f"--episodes must be at least 1, got {episodes}")
+        raise SettingError("episodes", f"must be at least 1, got {episodes}")
     spec_task = make_task(task, scene)
     robot = open_robot(world, spec_task, effects=effects, seed=seed, effort=True)
     scene = compile_scene(spec_task.scene)

@@ -323,7 +323,7 @@ def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weig
     torch.save(state, tmp_path / "default" / "training_state.pt")
     train_sft(SFTConfig(out=str(tmp_path / "default"), steps=4, **common), resume=True)
     np.testing.assert_allclose(saved_weights(tmp_path / "default"), [0.5, 0.5])
-    with pytest.raises(ValueError, match="--weights needs 2 values"):
+    with pytest.raises(ValueError, match="weights needs 2 values"):
         train_sft(SFTConfig(out=str(tmp_path / "bad"), steps=2, weights=[1], **common))
     assert not (tmp_path / "bad").exists()
 

@@ -46,6 +46,7 @@ from typing import Any
 import torch
 
 from twinrl_data.console import quiet_encoders
+from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
@@ -92,20 +93,22 @@ def run_demo(
     ``on_progress`` hears from every real-RL run after each of its episodes."""
     make_task(task)
     if workers < 1:
-        raise LearnError(f"--workers must be at least 1, got {workers}")
+        raise SettingError("workers", f"must be at least 1, got {workers}")
     if isinstance(preset, Preset):
         p, preset = preset, "custom"
     elif preset in PRESETS:
         p = PRESETS[preset]
     else:
-        raise LearnError(f"--preset must be one of {', '.join(PRESETS)}, got '{preset}'")
+        raise SettingError("preset", f"must be one of {', '.join(PRESETS)}, got '{preset}'")
     if inputs is not None:
         check_inputs(inputs, p.policy)
         p = replace(p, inputs=inputs)
     seeds = tuple(seeds) if seeds else p.seeds
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not resume:
-        raise LearnError(f"{out} exists and is not empty; pass --resume or choose another --out")
+        raise LearnError(
+            f"{out} exists and is not empty; resume the run in it or choose another folder"
+        )
     recorded = {"task": task, "preset": preset, "inputs": p.inputs}
     if preset == "custom":  # a custom run resumes only with the very same scale
         recorded["settings"] = json.loads(json.dumps(asdict(p)))

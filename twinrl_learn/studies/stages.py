@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.policy import Policy
@@ -112,13 +113,13 @@ def measure_stages(
     ``on_evaluation(done, total, label)`` hears before each evaluation."""
     s = settings
     if not s.seeds:
-        raise LearnError("--seeds needs at least one seed")
+        raise SettingError("seeds", "needs at least one seed")
     if s.episodes < 1:
-        raise LearnError(f"--episodes must be at least 1, got {s.episodes}")
+        raise SettingError("episodes", f"must be at least 1, got {s.episodes}")
     candidates = _candidates(s.run, s.finals)
     out = Path(s.out)
     if out.exists() and any(out.iterdir()):
-        raise LearnError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another output folder")
     task = json.loads((s.run / "run.json").read_text())["task"]
     rates: dict[str, list[dict[str, float]]] = {c.label: [] for c in candidates}
     total = len(s.seeds) * len(candidates)

@@ -125,7 +125,7 @@ def run_stage1(
 ) -> list[Stage1Row]:
     out = Path(out)
     if out.exists() and any(out.iterdir()):
-        raise LearnError(f"{out} exists and is not empty; choose another --out")
+        raise LearnError(f"{out} exists and is not empty; choose another output folder")
     out.mkdir(parents=True, exist_ok=True)
     n = lambda count: max(1, round(count * settings.scale))  # noqa: E731 - tiny local helper
     rows: list[Stage1Row] = []
