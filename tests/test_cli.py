@@ -191,7 +191,7 @@ def test_train_and_eval_commands(tmp_path):
         ),
         (
             ["train", "real-rl", "--task", "pick_place", "--out", "x", "--eval-grid", "4"],
-            "a grid is written ROWSxCOLS",
+            "--eval-grid must look like 8x8",
         ),
         (
             ["train", "real-rl", "--task", "pick_place", "--out", "x", "--method", "sarsa"],

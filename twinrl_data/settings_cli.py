@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import inspect
 import textwrap
 import types
@@ -46,10 +47,6 @@ class Option:
     help: str
     parse: Callable[[Any], Any] | None = None  # the option's value -> the field's
 
-    @property
-    def flag(self) -> str:
-        return flag_of(self.name)
-
 
 def flag_of(name: str) -> str:
     """The flag of an option named ``name``: ``plant_steps`` -> ``--plant-steps``."""
@@ -64,6 +61,7 @@ def describe(error: TwinrlError) -> str:
     return str(error)
 
 
+@functools.cache
 def field_docs(cls: type) -> dict[str, str]:
     """The docstrings of a dataclass's fields (base classes' included), one line each."""
     docs: dict[str, str] = {}
@@ -84,37 +82,38 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def parse_grid(text: str) -> tuple[int, int]:
-    """``"4x4"`` -> ``(4, 4)``."""
+def parse_grid(text: str, flag: str = "a grid") -> tuple[int, int]:
+    """``"4x4"`` -> ``(4, 4)``; ``flag`` names the option in an error."""
     try:
         rows, cols = (int(v) for v in str(text).lower().split("x"))
     except ValueError:
-        raise UsageError(f"a grid is written ROWSxCOLS, e.g. 8x8; got '{text}'") from None
+        raise UsageError(f"{flag} must look like 8x8, got '{text}'") from None
     if rows < 1 or cols < 1:
-        raise UsageError(f"a grid needs at least one row and column, got '{text}'")
+        raise UsageError(f"{flag} needs positive sizes, got '{text}'")
     return rows, cols
 
 
-def parse_numbers(text: str | None) -> list[float] | None:
-    """``"1,2.5"`` -> ``[1.0, 2.5]``."""
-    if text is None:
-        return None
+def parse_numbers(text: str, flag: str) -> tuple[float, ...]:
+    """``"1,2.5"`` or ``"1 2.5"`` -> ``(1.0, 2.5)``; ``flag`` names the option in an error."""
     try:
-        return [float(v) for v in text.split(",")]
+        return tuple(float(v) for v in text.replace(",", " ").split())
     except ValueError:
-        raise UsageError(f"give numbers separated by commas, e.g. 1,2; got '{text}'") from None
+        raise UsageError(f"{flag} '{text}' must be numbers separated by commas or spaces") from None
 
 
-def _option_type(hint: Any, default: Any) -> tuple[Any, Any, Callable[[Any], Any] | None]:
+def _option_type(
+    hint: Any, default: Any, flag: str
+) -> tuple[Any, Any, Callable[[Any], Any] | None]:
     """(typer type, typer default, parser) for a field's type hint and default."""
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (types.UnionType, typing.Union) and type(None) in args:
         (inner,) = [a for a in args if a is not type(None)]
         if typing.get_origin(inner) is list and typing.get_args(inner) == (float,):
-            return str | None, None, parse_numbers
+            return str | None, None, lambda v: None if v is None else list(parse_numbers(v, flag))
         return inner | None, default, None
     if origin is tuple and args == (int, int):
-        return str, default if default is ... else f"{default[0]}x{default[1]}", parse_grid
+        shown = default if default is ... else f"{default[0]}x{default[1]}"
+        return str, shown, lambda v: parse_grid(v, flag)
     if origin in (list, tuple) and args and args[0] is str:
         kept = default if default is ... else (list(default) if default else None)
         return list[str], kept, lambda v: list(v or [])
@@ -128,12 +127,11 @@ def options(
     prefix: str = "",
     names: dict[str, str] | None = None,
     defaults: dict[str, Any] | None = None,
-    help: dict[str, str] | None = None,
 ) -> list[Option]:
     """Options for the fields of ``cls`` (``only`` these, in that order), their paths
     under ``prefix``; ``names`` renames a field's option (``datasets`` -> ``dataset``, a
-    repeatable flag), ``defaults`` and ``help`` override a field's own (a default of
-    ``None`` leaves the field to the settings' own choice, e.g. a method's)."""
+    repeatable flag), ``defaults`` overrides a field's own (a default of ``None`` leaves
+    the field to the settings' own choice, e.g. a method's)."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
     by_name = {f.name: f for f in dataclasses.fields(cls)}
@@ -152,12 +150,12 @@ def options(
         hint = hints[name]
         if default is None and typing.get_origin(hint) not in (types.UnionType, typing.Union):
             hint = hint | None
-        annotation, option_default, parse = _option_type(hint, default)
-        text = (help or {}).get(name) or docs.get(name)
-        if not text:
-            raise TypeError(f"{cls.__name__}.{name} has no docstring to serve as its help")
         option_name = (names or {}).get(name, name)
         FLAGS[name] = flag_of(option_name)
+        annotation, option_default, parse = _option_type(hint, default, FLAGS[name])
+        text = docs.get(name)
+        if not text:
+            raise TypeError(f"{cls.__name__}.{name} has no docstring to serve as its help")
         made.append(
             Option(
                 path=f"{prefix}.{name}" if prefix else name,

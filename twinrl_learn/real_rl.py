@@ -233,11 +233,8 @@ class RealRL:
         if isinstance(self.operator, SimulatedOperator):
             extra["operator_rng"] = self.operator.rng.bit_generator.state
         extra["evaluations"] = [asdict(p) for p in self.evaluations]
-        if self._learner is None:
+        with self._learner_idle():
             self.run_state.checkpoint()
-            return
-        with self._learner.paused() as run:
-            run.checkpoint()
 
     # ------------------------------------------------------------------ run
     def run(
@@ -343,7 +340,7 @@ class RealRL:
             path.unlink()
             shutil.rmtree(path.with_suffix(""), ignore_errors=True)
         runner = TwinrlRunner(self.actor, name=f"rl@{episode_index}")
-        with self._quiet_learner():
+        with self._learner_idle():
             mine(
                 runner,
                 s.task,
@@ -358,9 +355,9 @@ class RealRL:
         self.run_state.extra["targets"] = str(path)
 
     @contextmanager
-    def _quiet_learner(self) -> Iterator[None]:
-        """No update runs meanwhile: evaluation and mining re-seed torch's global stream,
-        which the learner's updates draw from."""
+    def _learner_idle(self) -> Iterator[None]:
+        """No update runs meanwhile: a checkpoint saves the networks, and evaluation and
+        mining re-seed torch's global stream, which the learner's updates draw from."""
         if self._learner is None:
             yield
             return
@@ -378,7 +375,7 @@ class RealRL:
         folder = self.out / "evaluations" / f"{steps:06d}"
         shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
         runner = TwinrlRunner(self.actor, name=f"rl@{steps}")
-        with self._quiet_learner():
+        with self._learner_idle():
             report = evaluate(
                 runner,
                 s.task,

@@ -103,7 +103,7 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
                 policy=f"rl:{agent.config.method}",
             )
         )
-    paths: list[Path] = [Path()] * n  # in env order, whichever ends first
+    saved: dict[int, Path] = {}  # by env: the buffers take them in env order
     active = np.ones(n, bool)
     success = np.zeros(n, bool)
     queues: list[list[np.ndarray]] = [[] for _ in range(n)]
@@ -145,11 +145,11 @@ def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
                 )
             )
             if done:
-                paths[i] = recorders[i].save_episode(success=bool(success[i]))
+                saved[i] = recorders[i].save_episode(success=bool(success[i]))
                 active[i] = False
         obs = next_obs
         metrics = run.learn(len(stepping)) or metrics
-    return run.add_episodes(paths), metrics
+    return run.add_episodes([saved[i] for i in range(n)]), metrics
 
 
 def export_twin_buffer(run: OnlineRun, failures: int) -> Path | None:

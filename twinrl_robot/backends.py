@@ -16,7 +16,6 @@ from twinrl_robot.plant import hidden_effects
 from twinrl_robot.robot import Robot
 from twinrl_robot.simulated import SimulatedCell
 from twinrl_robot.wrappers import NoiseLevels, PrivilegedObservation, SafetyLimits, SensorNoise
-from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import Task, make_task
 
 WORLDS: tuple[str, ...] = ("twin", "plant")
@@ -26,7 +25,6 @@ def open_robot(
     world: str,
     task: str | Task,
     *,
-    scene: SceneSpec | None = None,
     effects: dict[str, dict[str, Any]] | str | Path | None = None,
     noise: NoiseLevels | None = None,
     seed: int | None = None,
@@ -39,7 +37,7 @@ def open_robot(
     Args:
         world: ``plant`` (the stand-in for the real cell: hidden effects, noisy sensors)
             or ``twin`` (the scene spec itself, exact readings).
-        task: a task name or instance; ``scene`` replaces its built-in cell.
+        task: a task name or instance (a task on another cell: ``make_task(name, scene)``).
         effects: the plant's hidden effects (see :func:`twinrl_robot.plant.hidden_effects`;
             ``None``: the built-in plant); the twin takes none.
         noise: the plant's sensor noise (``None``: the default levels), seeded by ``seed``.
@@ -56,7 +54,7 @@ def open_robot(
         )
     if world == "twin" and effects is not None:
         raise RobotError("effects apply to the plant only; the twin runs its own scene spec")
-    task = make_task(task, scene) if isinstance(task, str) else task
+    task = make_task(task) if isinstance(task, str) else task
     hidden = hidden_effects(effects) if world == "plant" else None
     robot: Robot = SimulatedCell(task, effects=hidden, cameras=cameras, effort=effort, world=world)
     if object_poses:

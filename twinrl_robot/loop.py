@@ -79,20 +79,18 @@ def run_episode(
     max_steps: int | None = None,
     recorder: Recorder | None = None,
     meta: EpisodeMeta | None = None,
-    realtime: bool = False,
     on_step: Callable[[int, Sent], None] | None = None,
 ) -> EpisodeResult:
     """Run one episode of ``task`` from ``config``; record it when ``recorder`` is given.
 
     ``judge`` ends the episode on success (the sparse reward follows it); ``None`` judges
     nothing (excitation: reward 0, never done early). ``max_steps`` defaults to the
-    task's. ``realtime`` paces the steps at the robot's control rate (a real cell); a
-    simulated one steps as fast as it can and counts its own time.
+    task's. A simulated cell steps as fast as it can and counts its own time; a real
+    backend keeps the control rate itself (its servo loop).
     """
     if (recorder is None) != (meta is None):
         raise RobotError("give both a recorder and the episode's metadata, or neither")
     limit = task.max_steps if max_steps is None else max_steps
-    period = 1.0 / robot.control_hz
     observation = robot.reset(config)
     source.reset(task, config)
     if recorder is not None and meta is not None:
@@ -101,8 +99,6 @@ def run_episode(
     stamps: list[float] = []
     try:
         for t in range(limit):
-            if realtime and stamps:
-                time.sleep(max(0.0, stamps[-1] + period - time.perf_counter()))
             stamps.append(time.perf_counter())
             chosen = source.act(observation)
             if isinstance(chosen, JointCommand):

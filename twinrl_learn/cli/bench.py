@@ -8,7 +8,8 @@ from typing import Annotated
 import typer
 
 from twinrl_data.console import progress, quiet_encoders
-from twinrl_learn.cli.common import console, parse_grid, parse_ints
+from twinrl_data.settings_cli import parse_grid
+from twinrl_learn.cli.common import console, parse_ints
 
 app = typer.Typer(help="Reproduce the paper's experiments.", no_args_is_help=True)
 
@@ -61,7 +62,7 @@ def bench_stage1(
         tasks=tuple(t for t in tasks.split(",") if t),
         policies=tuple(p for p in policies.split(",") if p),
         scale=scale,
-        grid=parse_grid(grid),
+        grid=parse_grid(grid, "--grid"),
         episodes_per_cell=episodes,
         steps=steps,
         fit_look=fit_look,
@@ -100,7 +101,7 @@ def bench_stages(
         run=run,
         out=out,
         seeds=parse_ints(seeds, "--seeds"),
-        grid=parse_grid(grid),
+        grid=parse_grid(grid, "--grid"),
         episodes=episodes,
         finals=finals,
     )

@@ -1,4 +1,4 @@
-"""What the command groups share: the console and the parsers of list-like options."""
+"""What the command groups share: the console and the parser of integer lists."""
 
 from __future__ import annotations
 
@@ -7,16 +7,6 @@ from rich.console import Console
 from twinrl_data.errors import UsageError
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
-
-
-def parse_grid(text: str, flag: str = "--grid") -> tuple[int, int]:
-    try:
-        rows, cols = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"{flag} must look like 8x8, got '{text}'") from None
-    if rows < 1 or cols < 1:
-        raise UsageError(f"{flag} needs positive sizes, got '{text}'")
-    return rows, cols
 
 
 def parse_ints(text: str, flag: str) -> tuple[int, ...]:

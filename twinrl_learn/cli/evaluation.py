@@ -10,7 +10,8 @@ from rich.table import Table
 
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
-from twinrl_learn.cli.common import console, parse_grid
+from twinrl_data.settings_cli import parse_grid
+from twinrl_learn.cli.common import console
 from twinrl_sim.tasks import TASKS, make_task
 
 
@@ -69,7 +70,7 @@ def eval_command(
             task,
             world=world,
             effects=effects,
-            grid=parse_grid(grid),
+            grid=parse_grid(grid, "--grid"),
             episodes=episodes,
             seed=seed,
             out=out,

@@ -8,7 +8,8 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from twinrl_learn.cli.common import console, parse_grid
+from twinrl_data.settings_cli import parse_grid
+from twinrl_learn.cli.common import console
 from twinrl_sim.tasks import TASKS, make_task
 
 
@@ -38,7 +39,7 @@ def mine_command(
         runner,
         task,
         out=out,
-        grid=parse_grid(grid),
+        grid=parse_grid(grid, "--grid"),
         episodes=episodes,
         tau=tau,
         k=k,

@@ -6,6 +6,7 @@ change, so any stack of them is typed and used as a robot.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from typing import Any
 
@@ -65,18 +66,19 @@ class RobotWrapper:
         return f"{type(self).__name__}({self.robot!r})"
 
 
-class ActionWrapper(RobotWrapper):
-    """Changes every action on its way down (override :meth:`action`)."""
+class ActionWrapper(RobotWrapper, ABC):
+    """Changes every action on its way down (a subclass defines :meth:`action`)."""
 
     def act(self, action: np.ndarray) -> Sent:
         return self.robot.act(self.action(np.asarray(action, np.float32)))
 
+    @abstractmethod
     def action(self, action: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """The action to send instead of ``action``."""
 
 
-class ObservationWrapper(RobotWrapper):
-    """Changes every observation on its way up (override :meth:`observation`)."""
+class ObservationWrapper(RobotWrapper, ABC):
+    """Changes every observation on its way up (a subclass defines :meth:`observation`)."""
 
     def reset(self, config: Any) -> dict[str, np.ndarray]:
         return self.observation(self.robot.reset(config))
@@ -84,8 +86,9 @@ class ObservationWrapper(RobotWrapper):
     def observe(self) -> dict[str, np.ndarray]:
         return self.observation(self.robot.observe())
 
+    @abstractmethod
     def observation(self, observation: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        raise NotImplementedError
+        """The observation to pass up instead of ``observation``."""
 
 
 def layers(robot: Robot) -> Iterator[Robot]:

@@ -13,6 +13,7 @@ from rich.table import Table
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
+from twinrl_data.settings_cli import parse_numbers
 from twinrl_sim.cli.common import console
 from twinrl_sim.tasks import TASKS
 
@@ -34,13 +35,6 @@ def parse_assignments(values: list[str] | None, option: str) -> dict[str, str]:
             raise UsageError(f"{option} '{value}' must look like NAME=VALUE")
         parsed[name.strip()] = rest.strip()
     return parsed
-
-
-def parse_numbers(text: str, option: str) -> tuple[float, ...]:
-    try:
-        return tuple(float(v) for v in text.replace(",", " ").split())
-    except ValueError:
-        raise UsageError(f"{option} '{text}' must be numbers separated by spaces") from None
 
 
 def _tag_id(text: str) -> int:
