@@ -30,6 +30,7 @@ from mujoco import rollout as mj_rollout
 
 from twinrl_sim.batch import BatchEnv, BatchRollout
 from twinrl_sim.env import TwinEnv
+from twinrl_sim.windowed import INPUTS
 
 
 def main(
@@ -81,16 +82,12 @@ def main(
     python_open = episodes * steps / (time.perf_counter() - start)
 
     replayer = BatchRollout(task, nthread=threads)
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    initial = np.empty((episodes, mujoco.mj_stateSize(cell.model, spec)))
-    for i, config in enumerate(configs):
-        env.task.start(cell, config)
-        mujoco.mj_getState(cell.model, cell.data, initial[i], spec)
-    control = replayer.controls(targets, gripper).reshape(episodes, steps * cell.substeps, -1)
+    starts = replayer.initial_states(configs)
+    control = replayer.engine.inputs(cell.model, starts, targets, gripper)
     datas = [mujoco.MjData(cell.model) for _ in range(threads)]
     with mj_rollout.Rollout(nthread=threads) as pool:
         start = time.perf_counter()
-        pool.rollout(cell.model, datas, initial, control)
+        pool.rollout(cell.model, datas, starts.state, control, control_spec=INPUTS)
         raw_open = episodes * steps / (time.perf_counter() - start)
 
     start = time.perf_counter()

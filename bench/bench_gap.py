@@ -24,7 +24,8 @@ from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import load_effects
 from twinrl_sim.gap.diagnose import diagnose
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, cut_windows
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.windows import cut_windows
 from twinrl_sim.tasks import make_task
 
 TARGET_SECONDS = 180.0
@@ -33,9 +34,7 @@ DEFAULT_HIDDEN = {"actuator_delay": {"seconds": 0.03}, "payload": {"mass": 2.0}}
 
 def _jacobian_ratio(scene, episodes) -> tuple[float, float]:
     layout = compile_scene(scene).layout
-    windows = cut_windows(
-        episodes, layout, scene.object_names, control_hz=scene.physics.control_hz
-    ).subset(np.arange(24))
+    windows = cut_windows(episodes, layout, scene.object_names).subset(np.arange(24))
     replay = WindowReplay(scene, windows, NoiseFloor(), free=["joint_friction"])
     x = replay.params.as_vector()
     points = np.column_stack([x] + [x + 1e-3 * np.eye(len(x))[i] for i in range(len(x))])

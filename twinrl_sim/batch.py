@@ -3,15 +3,15 @@
 Two shapes of work:
 
 - :class:`BatchRollout` replays open-loop joint-target sequences (logged commands,
-  synthesized demos) for many configurations: the physics of one control period of
-  every episode runs in one threaded ``mujoco.batch`` call.
+  synthesized demos) for many configurations: every episode is one window of the
+  twin's replay engine, all in one threaded ``mujoco.rollout`` call.
 - :class:`BatchEnv` steps ``num_envs`` twin envs in closed loop: a policy sees each
   observation batch and acts; the IK runs per env in Python and the physics of all envs
   runs in one threaded call per control step.
 
-Both carry the whole integration state (warm start included) between calls: closed-loop
-results are bit-identical to stepping each env alone, open-loop ones agree with
-:func:`~twinrl_sim.replay.replay` to rounding (about 1e-7 rad).
+:class:`BatchEnv` carries the whole integration state (warm start included) between
+calls: its results are bit-identical to stepping each env alone. :class:`BatchRollout`
+and :func:`~twinrl_sim.replay.replay` run the same engine and agree exactly.
 
 For envs in worker processes, the Gymnasium vector API works on the registered ids
 (``gymnasium.make_vec("twinrl_sim:twinrl/PickPlace-v0", num_envs=4,
@@ -27,12 +27,14 @@ from typing import Any
 import mujoco
 import numpy as np
 from mujoco import batch as mj_batch
+from mujoco.rollout import Rollout
 
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import action_bounds
 from twinrl_sim.errors import TwinError
 from twinrl_sim.tasks import Task, TaskConfig, make_task
+from twinrl_sim.windowed import Starts, WindowedReplay
 
 STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -43,9 +45,9 @@ def _threads(nthread: int | None) -> int:
 
 @dataclass(frozen=True)
 class BatchResult:
-    """Integration states at every control step of every episode.
+    """Physics states at every control step of every episode.
 
-    ``states`` has shape (B, T + 1, nstate) (``mjSTATE_INTEGRATION``; row 0 is the
+    ``states`` has shape (B, T + 1, nstate) (``mjSTATE_FULLPHYSICS``; row 0 is the
     initial state). :meth:`arm_q` and :meth:`qpos` slice it.
     """
 
@@ -63,7 +65,8 @@ class BatchResult:
 
 
 class BatchRollout:
-    """Open-loop rollouts of logged/planned joint targets for many configurations.
+    """Open-loop rollouts of logged/planned joint targets for many configurations: one
+    window of the twin's replay engine (:mod:`twinrl_sim.windowed`) per configuration.
 
     Args:
         task: task name or instance.
@@ -77,32 +80,18 @@ class BatchRollout:
         self.task = make_task(task) if isinstance(task, str) else task
         self.cell = Cell(compile_scene(self.task.scene, extra_effects=effects))
         self.model = self.cell.model
-        self.nthread = _threads(nthread)
-        self.nstate = mujoco.mj_stateSize(self.model, STATE)
+        self.pool = Rollout(nthread=_threads(nthread))
+        self.engine = WindowedReplay(self.cell.layout, 1.0 / self.cell.control_dt, self.pool)
 
-    def initial_states(self, configs: list[TaskConfig | dict]) -> np.ndarray:
-        """Full physics states of ``configs`` as the env's reset makes them, (B, nstate)."""
-        states = np.empty((len(configs), self.nstate))
-        for i, config in enumerate(configs):
+    def initial_states(self, configs: list[TaskConfig | dict]) -> Starts:
+        """The states and inputs of ``configs`` as the env's reset makes them (B rows)."""
+        starts = []
+        for config in configs:
             self.task.start(self.cell, TaskConfig.from_dict(config))
-            mujoco.mj_getState(self.model, self.cell.data, states[i], STATE)
-        return states
-
-    def controls(self, joint_targets: np.ndarray, gripper: np.ndarray | None = None) -> np.ndarray:
-        """Per-physics-step controls (B, T, substeps, nu) holding each target for a period."""
-        targets = np.asarray(joint_targets, float)
-        n_arm = len(self.cell.arm_act)
-        if targets.ndim != 3 or targets.shape[2] != n_arm:
-            raise TwinError(f"joint_targets must have shape (B, T, {n_arm}), got {targets.shape}")
-        batch, steps, _ = targets.shape
-        control = np.zeros((batch, steps, self.model.nu))
-        control[..., self.cell.arm_act] = targets
-        if self.cell.gripper_act is not None:
-            grip = np.zeros((batch, steps)) if gripper is None else np.asarray(gripper, float)
-            if grip.shape != (batch, steps):
-                raise TwinError(f"gripper must have shape ({batch}, {steps}), got {grip.shape}")
-            control[..., self.cell.gripper_act] = grip
-        return np.repeat(control[:, :, None, :], self.cell.substeps, axis=2)
+            starts.append(Starts.capture(self.model, self.cell.data))
+        return Starts(
+            np.concatenate([s.state for s in starts]), np.concatenate([s.inputs for s in starts])
+        )
 
     def run(
         self,
@@ -111,23 +100,23 @@ class BatchRollout:
         gripper: np.ndarray | None = None,
     ) -> BatchResult:
         """Replay ``joint_targets`` (B, T, n_arm) from each configuration."""
-        if len(configs) != len(joint_targets):
-            raise TwinError(f"{len(configs)} configs but {len(joint_targets)} target sequences")
-        control = self.controls(joint_targets, gripper)
-        batch_size, steps, substeps, _ = control.shape
-        out = np.empty((batch_size, steps + 1, self.nstate))
-        sims = mj_batch.Batch(self.model, nsim=batch_size, nthread=self.nthread)
-        sims.state[:] = self.initial_states(configs)
-        out[:, 0] = sims.state
-        ctrl = sims.bind("ctrl")
-        for t in range(steps):
-            ctrl[:] = control[:, t, 0]
-            sims.step(nstep=substeps)
-            sims.forward()  # as Cell.send does after each period
-            out[:, t + 1] = sims.state
-        return BatchResult(out, self.model.nq, self.cell.arm_qpos)
+        targets = np.asarray(joint_targets, float)
+        n_arm = len(self.cell.arm_act)
+        if targets.ndim != 3 or targets.shape[2] != n_arm:
+            raise TwinError(f"joint_targets must have shape (B, T, {n_arm}), got {targets.shape}")
+        if len(configs) != len(targets):
+            raise TwinError(f"{len(configs)} configs but {len(targets)} target sequences")
+        batch, steps, _ = targets.shape
+        grip = np.zeros((batch, steps)) if gripper is None else np.asarray(gripper, float)
+        if grip.shape != (batch, steps):
+            raise TwinError(f"gripper must have shape ({batch}, {steps}), got {grip.shape}")
+        starts = self.initial_states(configs)
+        ticks, _ = self.engine.rollout([self.model], starts, targets, grip)
+        states = np.concatenate([starts.state[:, None], ticks[0]], axis=1)
+        return BatchResult(states, self.model.nq, self.cell.arm_qpos)
 
     def close(self) -> None:
+        self.pool.close()
         self.cell.close()
 
 

@@ -1,7 +1,8 @@
 """Replay: regenerate a logged initial state and re-send a logged command sequence.
 
 This is how the twin answers "what would the simulation have done with exactly these
-joint targets?": the starting point of the gap workflow and of log-driven debugging.
+joint targets?": log-driven debugging, and one window of the twin's replay engine
+(:mod:`twinrl_sim.windowed`) that the gap workflow runs from measured states.
 """
 
 from __future__ import annotations
@@ -9,10 +10,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from mujoco.rollout import Rollout
 
 from twinrl_sim.cell import Cell
 from twinrl_sim.errors import TwinError
 from twinrl_sim.tasks.base import Task, TaskConfig
+from twinrl_sim.windowed import Starts, WindowedReplay
 
 
 @dataclass(frozen=True)
@@ -59,9 +62,14 @@ def replay(
     states = [cell.state_vector()]
     env_states = [cell.environment_vector()]
     success = [tracker.update().success]
-    for target, command in zip(targets, grip, strict=True):
-        cell.send(target, float(command))
-        states.append(cell.state_vector())
-        env_states.append(cell.environment_vector())
-        success.append(tracker.update().success)
+    if len(targets):
+        start = Starts.capture(cell.model, cell.data)
+        with Rollout(nthread=1) as pool:
+            engine = WindowedReplay(cell.layout, 1.0 / cell.control_dt, pool)
+            ticks, inputs = engine.rollout([cell.model], start, targets[None], grip[None])
+        for row, tick in enumerate(ticks[0, 0]):
+            engine.restore(cell.model, cell.data, tick, inputs[0], row)
+            states.append(cell.state_vector())
+            env_states.append(cell.environment_vector())
+            success.append(tracker.update().success)
     return ReplayResult(np.array(states), np.array(env_states), np.array(success))

@@ -17,7 +17,8 @@ from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene
 from twinrl_sim.gap.diagnose import diagnose
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, cut_windows
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.windows import cut_windows
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task
 
@@ -108,14 +109,14 @@ def test_task_windows_start_with_fixtures_in_place_and_resting_objects_averaged(
     assert episode.data[schema.EFFORT].shape == (len(episode), 6)  # the plant reports torques
     layout = compile_scene(SCENE).layout
     objects = [o.name for o in SCENE.objects]
-    windows = cut_windows([episode], layout, objects, window=10, control_hz=10.0)
+    windows = cut_windows([episode], layout, objects, window=10)
     replay = WindowReplay(SCENE, windows, NoiseFloor())
     model = replay.edited_spec(replay.params).compile()
     env = episode.data[schema.ENVIRONMENT_STATE]
     plate = env[:, 7 * objects.index("plate") :][:, :3]
     # The fixture (a mocap body: an input, not physics state) sits at its measured
     # pose, averaged over the episode.
-    mocap = replay.initial_inputs[:, model.nu : model.nu + 3]
+    mocap = replay.starts.inputs[:, model.nu : model.nu + 3]
     assert np.allclose(mocap, plate.mean(axis=0), atol=1e-6)
     assert np.abs(plate - mocap[0]).max() > 1e-4  # while each measurement is noisy
     # Before the grasp the banana rests: every window starts it at one averaged pose.

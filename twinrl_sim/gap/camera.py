@@ -26,7 +26,8 @@ from mujoco import sysid
 from twinrl_data import schema as contract
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_camera_pose, apply_effects
-from twinrl_sim.gap.identify import least_squares, place_measured
+from twinrl_sim.gap.identify import least_squares
+from twinrl_sim.gap.windows import place_measured
 from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.spec import SceneSpec

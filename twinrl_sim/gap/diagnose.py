@@ -38,13 +38,9 @@ from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
-from twinrl_sim.gap.identify import (
-    NoiseFloor,
-    WindowReplay,
-    Windows,
-    cut_windows,
-)
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
+from twinrl_sim.gap.windows import Windows, cut_windows
 from twinrl_sim.spec import SceneSpec
 
 BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
@@ -201,9 +197,7 @@ def diagnose(
     held_episodes = [episodes[i] for i in held_idx]
     layout = compile_scene(scene).layout
     objects = [o.name for o in scene.objects]
-    windows = cut_windows(
-        episodes, layout, objects, window=window, control_hz=scene.physics.control_hz
-    )
+    windows = cut_windows(episodes, layout, objects, window=window)
     train = windows.subset(np.isin(windows.episode, train_idx))
     held = windows.subset(np.isin(windows.episode, held_idx))
     if not len(train) or not len(held):

@@ -70,6 +70,14 @@ def _lag(measured: np.ndarray, predicted: np.ndarray, valid: np.ndarray, fps: fl
     return shift / fps
 
 
+def _within(replay: ShootingReplay, prefix: str) -> np.ndarray:
+    """Rows whose increment from the row before stays inside one forward-replay window
+    (inverse dynamics has no windows)."""
+    if prefix == INVERSE_PREFIX:
+        return np.ones(len(replay.measured), bool)
+    return replay.step_in_window > 1
+
+
 def _regimes(replay: ShootingReplay, joint: str | None) -> dict[str, np.ndarray]:
     """Boolean row masks of each regime (for a joint's own velocity when it has one)."""
     names = replay.names
@@ -116,25 +124,19 @@ def localize(replays: list[ShootingReplay]) -> list[Disagreement]:
         joint = name.split(".", 1)[1] if prefix != "tcp." else None
         measured = np.concatenate([r.measured[:, i] for r in replays])
         predicted = np.concatenate([r.predicted[:, i] for r in replays])
-        # Forward replay predicts every row but each window's first (the measurement
-        # itself); inverse dynamics predicts every row.
-        inside = np.concatenate(
-            [
-                r.step_in_window > 0 if prefix != INVERSE_PREFIX else np.ones(len(r.measured), bool)
-                for r in replays
-            ]
-        )
         regimes = [_regimes(r, joint) for r in replays]
-        error = (measured - predicted)[inside]
-        dm = measured[inside] - measured[inside].mean()
-        dp = predicted[inside] - predicted[inside].mean()
+        error = measured - predicted
+        dm = measured - measured.mean()
+        dp = predicted - predicted.mean()
         gain = float(np.dot(dm, dp) / np.dot(dp, dp)) if np.dot(dp, dp) > 0 else 1.0
         lags = [
-            _lag(r.measured[:, i], r.predicted[:, i], r.step_in_window > 0, r.fps) for r in replays
+            # A forward replay's increments are its own within a window (not across a restart).
+            _lag(r.measured[:, i], r.predicted[:, i], _within(r, prefix), r.fps)
+            for r in replays
         ]
         per_regime = {}
         for regime in regimes[0]:
-            mask = np.concatenate([m[regime] for m in regimes])[inside]
+            mask = np.concatenate([m[regime] for m in regimes])
             if mask.any():
                 per_regime[regime] = float(np.sqrt(np.mean(error[mask] ** 2)))
         rows.append(

@@ -1,0 +1,128 @@
+"""The twin's one replay engine: windows that restart from given states and re-send
+held commands.
+
+A window is a start (the twin's physics state and inputs at one moment) and the arm
+joint targets and gripper commands of the next ``W`` control periods, each held for a
+control period as a robot holds it. All windows of all models (the parameter points of
+a fit) run as one batched ``mujoco.rollout`` call, and the physics state at the end of
+every control period comes back.
+
+Its users compare the same prediction: :func:`twinrl_sim.replay.replay` runs one window
+from a task configuration's reset; the gap workflow's localisation
+(:mod:`twinrl_sim.gap.shooting`) and identification (:mod:`twinrl_sim.gap.identify`)
+run windows restarted from what was measured (:mod:`twinrl_sim.gap.windows`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco.rollout import Rollout
+
+from twinrl_sim.errors import TwinError
+from twinrl_sim.layout import CellLayout
+
+STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+# What a window's rollout sets at every physics step: the servo and gripper commands,
+# and the poses of mocap bodies (targets and fixtures: inputs, not physics state).
+INPUTS = int(
+    mujoco.mjtState.mjSTATE_CTRL
+    | mujoco.mjtState.mjSTATE_MOCAP_POS
+    | mujoco.mjtState.mjSTATE_MOCAP_QUAT
+)
+
+
+def control_substeps(model: mujoco.MjModel, fps: float) -> int:
+    """Physics steps per control period at ``fps``; a rate the twin cannot step is refused."""
+    steps = 1.0 / (fps * model.opt.timestep)
+    if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+        raise TwinError(
+            f"a control rate of {fps:g} Hz is not a whole number of the twin's "
+            f"{model.opt.timestep:g} s physics steps; resample the log to a rate that "
+            f"divides {1 / model.opt.timestep:g} Hz"
+        )
+    return round(steps)
+
+
+@dataclass(frozen=True)
+class Starts:
+    """Where ``n`` windows begin: physics states (:data:`STATE`) and inputs (:data:`INPUTS`)."""
+
+    state: np.ndarray  # (n, state size)
+    inputs: np.ndarray  # (n, inputs size)
+
+    @classmethod
+    def capture(cls, model: mujoco.MjModel, data: mujoco.MjData) -> Starts:
+        """The one start ``data`` is at."""
+        state = np.empty((1, mujoco.mj_stateSize(model, STATE)))
+        inputs = np.empty((1, mujoco.mj_stateSize(model, INPUTS)))
+        mujoco.mj_getState(model, data, state[0], STATE)
+        mujoco.mj_getState(model, data, inputs[0], INPUTS)
+        return cls(state, inputs)
+
+
+class WindowedReplay:
+    """Batched replay of windows for a cell of ``layout`` at ``fps`` control steps per second."""
+
+    def __init__(self, layout: CellLayout, fps: float, pool: Rollout | None = None) -> None:
+        self.layout = layout
+        self.fps = fps
+        self.pool = pool or Rollout(nthread=2)
+
+    def inputs(
+        self,
+        model: mujoco.MjModel,
+        starts: Starts,
+        targets: np.ndarray,
+        gripper: np.ndarray,
+    ) -> np.ndarray:
+        """(n, W * substeps, inputs size): each window's targets (n, W, n_arm) and gripper
+        commands (n, W) held for their control period, mocap bodies where they were at
+        the start. ``ctrl`` comes first in the inputs (mjtState order)."""
+        inputs = np.repeat(starts.inputs[:, None], targets.shape[1], axis=1)
+        inputs[:, :, [model.actuator(a).id for a in self.layout.arm_actuators]] = targets
+        if self.layout.gripper_actuator:
+            inputs[:, :, model.actuator(self.layout.gripper_actuator).id] = gripper
+        return np.repeat(inputs, control_substeps(model, self.fps), axis=1)
+
+    def rollout(
+        self,
+        models: Sequence[mujoco.MjModel],
+        starts: Starts,
+        targets: np.ndarray,
+        gripper: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every window under every model (which share one structure): the physics state
+        at the end of each control period, (len(models), n, W, state size), and the
+        inputs that were held (n, W * substeps, inputs size)."""
+        targets = np.asarray(targets, float)
+        n, rows = targets.shape[:2]
+        inputs = self.inputs(models[0], starts, targets, np.asarray(gripper, float))
+        substeps = control_substeps(models[0], self.fps)
+        state, _ = self.pool.rollout(
+            [m for m in models for _ in range(n)],
+            [mujoco.MjData(models[0]) for _ in range(max(self.pool.nthread, 1))],
+            np.tile(starts.state, (len(models), 1)),
+            np.tile(inputs, (len(models), 1, 1)),
+            control_spec=INPUTS,
+        )
+        ticks = state[:, substeps - 1 :: substeps]
+        return ticks.reshape(len(models), n, rows, -1), inputs
+
+    def restore(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        tick: np.ndarray,
+        inputs: np.ndarray,
+        row: int,
+    ) -> None:
+        """Put ``data`` at control period ``row``'s end (``tick``, one window's ``inputs``),
+        derived quantities (site poses, actuator forces) included."""
+        mujoco.mj_setState(model, data, tick, STATE)
+        substeps = control_substeps(model, self.fps)
+        mujoco.mj_setState(model, data, inputs[(row + 1) * substeps - 1], INPUTS)
+        mujoco.mj_forward(model, data)
