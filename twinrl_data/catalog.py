@@ -30,7 +30,7 @@ import pyarrow.parquet as pq
 from mcap.reader import make_reader
 
 from twinrl_data import schema as contract
-from twinrl_data.errors import DataError
+from twinrl_data.errors import DataError, SettingError
 from twinrl_data.lerobot_io import (
     episode_metadata,
     iter_dataset_episodes,
@@ -244,8 +244,8 @@ def open_catalog(catalog: str | Path = DEFAULT_CATALOG) -> duckdb.DuckDBPyConnec
     catalog = Path(catalog)
     if not catalog.is_file():
         raise DataError(
-            f"catalog {catalog} does not exist; "
-            f"build it with `twinrl data index DIR... --catalog {catalog}`"
+            f"catalog {catalog} does not exist; build it first by indexing the sessions "
+            "(twinrl data index)"
         )
     _read(catalog)
     con = duckdb.connect()
@@ -276,7 +276,7 @@ def query(
     available = [row[0] for row in con.execute("DESCRIBE episodes").fetchall()]
     if sql is not None:
         if any(v is not None for v in (task, source, world, region, success, where)):
-            raise DataError("--sql is a whole query; combine it with no other filter")
+            raise SettingError("sql", "is a whole query; combine it with no other filter")
         return _run(con, sql, [], available)
     clauses, params = [], []
     for name, value in (("task", task), ("source", source), ("world", world), ("region", region)):

@@ -23,7 +23,10 @@ from twinrl_data.lerobot_io import (
 )
 from twinrl_data.mcap_log import recover
 from twinrl_data.session import Session
+from twinrl_data.settings_cli import name_flags
 from twinrl_data.sources import open_episodes
+
+name_flags(output="--out")
 
 app = typer.Typer(
     help="Episode logs: recover MCAP, export/import LeRobot datasets, catalog.",

@@ -1,5 +1,9 @@
 """The project's errors: every one says what is wrong and how to fix it.
 
+Messages speak of the library's own terms. A setting a message names is written in
+backticks (```force```), so that the command line can name it by its flag instead
+(``--force``; see :func:`twinrl_data.settings_cli.describe`).
+
 :class:`TwinrlError` is the root; each package raises its own subclasses. They derive
 from ``ValueError`` because every one of them is a value the caller passed (a file, a
 setting, a robot) that cannot be used as given.

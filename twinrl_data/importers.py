@@ -105,7 +105,8 @@ class ColumnMap:
             raise DataError(f"{path}: not valid YAML ({err})") from None
         if not isinstance(data, dict):
             raise DataError(
-                f"{path}: a column map is a mapping (see `twinrl data import-csv --help`)"
+                f"{path}: a column map is a YAML mapping of episode fields to CSV "
+                "columns (see the episode-log guide)"
             )
         unknown = sorted(set(data) - set(cls.__dataclass_fields__))
         if unknown:

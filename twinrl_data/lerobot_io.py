@@ -114,9 +114,7 @@ def export_dataset(
     root = Path(to)
     if root.exists():
         if not force:
-            raise DataError(
-                f"{root} already exists; pass --force to replace it or choose another --to"
-            )
+            raise DataError(f"{root} already exists; choose another folder or replace it (`force`)")
         shutil.rmtree(root)
     iterator = iter(episodes)
     first = next(iterator, None)

@@ -408,9 +408,11 @@ def recover(path: str | Path, output: str | Path | None = None, *, force: bool =
     path = _open_checked(path)
     output = Path(output) if output is not None else path.with_suffix(".recovered.mcap")
     if output.resolve() == path.resolve():
-        raise McapError("recover writes a new file; give an --out different from the damaged file")
+        raise McapError("recover writes a new file; choose an `output` other than the damaged file")
     if output.exists() and not force:
-        raise McapError(f"{output} already exists; pass --force to overwrite it")
+        raise McapError(
+            f"{output} already exists; choose another `output` or overwrite it (`force`)"
+        )
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     messages: list[Message] = []

@@ -39,8 +39,8 @@ class Session:
         manifest = self.path / MANIFEST
         if not manifest.is_file():
             raise DataError(
-                f"{self.path} is not a session (no {MANIFEST}); create one with Session.create "
-                "or record with `twinrl sim expert ... --out DIR`"
+                f"{self.path} is not a session (no {MANIFEST}); give a folder that episodes were "
+                "recorded into, or create one with Session.create"
             )
         try:
             self.manifest: dict[str, Any] = json.loads(manifest.read_text())
@@ -58,7 +58,10 @@ class Session:
         if is_session(path):
             if exist_ok:
                 return cls(path)
-            raise DataError(f"session {path} already exists; pass --append to add episodes to it")
+            raise DataError(
+                f"session {path} already exists; choose another folder or add episodes to "
+                "it (`append`)"
+            )
         if path.exists() and any(path.iterdir()):
             raise DataError(
                 f"{path} exists and is not an empty folder; choose a new session folder"

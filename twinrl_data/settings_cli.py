@@ -20,6 +20,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import re
 import textwrap
 import types
 import typing
@@ -53,12 +54,29 @@ def flag_of(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+def name_flags(**flags: str) -> None:
+    """Record the flags of options that fill a setting of another name
+    (``name_flags(id_count="--id")``), so that errors about it name that flag."""
+    FLAGS.update(flags)
+
+
 def describe(error: TwinrlError) -> str:
     """An error as the command line says it: a setting is named by its flag (the flag
-    its option was derived with, or the setting's own name as a flag)."""
+    its option was derived with, or the setting's own name as a flag), both the setting
+    a :class:`SettingError` is about and every setting a message names in backticks
+    (```force``` -> ``--force``)."""
     if isinstance(error, SettingError):
-        return f"{FLAGS.get(error.setting, flag_of(error.setting))} {error.problem}"
-    return str(error)
+        message = f"{_flag(error.setting)} {error.problem}"
+    else:
+        message = str(error)
+    return SETTING_NAME.sub(lambda match: _flag(match.group(1)), message)
+
+
+SETTING_NAME = re.compile(r"`([a-z][a-z0-9_]*)`")  # a setting named in a library message
+
+
+def _flag(setting: str) -> str:
+    return FLAGS.get(setting, flag_of(setting))
 
 
 @functools.cache

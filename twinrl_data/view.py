@@ -184,7 +184,7 @@ def save_rrd(
     """Write ``episodes`` with their blueprint to an .rrd file."""
     path = Path(path)
     if path.exists() and not force:
-        raise DataError(f"{path} already exists; pass --force to overwrite it")
+        raise DataError(f"{path} already exists; choose another path or overwrite it (`force`)")
     recording = rr.RecordingStream("twinrl", recording_id=episodes[0].meta.episode_id)
     recording.save(str(path))
     log_episodes(episodes, recording, link_frames=link_frames)

@@ -103,8 +103,8 @@ def locating_errors(
     policy = Policy.from_pretrained(checkpoint)
     if not policy.locates:
         raise LearnError(
-            f"{checkpoint} has no locating head: train it with --policy vla and "
-            "--locate-weight > 0 on data holding object poses"
+            f"{checkpoint} has no locating head: train the image policy (`policy` vla) with "
+            "`locate_weight` above 0 on data holding object poses"
         )
     out = Path(out)
     if out.exists() and any(out.iterdir()):

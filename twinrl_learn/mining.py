@@ -148,8 +148,8 @@ def logged_outcomes(
     if not outcomes:
         raise LearnError(
             f"the catalog {catalog} has no twin evaluations of '{policy}' on {task}; "
-            "run `twinrl eval ... --world twin` and `twinrl data index` first, or mine "
-            "without --episodes-from"
+            "evaluate it in the twin and index those episodes first, or mine without "
+            "`episodes_from`"
         )
     return outcomes
 

@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from twinrl_data.errors import SettingError
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, is_checkpoint
 from twinrl_sim.tasks import Task, TaskConfig
@@ -142,14 +143,12 @@ def load_runner(
     turns the arm's hold while the gripper closes on or off (``None``: as the
     checkpoint says; ``PolicyConfig.grasp_hold``)."""
     path = Path(spec)
-    for asked, flag in (
-        (open_loop, "--open-loop"),
-        (grasp_hold is not None, "--grasp-hold/--no-grasp-hold"),
-    ):
+    for asked, setting in ((open_loop, "open_loop"), (grasp_hold is not None, "grasp_hold")):
         if asked and not is_checkpoint(path):
-            raise LearnError(
-                f"{flag} applies to a twinrl checkpoint, not {spec} (the expert acts step by "
-                "step, and a lerobot policy acts as its own config says)"
+            raise SettingError(
+                setting,
+                f"applies to a twinrl checkpoint, not {spec} (the expert acts step by "
+                "step, and a lerobot policy acts as its own config says)",
             )
     if str(spec) == "expert":
         return ExpertRunner()

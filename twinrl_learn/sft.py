@@ -130,7 +130,8 @@ def train_sft(
     if config.policy == "state" and not frames.environment_complete:
         raise LearnError(
             "the state policy reads object poses (observation.environment_state), which "
-            "some --dataset lacks; train --policy vla on it, or leave that dataset out"
+            "some dataset lacks; train the image policy (`policy` vla) on it, or leave that "
+            "dataset out"
         )
     # Locating learns from the frames that hold the objects' true poses (twin and plant
     # data do; a real cell's demos may not); with none, the image policy learns from the
@@ -221,7 +222,7 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
     ``steps`` may differ: it extends the run)."""
     if len(config.datasets) != len(saved["datasets"]):
         raise LearnError(
-            f"--resume: {out} was trained on {len(saved['datasets'])} --dataset folders, not "
+            f"cannot resume {out}: it was trained on {len(saved['datasets'])} datasets, not "
             f"{len(config.datasets)}; resume it with the same ones"
         )
     own, differ = {}, []
@@ -229,17 +230,18 @@ def _own_settings(config: SFTConfig, saved: dict, out: Path) -> SFTConfig:
         saved_value = _saved_option(saved, key)
         given = getattr(config, key)
         if given is not None and given != saved_value:
-            differ.append(f"--{key.replace('_', '-')} {saved_value}")
+            differ.append(f"`{key}` {saved_value}")
         own[key] = saved_value
     if differ:
         raise LearnError(
-            f"--resume: {out} was trained with {', '.join(differ)}; resume it without those options"
+            f"cannot resume {out}: it was trained with {', '.join(differ)}; resume it without "
+            "giving those"
         )
     return replace(config, steps=config.steps or saved["steps"], **own)
 
 
 def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
-    """Each dataset's sampling probability from ``--weights`` (normalised), or in a resumed
+    """Each dataset's sampling probability from ``weights`` (normalised), or in a resumed
     run (``saved``: its config) the run's own (equal, for runs saved before they were
     recorded; other weights are refused); ``None``: in proportion to the datasets' frames."""
     count = len(config.datasets)
@@ -254,8 +256,8 @@ def _given_weights(config: SFTConfig, saved: dict | None) -> np.ndarray | None:
     saved_weights = saved_weights / saved_weights.sum()
     if given is not None and not np.allclose(given / given.sum(), saved_weights):
         raise LearnError(
-            f"--resume: {config.out} was trained with --weights "
-            f"{','.join(f'{w:.4g}' for w in saved_weights)}; resume it without --weights"
+            f"cannot resume {config.out}: it was trained with `weights` "
+            f"{','.join(f'{w:.4g}' for w in saved_weights)}; resume it without giving `weights`"
         )
     return saved_weights
 
@@ -274,12 +276,11 @@ def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
     for key in ("policy", "chunk", "inputs", *image_only):
         before = _saved_option(saved, key)
         if before != getattr(config, key):
-            flag = "--" + key.replace("_", "-")
-            differ.append((f"{flag} {before}", str(getattr(config, key))))
+            differ.append((f"`{key}` {before}", str(getattr(config, key))))
     if differ:
         raise LearnError(
-            f"--resume: {out} was trained with {', '.join(d[0] for d in differ)}, not "
-            f"{', '.join(d[1] for d in differ)}; resume it with the same options"
+            f"cannot resume {out}: it was trained with {', '.join(d[0] for d in differ)}, not "
+            f"{', '.join(d[1] for d in differ)}; resume it with the same settings"
         )
 
 

@@ -138,7 +138,7 @@ def safe_trajectory(
             return targets
     raise RobotError(
         "no safe excitation found (workspace box, joint limits or speed); lower "
-        "--amplitude, enlarge the workspace box or move the home pose away from the limits"
+        "`amplitude`, enlarge the workspace box or move the home pose away from the limits"
     )
 
 

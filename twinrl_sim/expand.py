@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
@@ -197,32 +198,32 @@ def expand(
     """
     make_task(task, scene)
     if method not in METHODS:
-        raise TwinError(f"--method must be one of {', '.join(METHODS)}, got '{method}'")
+        raise SettingError("method", f"must be one of {', '.join(METHODS)}, got '{method}'")
     if method == "augment":
         if from_demo is None:
-            raise TwinError(
-                "--method augment needs --from-demo EPISODE.mcap (a recorded demonstration)"
-            )
+            raise TwinError("`method` augment needs `from_demo`, a recorded demonstration (.mcap)")
         demo = read_episode(from_demo)
         if demo.meta.task != task:
-            raise TwinError(f"--from-demo is a {demo.meta.task} episode, not {task}")
+            raise SettingError("from_demo", f"is a {demo.meta.task} episode, not {task}")
     elif from_demo is not None:
-        raise TwinError("--from-demo is only used with --method augment")
+        raise SettingError("from_demo", "is only used with `method` augment")
     if not 0.0 <= detours <= 1.0:
-        raise TwinError(f"--detours is a share of the demos, from 0 to 1; got {detours}")
+        raise SettingError("detours", f"is a share of the demos, from 0 to 1; got {detours}")
     if detours and method != "plan":
-        raise TwinError("--detours applies to --method plan (a re-targeted demo keeps its path)")
+        raise SettingError(
+            "detours", "applies to `method` plan (a re-targeted demo keeps its path)"
+        )
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
-        raise TwinError("ask for at least one demonstration (--id N and/or --ood M)")
+        raise TwinError("ask for at least one demonstration (`id_count` and/or `ood_count`)")
     check_kinds(randomize)
     if randomize and not images:
-        raise TwinError(
-            "--randomize changes only what the cameras see; drop it or drop --no-images"
-        )
+        raise TwinError("`randomize` changes only what the cameras see; drop it or record images")
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         if not force:
-            raise TwinError(f"{out} exists and is not empty; pass --force to replace it")
+            raise TwinError(
+                f"{out} exists and is not empty; choose another folder or replace it (`force`)"
+            )
         shutil.rmtree(out)
     session = Session.create(out / "session")
     report = ExpandReport(task=task, method=method, requested={"ID": id_count, "OOD": ood_count})

@@ -1,19 +1,24 @@
 """Options derived from settings dataclasses: one record is the config, the CLI and the help."""
 
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import pytest
 import typer
 from typer.testing import CliRunner
 
-from twinrl_data.errors import SettingError, UsageError
+from twinrl_data.errors import DataError, SettingError, UsageError
 from twinrl_data.settings_cli import (
     describe,
     field_docs,
+    name_flags,
     options,
     parse_grid,
     settings_command,
 )
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
@@ -95,3 +100,27 @@ def test_grids_are_rows_by_columns():
     for text in ("8", "0x3", "axb"):
         with pytest.raises(UsageError, match="grid"):
             parse_grid(text)
+
+
+def test_settings_named_in_a_message_are_named_by_their_flags_on_the_command_line():
+    name_flags(id_count="--id")
+    error = DataError("out already exists; choose another folder or replace it (`force`)")
+    assert describe(error) == "out already exists; choose another folder or replace it (--force)"
+    both = SettingError("detours", "needs `id_count` above 0 and `method` plan")
+    assert describe(both) == "--detours needs --id above 0 and --method plan"
+    assert str(both) == "detours needs `id_count` above 0 and `method` plan"
+
+
+def test_no_library_message_names_a_command_line_flag():
+    """Library code speaks of settings (the CLI turns them into flags), never of flags."""
+    flag = re.compile(r"['\"][^'\"\n]*\s--[a-z][a-z-]+")
+    offenders = []
+    for package in ("twinrl_data", "twinrl_sim", "twinrl_robot", "twinrl_learn"):
+        for path in (ROOT / package).rglob("*.py"):
+            if "cli" in path.parts or path.name in {"cli.py", "settings_cli.py"}:
+                continue
+            for number, line in enumerate(path.read_text().splitlines(), 1):
+                message = line.strip().startswith(("f\"", '"', "raise")) or "Error(" in line
+                if message and flag.search(line) and "help=" not in line:
+                    offenders.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
+    assert not offenders, "\n".join(offenders)

@@ -319,11 +319,11 @@ def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
     with pytest.raises(ValueError, match="not empty"):
         run_demo("pick_place", "smoke", out)
     # Nor resumed as a different run: its stages would mix two kinds of policy.
-    with pytest.raises(ValueError, match="is a run with inputs 'relative', not 'absolute'"):
+    with pytest.raises(ValueError, match="is a run with `inputs` 'relative', not 'absolute'"):
         run_demo("pick_place", "smoke", out, resume=True)
     # A preset of one's own is a 'custom' run, never mixed with a named one.
     custom = replace(PRESETS["smoke"], plant_steps=200, inputs="relative")
-    with pytest.raises(ValueError, match="is a run with preset 'smoke', not 'custom'"):
+    with pytest.raises(ValueError, match="is a run with `preset` 'smoke', not 'custom'"):
         run_demo("pick_place", custom, out, resume=True)
 
 

@@ -271,7 +271,7 @@ def test_resume_continues_exactly(dataset, tmp_path):
         torch.testing.assert_close(value, b.state_dict()[key], rtol=0, atol=0)
     with pytest.raises(ValueError, match="already holds a run"):
         train_sft(SFTConfig(out=str(tmp_path / "straight"), steps=40, **common))
-    with pytest.raises(ValueError, match="trained with --inputs absolute, not relative"):
+    with pytest.raises(ValueError, match="trained with `inputs` absolute, not relative"):
         train_sft(
             SFTConfig(out=str(tmp_path / "split"), steps=60, inputs="relative", **common),
             resume=True,
@@ -307,13 +307,13 @@ def test_datasets_mix_by_frames_unless_weighted_and_a_resumed_run_keeps_its_weig
     np.testing.assert_allclose(saved_weights(tmp_path / "default"), by_frames)
     train_sft(SFTConfig(out=str(tmp_path / "given"), steps=2, weights=[1, 3], **common))
     np.testing.assert_allclose(saved_weights(tmp_path / "given"), [0.25, 0.75])
-    with pytest.raises(ValueError, match="was trained with --weights 0.25,0.75"):
+    with pytest.raises(ValueError, match="was trained with `weights` 0.25,0.75"):
         train_sft(
             SFTConfig(out=str(tmp_path / "given"), steps=4, weights=[1, 1], **common), resume=True
         )
     assert train_sft(SFTConfig(out=str(tmp_path / "given"), **common), resume=True).steps == 2
     np.testing.assert_allclose(saved_weights(tmp_path / "given"), [0.25, 0.75])
-    with pytest.raises(ValueError, match="trained on 2 --dataset folders, not 1"):
+    with pytest.raises(ValueError, match="trained on 2 datasets, not 1"):
         train_sft(
             SFTConfig(**common | {"datasets": mixed[:1]}, out=str(tmp_path / "given")), resume=True
         )
@@ -337,7 +337,7 @@ def test_a_resumed_run_keeps_its_own_learning_rate_and_batch_size(dataset, tmp_p
         train_sft(split, progress=_interrupt_at(6))
     resumed = train_sft(SFTConfig(out=str(tmp_path / "split"), **common), resume=True)
     assert resumed.losses == straight.losses
-    with pytest.raises(ValueError, match="trained with --batch-size 16, --lr 0.0003; resume"):
+    with pytest.raises(ValueError, match="trained with `batch_size` 16, `lr` 0.0003; resume"):
         train_sft(
             SFTConfig(out=str(tmp_path / "split"), lr=1e-3, batch_size=8, **common), resume=True
         )
@@ -359,7 +359,7 @@ def test_the_learning_rate_decays_along_a_cosine_and_a_resumed_run_keeps_its_sch
     common = {"datasets": [str(dataset)], "policy": "state", "batch_size": 8}
     out = tmp_path / "run"
     train_sft(SFTConfig(out=str(out), steps=2, **common))
-    with pytest.raises(ValueError, match="trained with --lr-schedule cosine"):
+    with pytest.raises(ValueError, match="trained with `lr_schedule` cosine"):
         train_sft(SFTConfig(out=str(out), steps=4, lr_schedule="constant", **common), resume=True)
     # A run saved before the schedule existed kept its rate constant, and goes on so.
     state = torch.load(out / "training_state.pt", weights_only=False)
@@ -377,7 +377,7 @@ def test_an_image_run_resumes_to_its_own_steps_and_names_every_option_that_diffe
     common = {"datasets": [str(dataset)], "policy": "vla", "batch_size": 4, "image_size": 64}
     out = str(tmp_path / "vla")
     train_sft(SFTConfig(out=out, steps=4, **common))
-    differ = f"--image-size 64, --locate-weight {SFTConfig.locate_weight}, not 128, 0.0"
+    differ = f"`image_size` 64, `locate_weight` {SFTConfig.locate_weight}, not 128, 0.0"
     with pytest.raises(ValueError, match=differ):
         train_sft(
             SFTConfig(out=out, **common | {"image_size": 128}, locate_weight=0.0), resume=True
@@ -416,7 +416,7 @@ def test_runner_selection(state_checkpoint, tmp_path):
     assert open_loop.name.endswith(":open-loop")  # its evaluations are told apart
     with pytest.raises(ValueError, match="is not a policy checkpoint"):
         load_runner(tmp_path)
-    with pytest.raises(ValueError, match="--open-loop applies to a twinrl checkpoint"):
+    with pytest.raises(ValueError, match="open_loop applies to a twinrl checkpoint"):
         load_runner("expert", open_loop=True)
 
 

@@ -209,5 +209,5 @@ def test_excite_cli_refuses_to_overwrite(tmp_path):
         "--twin",
         "pick_place",
     )  # a cell without the task's objects
-    assert wrong_cell.returncode == 2 and "pick the task it is built for" in wrong_cell.stderr
+    assert wrong_cell.returncode == 2 and "pick the --task it is built for" in wrong_cell.stderr
     assert not (tmp_path / "y").exists()

@@ -347,8 +347,8 @@ def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
     [
         ("--effects-allowed camera_pose", "camera_pose needs camera images"),
         ("--effects-allowed appearance", "appearance needs camera images"),
-        ("--effects-allowed friction", "'friction' is not an effect"),
-        ("--heldout 1.5", "--heldout must be a fraction"),
+        ("--effects-allowed friction", "names 'friction', not an effect"),
+        ("--heldout 1.5", "heldout must be a fraction"),
         ("--noise q=-1", "must be positive"),
     ],
 )

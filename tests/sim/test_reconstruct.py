@@ -317,7 +317,7 @@ def test_tag_centres_that_do_not_fit_are_named(built, clip):
     missing = _centres(walk) | {5: (0.6, -0.1, 0.0)}
     with pytest.raises(CaptureError, match="id 5 was found in fewer than 3.*tags seen: 0, 1, 2"):
         align_to_points(built.model, frames, missing)
-    with pytest.raises(CaptureError, match=r"several tags are in view \(0, 1, 2\).*--tag-id"):
+    with pytest.raises(CaptureError, match=r"several tags are in view \(0, 1, 2\).*`tag_id`"):
         align_to_tag(built.model, frames, walk.tag_poses[0], 0.08)
 
 

@@ -130,7 +130,7 @@ def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
     assert {read_episode(p).meta.policy for p in paths} == {"synthesis:plan+detour"}
     for detours, method, message in [
         (1.5, "plan", "from 0 to 1"),
-        (0.5, "augment", "applies to --method plan"),
+        (0.5, "augment", "applies to `method` plan"),
     ]:
         with pytest.raises(ValueError, match=message):
             expand(
@@ -280,7 +280,7 @@ def test_expand_writes_episodes_dataset_and_report(tmp_path):
         )
     info = json.loads((tmp_path / "again" / "dataset" / "meta" / "info.json").read_text())
     assert not [k for k in info["features"] if k.startswith("observation.images")]
-    with pytest.raises(ValueError, match="drop --no-images"):
+    with pytest.raises(ValueError, match="drop it or record images"):
         expand(
             "pick_place",
             id_count=1,
@@ -292,7 +292,7 @@ def test_expand_writes_episodes_dataset_and_report(tmp_path):
     assert not (tmp_path / "y").exists()
     with pytest.raises(ValueError, match="not empty"):
         expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "out")
-    with pytest.raises(ValueError, match="needs --from-demo"):
+    with pytest.raises(ValueError, match="needs `from_demo`"):
         expand("pick_place", id_count=1, ood_count=0, out=tmp_path / "x", method="augment")
 
 
@@ -320,5 +320,5 @@ def test_expand_in_a_fitted_twin_renders_with_its_look(tmp_path):
     front, plain = mine.images["front"][0].astype(float), nominal.images["front"][0].astype(float)
     assert front.mean() < plain.mean() - 5  # the fitted cell's dimmer light
     wrong = runner.invoke(app, [*args, str(tmp_path / "w"), "--twin", "insert_hexagon"])
-    assert wrong.exit_code != 0 and "--twin insert_hexagon" in str(wrong.exception)
+    assert wrong.exit_code != 0 and "twin insert_hexagon" in str(wrong.exception)
     assert not (tmp_path / "w").exists()

@@ -136,8 +136,8 @@ def _check_same_run(path: Path, settings: dict[str, Any]) -> None:
         for key, value in settings.items():
             if recorded.get(key) != value:
                 raise LearnError(
-                    f"--resume: {path.parent} is a run with {key} {recorded.get(key)!r}, "
-                    f"not {value!r}; resume it with the same options or choose another --out"
+                    f"cannot resume {path.parent}: it is a run with `{key}` {recorded.get(key)!r}, "
+                    f"not {value!r}; resume it with the same settings or choose another folder"
                 )
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(settings, indent=1))

@@ -65,8 +65,7 @@ def _candidates(run: Path, finals: bool) -> list[_Candidate]:
     stage2 = run / "stage2"
     if not stage1["sft_twin"].is_dir() or not (stage2 / ".done").is_file():
         raise LearnError(
-            f"{run} has not finished Stage II; continue it with `twinrl demo --out {run} "
-            "--resume` first"
+            f"{run} has not finished Stage II; resume its pipeline first (twinrl demo, `resume`)"
         )
     with_buffer = next(m for m in TWIN_RL_METHODS if m.twin_buffer)
     without_buffer = next(m for m in TWIN_RL_METHODS if not m.twin_buffer)

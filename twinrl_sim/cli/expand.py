@@ -8,12 +8,16 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
+from twinrl_data.console import progress, quiet_encoders
+
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
-from twinrl_data.console import progress, quiet_encoders
+from twinrl_data.settings_cli import name_flags
 from twinrl_sim.cli.common import console
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
 from twinrl_sim.tasks import TASKS, task_on_twin
+
+name_flags(id_count="--id", ood_count="--ood")
 
 if TYPE_CHECKING:
     pass

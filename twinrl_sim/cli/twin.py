@@ -9,13 +9,21 @@ import numpy as np
 import typer
 from rich.table import Table
 
-# Only what the options' help texts and defaults need loads here, so that `twinrl --help`
-# is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
-from twinrl_data.settings_cli import parse_numbers
+
+# Only what the options' help texts and defaults need loads here, so that `twinrl --help`
+# is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
+from twinrl_data.settings_cli import name_flags, parse_numbers
 from twinrl_sim.cli.common import console
 from twinrl_sim.tasks import TASKS
+
+name_flags(
+    tag_points="--tag-point",
+    object_meshes="--object-mesh",
+    camera_images="--camera-image",
+    densities="--density",
+)
 
 if TYPE_CHECKING:
     pass

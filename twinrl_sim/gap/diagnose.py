@@ -32,6 +32,7 @@ import numpy as np
 from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
+from twinrl_data.errors import SettingError
 from twinrl_sim.build import compile_scene
 from twinrl_sim.effects import EFFECTS
 from twinrl_sim.errors import TwinError
@@ -127,7 +128,7 @@ def split_episodes(
 ) -> tuple[list[int], list[int]]:
     """Indices of training and held-out episodes (at least one each), drawn by seed."""
     if not 0 < heldout < 1:
-        raise TwinError(f"--heldout must be a fraction between 0 and 1, got {heldout}")
+        raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
     if len(episodes) < 2:
         raise TwinError(
             f"the gap workflow needs at least 2 episodes (one to fit, one held out), got "
@@ -149,9 +150,9 @@ def candidate_pool(
         if unknown:
             known = ", ".join([*CANDIDATES, *IMAGE_EFFECTS])
             effect = "an effect" if unknown[0] in EFFECTS else "not an effect"
-            raise TwinError(
-                f"--effects-allowed: '{unknown[0]}' is {effect} the workflow fits; "
-                f"choose among {known}"
+            raise SettingError(
+                "effects_allowed",
+                f"names '{unknown[0]}', {effect} the workflow fits; choose among {known}",
             )
         names = [n for n in names if n in allowed]
     skipped = {}
@@ -203,7 +204,7 @@ def diagnose(
     if not len(train) or not len(held):
         raise TwinError(
             "the training or held-out episodes are all shorter than one window; record "
-            "longer episodes or pass a smaller --window"
+            "longer episodes or use a smaller `window`"
         )
     fit_on = _spread(train, fit_windows, seed)
     pool, skipped = candidate_pool(windows, allowed)
@@ -214,7 +215,7 @@ def diagnose(
             if allowed:
                 raise TwinError(
                     f"{effect} needs camera images in every episode; record with images "
-                    "(twinrl sim expert --out records both cameras)"
+                    "(the scripted expert and teleop record both cameras)"
                 )
             skipped[effect] = "no camera images in the episodes"
     cameras = logged if wanted["camera_pose"] else []

@@ -30,9 +30,9 @@ from absl import logging as absl_logging
 from mujoco import sysid
 from mujoco.rollout import Rollout
 
+from twinrl_data.errors import SettingError
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_effects
-from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.candidates import CANDIDATES, Candidate
 from twinrl_sim.gap.windows import DELAY_HISTORY, Windows, measured_starts, replay_signals
 from twinrl_sim.spec import SceneSpec
@@ -68,15 +68,16 @@ class NoiseFloor:
         for item in filter(None, (p.strip() for p in text.split(","))):
             key, _, value = item.partition("=")
             if key not in known:
-                raise TwinError(
-                    f"--noise: unknown signal family '{key}'; use {', '.join(sorted(known))}"
+                raise SettingError(
+                    "noise",
+                    f"names an unknown signal family '{key}'; use {', '.join(sorted(known))}",
                 )
             try:
                 values[key] = float(value)
             except ValueError:
-                raise TwinError(f"--noise: '{item}' needs a number, e.g. {key}=1e-3") from None
+                raise SettingError("noise", f"'{item}' needs a number, e.g. {key}=1e-3") from None
             if not values[key] > 0:
-                raise TwinError(f"--noise: {key} must be positive, got {value}")
+                raise SettingError("noise", f"{key} must be positive, got {value}")
         return cls(**values)
 
 

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 import open3d as o3d
 
+from twinrl_data.errors import SettingError
 from twinrl_sim.errors import TwinError
 from twinrl_sim.reconstruct.frames import CaptureError
 from twinrl_sim.reconstruct.sfm import SparseModel
@@ -176,7 +177,7 @@ def align_to_tag(
     if tag_id is None and len(seen) > 1:
         raise CaptureError(
             f"several tags are in view ({', '.join(str(i) for i in sorted(seen))}); say "
-            "which one --tag-pose measures with --tag-id"
+            "which one `tag_pose` measures with `tag_id`"
         )
     chosen = tag_id if tag_id is not None else next(iter(seen), None)
     if chosen not in seen:
@@ -199,18 +200,18 @@ def check_reference_points(points: dict[int, tuple[float, ...]]) -> None:
     """Refuse tag centres that cannot fix a frame: too few, malformed, or on a line."""
     if len(points) < 3:
         raise TwinError(
-            f"--tag-point was given for {len(points)} tag(s); give the centres of 3 or more "
+            f"`tag_points` was given for {len(points)} tag(s); give the centres of 3 or more "
             "tags spread over the table"
         )
     for tag_id, xyz in points.items():
         if len(xyz) != 3:
-            raise TwinError(f"--tag-point {tag_id} needs 3 numbers x,y,z, got {len(xyz)}")
+            raise SettingError("tag_points", f"{tag_id} needs 3 numbers x,y,z, got {len(xyz)}")
     centred = np.array(list(points.values()), float)
     centred -= centred.mean(axis=0)
     spread = np.linalg.svd(centred, compute_uv=False)[1] / np.sqrt(len(points))
     if spread < MIN_POINT_SPREAD / 2:
         raise TwinError(
-            "--tag-point: the tag centres lie (almost) on a line, which leaves the frame's "
+            "`tag_points`: the tag centres lie (almost) on a line, which leaves the frame's "
             f"rotation open; place the tags at least {100 * MIN_POINT_SPREAD:.0f} cm off "
             "the line through the others"
         )
@@ -243,7 +244,7 @@ def align_to_points(
         worst = int(np.argmax(alignment.residuals))
         raise CaptureError(
             f"the tag centres do not fit one rigid frame: {alignment.labels[worst]} lands "
-            f"{1000 * alignment.residuals[worst]:.0f} mm from its --tag-point (RMS "
+            f"{1000 * alignment.residuals[worst]:.0f} mm from its centre in `tag_points` (RMS "
             f"{1000 * alignment.residual_m:.0f} mm over {len(ids)} tags); re-measure the "
             "centres with the TCP and check that each id is the tag you touched"
         )

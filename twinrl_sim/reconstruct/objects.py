@@ -122,14 +122,14 @@ def reconstruct_shape(
 def read_mesh(path: Path) -> o3d.geometry.TriangleMesh:
     """A user's object mesh (OBJ, STL, PLY; metres); a clear error when it is not one."""
     if not path.is_file():
-        raise CaptureError(f"--object-mesh {path} does not exist")
+        raise CaptureError(f"object mesh {path} does not exist")
     mesh = o3d.io.read_triangle_mesh(str(path))
     if len(mesh.triangles) < 4:
-        raise CaptureError(f"--object-mesh {path} holds no triangle mesh (give OBJ, STL or PLY)")
+        raise CaptureError(f"object mesh {path} holds no triangle mesh (give OBJ, STL or PLY)")
     extent = np.ptp(np.asarray(mesh.vertices), axis=0).max()
     if not 0.005 < extent < 2.0:
         raise CaptureError(
-            f"--object-mesh {path} is {extent:g} units across; meshes must be in metres "
+            f"object mesh {path} is {extent:g} units across; meshes must be in metres "
             "(export millimetre CAD with a 0.001 scale)"
         )
     return mesh
@@ -266,7 +266,7 @@ def match_task_objects(
     if not 1 / SCALE_MISMATCH < ratio < SCALE_MISMATCH:
         raise CaptureError(
             f"the objects come out {ratio:.2f}x the size of the task's (median): is "
-            "--tag-size the edge of the tag's black square in metres, without the white "
+            "`tag_size` the edge of the tag's black square in metres, without the white "
             "margin? Measure the printed tag again"
         )
     return {int(i): names[j] for i, j in zip(rows, cols, strict=True)}, ratio

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from twinrl_data.errors import SettingError
 from twinrl_sim.build import compile_scene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.reconstruct.align import (
@@ -88,52 +89,54 @@ class BuildSettings:
 def check_settings(settings: BuildSettings, out: Path) -> None:
     """Refuse bad arguments before any work is done (one line each)."""
     if settings.tag_pose is not None and settings.tag_points:
-        raise TwinError("give either --tag-pose (one tag) or --tag-point (3+ tags), not both")
+        raise TwinError("give either `tag_pose` (one tag) or `tag_points` (3+ tags), not both")
     if settings.tag_points:
         check_reference_points(settings.tag_points)
     elif settings.tag_pose is None:
         raise TwinError(
-            "tie the cell to the robot base: give --tag-size and --tag-pose of one tag, or "
-            "--tag-point ID=x,y,z for 3+ tags"
+            "tie the cell to the robot base: give `tag_size` and `tag_pose` of one tag, or "
+            "`tag_points` (ID=x,y,z) for 3+ tags"
         )
     else:
         if settings.tag_size is None:
-            raise TwinError("--tag-pose needs --tag-size, the edge of the tag's black square")
+            raise SettingError("tag_pose", "needs `tag_size`, the edge of the tag's black square")
         if len(settings.tag_pose) != 7:
-            raise TwinError(
-                f"--tag-pose needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
+            raise SettingError(
+                "tag_pose", f"needs 7 numbers 'x y z qw qx qy qz', got {len(settings.tag_pose)}"
             )
         if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
-            raise TwinError("--tag-pose has a zero quaternion; a tag lying flat is '1 0 0 0'")
+            raise SettingError("tag_pose", "has a zero quaternion; a tag lying flat is '1 0 0 0'")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
-        raise TwinError(
-            f"--tag-size {settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"
+        raise SettingError(
+            "tag_size", f"{settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"
         )
     if out.exists() and any(out.iterdir()):
-        raise TwinError(f"{out} exists and is not empty; choose another --out")
+        raise TwinError(f"{out} exists and is not empty; choose another output folder")
     for what, files in (
-        ("--object-mesh", settings.object_meshes),
-        ("--camera-image", settings.camera_images),
+        ("object_meshes", settings.object_meshes),
+        ("camera_images", settings.camera_images),
     ):
         for name, path in files.items():
             if not Path(path).is_file():
-                raise TwinError(f"{what} {name}={path}: no such file")
+                raise SettingError(what, f"{name}={path}: no such file")
     for name, density in settings.densities.items():
         if not 10 <= density <= 25000:
-            raise TwinError(f"--density {name}={density:g} is not a density in kg/m^3")
+            raise SettingError("densities", f"{name}={density:g} is not a density in kg/m^3")
     task_scene = make_task(settings.task).scene if settings.task is not None else None
     for camera in _base_cameras(task_scene):
         if camera.name in settings.camera_images and camera.mount != "world":
-            raise TwinError(
-                f"--camera-image {camera.name}: that camera is on the {camera.mount}; only "
-                "fixed cameras can be placed from a photo"
+            raise SettingError(
+                "camera_images",
+                f"{camera.name}: that camera is on the {camera.mount}; only "
+                "fixed cameras can be placed from a photo",
             )
     if task_scene is not None:
         for name in settings.object_meshes:
             if name not in task_scene.object_names:
-                raise TwinError(
-                    f"--object-mesh {name}: task '{settings.task}' has no object '{name}' "
-                    f"(has: {', '.join(task_scene.object_names)})"
+                raise SettingError(
+                    "object_meshes",
+                    f"{name}: task '{settings.task}' has no object '{name}' "
+                    f"(has: {', '.join(task_scene.object_names)})",
                 )
 
 
@@ -268,12 +271,12 @@ def _check_scale(camera_path: np.ndarray, pivot: np.ndarray, settings: BuildSett
         return
     if settings.tag_points:
         raise CaptureError(
-            f"with these --tag-point centres the phone was {distance:.2f} m from the tags, "
+            f"with these `tag_points` centres the phone was {distance:.2f} m from the tags, "
             f"outside {low:g}-{high:g} m; give the centres in metres in the robot-base frame"
         )
     raise CaptureError(
-        f"with --tag-size {settings.tag_size:g} m the phone was {distance:.2f} m from the "
-        f"tag, outside {low:g}-{high:g} m; --tag-size must be the edge of the tag's black "
+        f"with `tag_size` {settings.tag_size:g} m the phone was {distance:.2f} m from the "
+        f"tag, outside {low:g}-{high:g} m; `tag_size` must be the edge of the tag's black "
         "square in metres"
     )
 
@@ -330,8 +333,8 @@ def _objects(
     unmatched = set(meshes) - {o.name for o in objects}
     if unmatched:
         raise CaptureError(
-            f"--object-mesh names {', '.join(sorted(unmatched))}, which no object on the table "
-            "became; with --task, name the task's objects"
+            f"`object_meshes` names {', '.join(sorted(unmatched))}, which no object on the "
+            "table became; with a `task`, name the task's objects"
         )
     return objects, ratio
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import difflib
 from pathlib import Path
 
+from twinrl_data.errors import SettingError
 from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SceneSpec, SpecError, load_spec
 from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
@@ -37,7 +38,7 @@ def make_task(name: str, scene: SceneSpec | None = None) -> Task:
 
 
 def twin_scene(twin: str) -> SceneSpec:
-    """The scene spec named by ``--twin``: a built-in task's cell (``pick_place``) or a
+    """The scene spec named by ``twin``: a built-in task's cell (``pick_place``) or a
     scene spec YAML file."""
     if twin in TASKS:
         return make_task(twin).scene
@@ -45,19 +46,19 @@ def twin_scene(twin: str) -> SceneSpec:
         return load_spec(twin)
     close = difflib.get_close_matches(twin, list(TASKS), n=1)
     hint = f" (did you mean '{close[0]}'?)" if close else ""
-    raise TwinError(
-        f"--twin '{twin}' is neither a built-in cell{hint} ({', '.join(TASKS)}) "
-        "nor a scene spec file"
+    raise SettingError(
+        "twin",
+        f"'{twin}' is neither a built-in cell{hint} ({', '.join(TASKS)}) nor a scene spec file",
     )
 
 
 def task_on_twin(task: str, twin: str) -> SceneSpec:
-    """The cell named by ``--twin``, checked to hold ``task``'s objects."""
+    """The cell named by ``twin``, checked to hold ``task``'s objects."""
     scene = twin_scene(twin)
     try:
         make_task(task, scene)
     except SpecError as err:
-        raise TwinError(
-            f"--twin {twin}: {err.args[0]}; pick the task it is built for (--task)"
+        raise SettingError(
+            "twin", f"{twin}: {err.args[0]}; pick the `task` it is built for"
         ) from None
     return scene
