@@ -119,6 +119,16 @@ def parse_numbers(text: str, flag: str) -> tuple[float, ...]:
         raise UsageError(f"{flag} '{text}' must be numbers separated by commas or spaces") from None
 
 
+def parse_ints(text: str, flag: str) -> tuple[int, ...]:
+    """``"0,1,2"`` -> ``(0, 1, 2)``; ``flag`` names the option in an error."""
+    try:
+        return tuple(int(part) for part in text.replace(",", " ").split())
+    except ValueError:
+        raise UsageError(
+            f"{flag} takes comma-separated integers, e.g. 0,1,2; got '{text}'"
+        ) from None
+
+
 def _option_type(
     hint: Any, default: Any, flag: str
 ) -> tuple[Any, Any, Callable[[Any], Any] | None]:
@@ -129,6 +139,11 @@ def _option_type(
         if typing.get_origin(inner) is list and typing.get_args(inner) == (float,):
             return str | None, None, lambda v: None if v is None else list(parse_numbers(v, flag))
         return inner | None, default, None
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis and args[0] in (int, float):
+        shown = default if default is ... else ",".join(f"{v:g}" for v in default)
+        if args[0] is int:
+            return str, shown, lambda v: parse_ints(v, flag)
+        return str, shown, lambda v: parse_numbers(v, flag)
     if origin is tuple and args == (int, int):
         shown = default if default is ... else f"{default[0]}x{default[1]}"
         return str, shown, lambda v: parse_grid(v, flag)

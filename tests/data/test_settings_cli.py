@@ -120,7 +120,7 @@ def test_no_library_message_names_a_command_line_flag():
             if "cli" in path.parts or path.name in {"cli.py", "settings_cli.py"}:
                 continue
             for number, line in enumerate(path.read_text().splitlines(), 1):
-                message = line.strip().startswith(("f\"", '"', "raise")) or "Error(" in line
+                message = line.strip().startswith(('f"', '"', "raise")) or "Error(" in line
                 if message and flag.search(line) and "help=" not in line:
                     offenders.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
     assert not offenders, "\n".join(offenders)

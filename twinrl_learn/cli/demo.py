@@ -10,7 +10,8 @@ from rich.table import Table
 
 from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.errors import UsageError
-from twinrl_learn.cli.common import console, parse_ints
+from twinrl_data.settings_cli import parse_ints
+from twinrl_learn.cli.common import console
 from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:

@@ -44,12 +44,26 @@ TWIN_RL_METHODS = [m for m in METHOD_TABLE if m.from_twin]  # with and without t
 
 @dataclass(frozen=True)
 class StagesSettings:
-    run: Path  # a finished (or stopped after Stage II) `twinrl demo` run
+    """What ``twinrl bench stages`` measures: each field is also its option and help."""
+
+    run: Path
+    """A `twinrl demo` run folder (Stage II done)."""
     out: Path
-    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)  # evaluation seeds and offline-phase seeds
+    """Folder for stages.md, stages.json, stages.png."""
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    """Seeds: one evaluation and offline phase each (comma-separated)."""
     grid: tuple[int, int] = (8, 8)
-    episodes: int = 2  # per grid cell and evaluation
-    finals: bool = True  # also the final policies of the run's TwinRL runs
+    """Evaluation grid over ID and OOD, e.g. 8x8."""
+    episodes: int = 2
+    """Evaluation episodes per grid cell."""
+    finals: bool = True
+    """Also measure the final policies of the run's TwinRL runs."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise SettingError("episodes", f"must be at least 1, got {self.episodes}")
+        if not self.seeds:
+            raise SettingError("seeds", "needs at least one seed")
 
 
 @dataclass(frozen=True)

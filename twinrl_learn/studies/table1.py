@@ -26,11 +26,12 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -53,22 +54,48 @@ PAPER_TABLE1 = {(0, 0): (40, 0), (30, 30): (70, 30), (60, 30): (80, 40), (30, 60
 
 @dataclass
 class Stage1Settings:
+    """What ``twinrl bench stage1`` runs: each field is also its option and help."""
+
     tasks: tuple[str, ...] = ("pick_place", "insert_hexagon")
+    """Tasks to run (repeatable)."""
     policies: tuple[str, ...] = ("state",)
+    """Policy kinds to train: state, vla (repeatable)."""
     real: int = 30
-    scale: float = 1.0  # multiplies every demo count (0.1 for a smoke run)
+    """Real (plant) demonstrations in the ID region."""
+    scale: float = 1.0
+    """Multiplies every demo count (0.1 for a smoke run)."""
     grid: tuple[int, int] = (4, 4)
+    """Evaluation grid over ID and OOD, e.g. 4x4."""
     episodes_per_cell: int = 4
-    steps: dict[str, int] = field(default_factory=dict)  # SFT steps per policy kind
-    fit_look: bool = False  # synthesize in the twin with the appearance fitted to real demos
-    detours: float = 0.0  # share of the twin demos that stray beside the object first
-    # The state policy's inputs (twinrl_learn.policy): objects seen from the TCP, as the
-    # quick pipeline's: with absolute poses the best mix varied (docs/results/defaults.md).
+    """Evaluation episodes per grid cell."""
+    vla_steps: int | None = None
+    """SFT steps of the image policy (default: its own)."""
+    state_steps: int | None = None
+    """SFT steps of the state policy (default: its own)."""
+    fit_look: bool = False
+    """Fit the twin's appearance (light, table colour) to the real demos' images (gap
+    diagnose) and synthesize the twin demos in that look."""
+    detours: float = 0.0
+    """Share of the twin demos that first stray beside the object (see expand)."""
     state_inputs: str = "relative"
+    """The state policy's inputs: relative (objects seen from the TCP, the quick
+    pipeline's: with absolute poses the best mix varied) or absolute (poses in the base
+    frame)."""
     seed: int = 0
+    """Seed for demos, SFT and evaluation."""
 
     def __post_init__(self) -> None:
         check_inputs(self.state_inputs, "state")
+        if self.episodes_per_cell < 1:
+            raise SettingError(
+                "episodes_per_cell", f"must be at least 1, got {self.episodes_per_cell}"
+            )
+        if not 0.0 <= self.detours <= 1.0:
+            raise SettingError("detours", f"is a share from 0 to 1, got {self.detours}")
+
+    def sft_steps(self, kind: str) -> int | None:
+        """The SFT steps asked for policies of ``kind`` (None: the kind's own)."""
+        return {"vla": self.vla_steps, "state": self.state_steps}.get(kind)
 
 
 @dataclass
@@ -184,7 +211,7 @@ def run_stage1(
                         weights=[float(w) for w in weights],
                         out=str(base / name),
                         policy=kind,
-                        steps=settings.steps.get(kind),
+                        steps=settings.sft_steps(kind),
                         inputs=settings.state_inputs if kind == "state" else "absolute",
                         seed=settings.seed,
                     )
