@@ -129,6 +129,44 @@ def parse_ints(text: str, flag: str) -> tuple[int, ...]:
         ) from None
 
 
+def parse_assignments(values: Sequence[str] | None, flag: str) -> dict[str, str]:
+    """``["a=1", "b=x"]`` -> ``{"a": "1", "b": "x"}``; a malformed item is refused by name."""
+    parsed = {}
+    for value in values or []:
+        name, sep, rest = value.partition("=")
+        if not sep or not name.strip() or not rest.strip():
+            raise UsageError(f"{flag} '{value}' must look like NAME=VALUE")
+        parsed[name.strip()] = rest.strip()
+    return parsed
+
+
+def _value_parser(hint: Any, flag: str) -> Callable[[str], Any]:
+    """A parser of one option text into a value of type ``hint`` (numbers, paths, text)."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis and args[0] in (int, float):
+        if args[0] is int:
+            return lambda v: parse_ints(v, flag)
+        return lambda v: parse_numbers(v, flag)
+    if hint is float:
+
+        def one_number(text: str) -> float:
+            numbers = parse_numbers(text, flag)
+            if len(numbers) != 1:
+                raise UsageError(f"{flag} '{text}' must be one number")
+            return numbers[0]
+
+        return one_number
+    if hint is int:
+        return lambda v: _whole(v, flag)
+    return hint  # Path, str
+
+
+def _whole(text: str, flag: str) -> int:
+    if not text.strip().lstrip("-").isdigit():
+        raise UsageError(f"{flag} '{text}' must be a whole number")
+    return int(text)
+
+
 def _option_type(
     hint: Any, default: Any, flag: str
 ) -> tuple[Any, Any, Callable[[Any], Any] | None]:
@@ -136,20 +174,30 @@ def _option_type(
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     if origin in (types.UnionType, typing.Union) and type(None) in args:
         (inner,) = [a for a in args if a is not type(None)]
-        if typing.get_origin(inner) is list and typing.get_args(inner) == (float,):
-            return str | None, None, lambda v: None if v is None else list(parse_numbers(v, flag))
-        return inner | None, default, None
+        annotation, shown, parse = _option_type(inner, ... if default is None else default, flag)
+        if parse is None:
+            return inner | None, default, None
+        shown = None if default is None else shown
+        return annotation | None, shown, lambda v: None if v is None else parse(v)
+    if origin is list and args == (float,):
+        shown = default if default is ... else ",".join(f"{v:g}" for v in default)
+        return str, shown, lambda v: list(parse_numbers(v, flag))
     if origin is tuple and len(args) == 2 and args[1] is Ellipsis and args[0] in (int, float):
         shown = default if default is ... else ",".join(f"{v:g}" for v in default)
-        if args[0] is int:
-            return str, shown, lambda v: parse_ints(v, flag)
-        return str, shown, lambda v: parse_numbers(v, flag)
+        return str, shown, _value_parser(hint, flag)
     if origin is tuple and args == (int, int):
         shown = default if default is ... else f"{default[0]}x{default[1]}"
         return str, shown, lambda v: parse_grid(v, flag)
     if origin in (list, tuple) and args and args[0] is str:
         kept = default if default is ... else (list(default) if default else None)
         return list[str], kept, lambda v: list(v or [])
+    if origin is dict:
+        key, value = (_value_parser(a, flag) for a in args)
+        return (
+            list[str] | None,
+            None,
+            lambda v: {key(k): value(x) for k, x in parse_assignments(v, flag).items()},
+        )
     return hint, default, None
 
 

@@ -218,7 +218,7 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         (POINTS, "for 2 tag(s); give the centres of 3 or more"),
         ([*POINTS, "--tag-point", "2=1.1,0.5,0"], "lie (almost) on a line"),
         ([*POINTS, "--tag-point", "2=0.2,-0.4"], "--tag-point 2 needs 3 numbers"),
-        ([*POINTS, "--tag-point", "two=0.2,-0.4,0"], "must start with a tag id"),
+        ([*POINTS, "--tag-point", "two=0.2,-0.4,0"], "must be a whole number"),
         ([*TAG, "--camera-image", "wrist=x.png"], "no such file"),
         ([*TAG, "--object-mesh", "apple=x.stl", "--task", "pick_place"], "no such file"),
         ([*TAG, "--density", "banana"], "must look like NAME=VALUE"),

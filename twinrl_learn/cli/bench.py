@@ -58,7 +58,10 @@ RUN = inspect.Parameter(
     "run",
     inspect.Parameter.KEYWORD_ONLY,
     annotation=Annotated[
-        Path, typer.Argument(help="A `twinrl demo` run folder (Stage II done).", show_default=False)
+        Path,
+        typer.Argument(
+            help="A `twinrl demo` run folder (Stage II done).", metavar="RUN", show_default=False
+        ),
     ],
 )
 

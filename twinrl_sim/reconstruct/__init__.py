@@ -1,32 +1,42 @@
 """The twin from a phone video (``twinrl twin build``): frames, structure from motion
 (pycolmap), metric scale and robot-base frame from AprilTags (one tag's pose, or 3+ tags'
 centres), table plane and objects (open3d, CoACD), fixed cameras from photos, and the
-scene spec that comes out."""
+scene spec that comes out.
 
-from twinrl_sim.reconstruct.align import Alignment, Similarity, align_to_points, align_to_tag
-from twinrl_sim.reconstruct.frames import CaptureError, FrameSelection, select_frames
-from twinrl_sim.reconstruct.objects import TwinObject
-from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
-from twinrl_sim.reconstruct.result import TwinBuild
-from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane, find_objects, level_table
-from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
+Names load on first use: open3d, pycolmap and CoACD take seconds to import, and the
+command line reads only :mod:`twinrl_sim.reconstruct.settings` to build its options.
+"""
 
-__all__ = [
-    "Alignment",
-    "BuildSettings",
-    "CaptureError",
-    "FrameSelection",
-    "ObjectCluster",
-    "Similarity",
-    "SparseModel",
-    "TablePlane",
-    "TwinBuild",
-    "TwinObject",
-    "align_to_points",
-    "align_to_tag",
-    "build_twin",
-    "find_objects",
-    "level_table",
-    "run_sfm",
-    "select_frames",
-]
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "Alignment": "align",
+    "Similarity": "align",
+    "align_to_points": "align",
+    "align_to_tag": "align",
+    "CaptureError": "frames",
+    "FrameSelection": "frames",
+    "select_frames": "frames",
+    "TwinObject": "objects",
+    "BuildSettings": "settings",
+    "build_twin": "pipeline",
+    "TwinBuild": "result",
+    "ObjectCluster": "segment",
+    "TablePlane": "segment",
+    "find_objects": "segment",
+    "level_table": "segment",
+    "SparseModel": "sfm",
+    "run_sfm": "sfm",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'twinrl_sim.reconstruct' has no attribute '{name}'")
+    value = getattr(importlib.import_module(f"twinrl_sim.reconstruct.{_EXPORTS[name]}"), name)
+    globals()[name] = value
+    return value

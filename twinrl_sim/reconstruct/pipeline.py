@@ -11,7 +11,6 @@ from __future__ import annotations
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -45,45 +44,13 @@ from twinrl_sim.reconstruct.segment import (
     find_objects,
     level_table,
 )
+from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 from twinrl_sim.reconstruct.silhouette import carve_footprints
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
 from twinrl_sim.tasks import make_task
 
-STAGES = (
-    "frames",
-    "structure from motion",
-    "alignment",
-    "table",
-    "objects",
-    "cameras",
-    "scene",
-    "report",
-)
 CAMERA_DISTANCE = (0.15, 4.0)  # m: where a hand-held phone can be, seen from the tag
-
-
-@dataclass(frozen=True)
-class BuildSettings:
-    """What ``twinrl twin build`` is told besides the clip.
-
-    The robot-base frame comes from either ``tag_pose``, one tag's centre and orientation
-    in the base frame (x y z qw qx qy qz), with ``tag_size``, the edge of its black
-    square (m); or ``tag_points``, the base-frame centres of 3+ tags by id.
-    """
-
-    tag_size: float | None = None
-    tag_pose: tuple[float, ...] | None = None
-    tag_id: int | None = None
-    tag_points: dict[int, tuple[float, ...]] = field(default_factory=dict)
-    task: str | None = None
-    object_meshes: dict[str, Path] = field(default_factory=dict)
-    camera_images: dict[str, Path] = field(default_factory=dict)
-    densities: dict[str, float] = field(default_factory=dict)
-    frames: int = 150
-    name: str | None = None
-    keep_work: bool = False
-    seed: int = 0
 
 
 def check_settings(settings: BuildSettings, out: Path) -> None:
@@ -106,6 +73,8 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
             )
         if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
             raise SettingError("tag_pose", "has a zero quaternion; a tag lying flat is '1 0 0 0'")
+    if settings.frames < 12:
+        raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
         raise SettingError(
             "tag_size", f"{settings.tag_size:g} is not a tag edge in metres (an 8 cm tag is 0.08)"

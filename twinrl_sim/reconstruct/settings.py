@@ -1,0 +1,58 @@
+"""What a twin build is told besides the clip, and its stages: light to import, so that
+the command line derives its options from it without loading the reconstruction."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+STAGES = (
+    "frames",
+    "structure from motion",
+    "alignment",
+    "table",
+    "objects",
+    "cameras",
+    "scene",
+    "report",
+)
+
+
+@dataclass(frozen=True)
+class BuildSettings:
+    """What ``twinrl twin build`` is told besides the clip.
+
+    The robot-base frame comes from either ``tag_pose``, one tag's centre and orientation
+    in the base frame (x y z qw qx qy qz), with ``tag_size``, the edge of its black
+    square (m); or ``tag_points``, the base-frame centres of 3+ tags by id.
+    """
+
+    tag_size: float | None = None
+    """Edge of the AprilTag 36h11's black square (m), e.g. 0.08."""
+    tag_pose: tuple[float, ...] | None = None
+    """The tag's centre and orientation in the robot-base frame: 'x y z qw qx qy qz' (m;
+    a tag lying flat, printed x along the base's x: 'x y z 1 0 0 0'). Needs the tag size."""
+    tag_id: int | None = None
+    """The tag the tag pose measures (default: the only one seen)."""
+    tag_points: dict[int, tuple[float, ...]] = field(default_factory=dict)
+    """ID=x,y,z: the centre of tag ID in the robot-base frame (m), instead of a tag pose;
+    3 or more tags, not on one line. Repeatable."""
+    task: str | None = None
+    """Task whose cell was filmed: objects are named after its objects, and its robot,
+    cameras and physics are kept."""
+    object_meshes: dict[str, Path] = field(default_factory=dict)
+    """NAME=FILE: a scan or CAD mesh (metres) of object NAME, registered to its points by
+    ICP instead of the reconstructed shape. Repeatable."""
+    camera_images: dict[str, Path] = field(default_factory=dict)
+    """NAME=IMAGE: a photo from fixed camera NAME (e.g. front=front.png); the twin's
+    camera is placed at its pose with its focal length. Repeatable."""
+    densities: dict[str, float] = field(default_factory=dict)
+    """NAME=KG_PER_M3 for an object's mass (default 700). Repeatable."""
+    frames: int = 150
+    """Frames to keep for structure from motion (at least 12)."""
+    name: str | None = None
+    """Scene name (default: from the task)."""
+    keep_work: bool = False
+    """Keep the frames and the COLMAP database under OUT/work."""
+    seed: int = 0
+    """Seeds structure from motion, RANSAC and the decomposition."""
