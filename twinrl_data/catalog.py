@@ -176,7 +176,9 @@ def discover(paths: Iterable[str | Path]) -> tuple[list[Path], list[Path]]:
                 raise DataError(f"{path} is neither an .mcap episode nor a folder")
             mcaps.append(path)
         elif is_session(path):
-            mcaps.extend(p for p in Session(path).episode_paths() if p.is_file())
+            session = Session(path)
+            session.warn()
+            mcaps.extend(session.readable_paths())
         elif (path / "meta" / "info.json").is_file():
             datasets.append(path)
         else:

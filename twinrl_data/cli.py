@@ -21,7 +21,8 @@ from twinrl_data.lerobot_io import (
     missing_contract_fields,
     open_dataset,
 )
-from twinrl_data.mcap_log import recover
+from twinrl_data.repair import repair_session, verify
+from twinrl_data.salvage import recover
 from twinrl_data.session import Session
 from twinrl_data.settings_cli import name_flags
 from twinrl_data.sources import open_episodes
@@ -71,13 +72,61 @@ def recover_command(
     ] = None,
     force: Annotated[bool, typer.Option(help="Overwrite --out if it exists.")] = False,
 ) -> None:
-    """Rewrite a truncated episode log (e.g. from a killed recorder) into a valid file."""
+    """Rewrite what is intact of an episode log (a killed recorder's, or one with a
+    damaged chunk) into a new, valid file."""
+    if file.is_dir():
+        raise DataError(
+            f"{file} is a folder; give one episode .mcap file (`twinrl data repair {file}` "
+            "recovers every unfinished episode of a session)"
+        )
     result = recover(file, out, force=force)
-    state = "the file was complete" if result.complete else "the file was truncated"
+    if result.complete:
+        state = "the file was complete"
+    elif result.lost_spans:
+        seconds = sum(end - start for start, end in result.lost_spans) / 1e9
+        state = f"{len(result.lost_spans)} damaged chunks ({seconds:.1f} s of log) left out"
+    else:
+        state = "the file was truncated"
     console.print(
         f"{result.output}: kept {result.messages} messages and "
         f"{result.metadata} metadata records ({state})"
     )
+
+
+@app.command("repair")
+def repair_command(
+    session: Annotated[Path, typer.Argument(help="Session folder.")],
+) -> None:
+    """Rebuild a session's manifest from its episode files: adopt files it lacks, report
+    files it lists that are gone, recover unfinished or damaged episodes (originals kept
+    under damaged/). Nothing is deleted."""
+    report = repair_session(session)
+    console.print(
+        f"{session}: {report.episodes} episodes listed (manifest was {report.manifest_was}); "
+        f"adopted {len(report.adopted)}, recovered {len(report.recovered)}, "
+        f"missing {len(report.missing)}, unreadable {len(report.unreadable)}"
+    )
+    for line in report.missing:
+        console.print(f"  missing: {line}")
+    for line in report.unreadable:
+        console.print(f"  unreadable: {line}")
+
+
+@app.command("verify")
+def verify_command(
+    path: Annotated[
+        Path, typer.Argument(help="Session folder, episode .mcap file or LeRobot dataset folder.")
+    ],
+) -> None:
+    """Check every file the way `git fsck` does: checksums, decodable messages and
+    frames, the manifest against the files, a dataset's metadata against its data. Exits
+    with status 1 when anything is wrong."""
+    result = verify(path)
+    for problem in result.problems:
+        console.print(f"[red]problem:[/red] {problem}", highlight=False)
+    console.print(f"{path}: {result.checked} files checked, {len(result.problems)} problems")
+    if result.problems:
+        raise typer.Exit(1)
 
 
 @app.command("export")

@@ -37,3 +37,8 @@ class SettingError(TwinrlError):
     def __init__(self, setting: str, problem: str) -> None:
         super().__init__(f"{setting} {problem}")
         self.setting, self.problem = setting, problem
+
+
+class DataWarning(UserWarning):
+    """Something read is not quite as it should be, yet what can be read was read (a
+    session whose manifest disagrees with its files, an episode left unfinished)."""

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from twinrl_data import schema as contract
+from twinrl_data.atomic import publishing
 from twinrl_data.errors import DataError
 
 SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
@@ -112,15 +113,30 @@ def export_dataset(
     :class:`~twinrl_data.errors.DataError` when episodes disagree on their fields.
     """
     root = Path(to)
-    if root.exists():
-        if not force:
-            raise DataError(f"{root} already exists; choose another folder or replace it (`force`)")
-        shutil.rmtree(root)
+    if root.exists() and not force:
+        raise DataError(f"{root} already exists; choose another folder or replace it (`force`)")
     iterator = iter(episodes)
     first = next(iterator, None)
     if first is None:
         raise DataError("nothing to export: the selection has no episodes")
     repo_id = repo_id or f"twinrl/{root.name}"
+    # Built beside ``root`` and renamed into place at the end: a killed export leaves
+    # ``root`` as it was (absent, or the old dataset), never half a dataset.
+    with publishing(root) as building:
+        count, frames = _write(building, repo_id, first, iterator, on_episode)
+        if root.exists():
+            shutil.rmtree(root)  # replaced (``force``) only once the new one is whole
+    return ExportResult(root=root, repo_id=repo_id, episodes=count, frames=frames)
+
+
+def _write(
+    root: Path,
+    repo_id: str,
+    first: contract.Episode,
+    rest: Iterable[contract.Episode],
+    on_episode: Callable[[contract.Episode], None] | None,
+) -> tuple[int, int]:
+    """Write ``first`` and ``rest`` as a new LeRobotDataset at ``root``: (episodes, frames)."""
     features = features_for(first)
     dataset = _lerobot().create(
         repo_id=repo_id,
@@ -135,7 +151,7 @@ def export_dataset(
     count = frames = 0
     try:
         with open(sidecar, "w") as lines:
-            for episode in _chain(first, iterator):
+            for episode in _chain(first, rest):
                 mismatch = _same_features(features, features_for(episode))
                 if mismatch:
                     raise DataError(
@@ -150,7 +166,7 @@ def export_dataset(
                     on_episode(episode)
     finally:
         dataset.finalize()
-    return ExportResult(root=root, repo_id=repo_id, episodes=count, frames=frames)
+    return count, frames
 
 
 def _chain(first: contract.Episode, rest: Iterable[contract.Episode]) -> Iterable[contract.Episode]:
@@ -319,3 +335,59 @@ def episode_metadata(
         robot=meta.robot_type or "unknown",
         names=names,
     )
+
+
+def verify_dataset(root: str | Path) -> tuple[int, list[str]]:
+    """Check a LeRobot dataset folder: (files checked, problems one line each).
+
+    Its metadata parses and lerobot opens it; the data files' rows add up to the frames
+    and episodes its metadata declares; twinrl's sidecar has one line per episode; every
+    video file exists and decodes its first frame.
+    """
+    import av
+    import pyarrow.parquet as pq
+
+    root = Path(root)
+    problems: list[str] = []
+    try:
+        info = json.loads((root / "meta" / "info.json").read_text())
+    except (OSError, ValueError) as err:
+        return 1, [f"{root}/meta/info.json cannot be read ({err})"]
+    checked = 1
+    rows, episodes = 0, set()
+    for file in sorted((root / "data").rglob("*.parquet")):
+        checked += 1
+        try:
+            table = pq.read_table(file, columns=["episode_index"])
+        except Exception as err:
+            problems.append(f"{file} cannot be read ({type(err).__name__}: {err})")
+            continue
+        rows += table.num_rows
+        episodes.update(table.column("episode_index").to_pylist())
+    if rows != info.get("total_frames"):
+        problems.append(
+            f"{root}: the data holds {rows} frames, meta/info.json says {info.get('total_frames')}"
+        )
+    if len(episodes) != info.get("total_episodes"):
+        problems.append(
+            f"{root}: the data holds {len(episodes)} episodes, meta/info.json says "
+            f"{info.get('total_episodes')}"
+        )
+    sidecar = read_sidecar(root)
+    if sidecar and len(sidecar) != info.get("total_episodes"):
+        problems.append(
+            f"{root}/{SIDECAR}: {len(sidecar)} lines for {info.get('total_episodes')} episodes"
+        )
+    for video in sorted((root / "videos").rglob("*.mp4")):
+        checked += 1
+        try:
+            with av.open(str(video)) as container:
+                next(container.decode(video=0))
+        except Exception as err:
+            problems.append(f"{video} does not decode ({type(err).__name__})")
+    if not problems:
+        try:
+            open_dataset(root)
+        except DataError as err:
+            problems.append(str(err))
+    return checked, problems

@@ -22,10 +22,12 @@ most that much; :func:`recover` rewrites a truncated file into a valid one.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import io
 import json
 import math
+import os
 from collections import defaultdict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -38,14 +40,15 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 from twinrl_data import schema as contract
-from twinrl_data.errors import McapError
+from twinrl_data.atomic import disk_error
+from twinrl_data.errors import DataError, McapError
 from twinrl_data.messages import FloatVector, Transition
 
 TOPICS = {
@@ -92,7 +95,13 @@ class EpisodeWriter:
 
     Steps are dicts keyed by contract field (see :mod:`twinrl_data.schema`); every
     problem of a malformed step is reported in one :class:`~twinrl_data.errors.DataError`.
-    ``on_close`` is called with the final metadata (used by sessions' manifests).
+    ``on_close`` is called with the final metadata, the steps written and the status
+    (``complete``, or ``partial`` after a failed write; used by sessions' manifests).
+
+    A write that fails (a full disk, an I/O error) stops the episode: what was written
+    is kept as a partial episode (:func:`twinrl_data.salvage.recover` makes a valid file
+    of it), the status goes to ``on_close``, and the error is one
+    :class:`~twinrl_data.errors.DataError`.
     """
 
     def __init__(
@@ -105,7 +114,7 @@ class EpisodeWriter:
         flush_seconds: float = 1.0,
         start_ns: int | None = None,
         overwrite: bool = False,
-        on_close: Callable[[contract.EpisodeMeta, int], None] | None = None,
+        on_close: Callable[[contract.EpisodeMeta, int, str], None] | None = None,
     ) -> None:
         if image_format not in IMAGE_FORMATS:
             raise McapError(f"image_format must be one of {IMAGE_FORMATS}, got '{image_format}'")
@@ -118,9 +127,18 @@ class EpisodeWriter:
         self._flush_every = max(1, math.ceil(flush_seconds * meta.fps))
         self._period_ns = round(1e9 / meta.fps)
         self._start_ns = start_ns if start_ns is not None else _iso_to_ns(meta.created_at)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
-        self._writer.start(profile="twinrl", library="twinrl")
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            raise McapError(f"{self.path} already exists; refusing to overwrite it") from None
+        except OSError as err:
+            raise disk_error(err, self.path) from None
+        self._file = os.fdopen(fd, "wb")
+        # CRCs over every chunk and over the whole data section (metadata included), so
+        # that a reader refuses a damaged byte anywhere instead of returning wrong data.
+        self._writer = Writer(
+            self._file, compression=CompressionType.ZSTD, enable_crcs=True, enable_data_crcs=True
+        )
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._shapes: dict[str, tuple[int, ...]] = {}
@@ -134,8 +152,27 @@ class EpisodeWriter:
         self.interventions = 0
         self.last_success = False
         self._closed = False
-        self._writer.add_metadata(META_START, _encode(meta.to_dict()))
+        self._guarded(self._begin)
+
+    def _begin(self) -> None:
+        self._writer.start(profile="twinrl", library="twinrl")
+        self._writer.add_metadata(META_START, _encode(self.meta.to_dict()))
         self._writer.flush()
+
+    def _guarded(self, write: Callable[[], None]) -> None:
+        """Run ``write``; a failed write closes the episode as partial (class docstring)."""
+        try:
+            write()
+        except OSError as err:
+            self._closed = True
+            with contextlib.suppress(OSError):
+                self._file.close()
+            if self._on_close is not None:
+                self._on_close(self.meta, self.steps, "partial")
+            raise DataError(
+                f"{disk_error(err, self.path)}; the {self.steps} steps written so far are kept "
+                "as a partial episode (`twinrl data repair` on its session recovers it)"
+            ) from None
 
     def __enter__(self) -> EpisodeWriter:
         return self
@@ -170,6 +207,9 @@ class EpisodeWriter:
         if self._closed:
             raise McapError(f"{self.path}: episode already closed; start a new EpisodeWriter")
         contract.validate_step(step, self._shapes)
+        self._guarded(lambda: self._write_step(step))
+
+    def _write_step(self, step: Mapping[str, Any]) -> None:
         if self.steps == 0:
             self._shapes = {k: np.shape(v) for k, v in step.items() if k in contract.VECTOR_FIELDS}
             fields = sorted(k for k, v in step.items() if v is not None)
@@ -242,7 +282,6 @@ class EpisodeWriter:
         """Finish the file; ``success`` defaults to the last step's ``next.success``."""
         if self._closed:
             return self.meta
-        self._closed = True
         final_success = self.last_success if success is None else bool(success)
         self.meta = self.meta.replace(success=final_success, num_interventions=self.interventions)
         end = {
@@ -250,12 +289,18 @@ class EpisodeWriter:
             "num_interventions": self.interventions,
             "length": self.steps,
         }
+        self._guarded(lambda: self._finish(end))
+        self._closed = True
+        if self._on_close is not None:
+            self._on_close(self.meta, self.steps, "complete")
+        return self.meta
+
+    def _finish(self, end: Mapping[str, Any]) -> None:
         self._writer.add_metadata(META_END, _encode(end))
         self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
         self._file.close()
-        if self._on_close is not None:
-            self._on_close(self.meta, self.steps)
-        return self.meta
 
 
 def _encode(values: Mapping[str, Any]) -> dict[str, str]:
@@ -281,6 +326,21 @@ def _open_checked(path: str | Path) -> Path:
     return path
 
 
+def _chunk_damage(path: Path, chunk: Chunk, records: Mapping[str, Any]) -> McapError:
+    """A damaged chunk (its checksum or compression broken) as one line: which episode,
+    and which span of it is lost."""
+    span = "a chunk of its steps is damaged"
+    if META_START in records:
+        start = _iso_to_ns(records[META_START]["created_at"])
+        first = (chunk.message_start_time - start) / 1e9
+        last = (chunk.message_end_time - start) / 1e9
+        span = f"the steps logged from {first:.1f} s to {last:.1f} s are damaged"
+    return McapError(
+        f"{path} is damaged: {span}; `twinrl data recover {path}` writes what is intact "
+        "to a new file"
+    )
+
+
 def _damaged(path: Path, err: Exception) -> McapError:
     return McapError(
         f"{path} is truncated or damaged ({type(err).__name__}: {err}); "
@@ -289,7 +349,10 @@ def _damaged(path: Path, err: Exception) -> McapError:
 
 
 def read_meta(path: str | Path) -> contract.EpisodeMeta:
-    """The episode metadata of an MCAP file (the end record's results merged in)."""
+    """The episode metadata of an MCAP file (the end record's results merged in).
+
+    Reads the metadata records only (through the file's summary), so it is quick; a
+    damaged byte elsewhere shows when the episode is read (:func:`read_episode`)."""
     path = _open_checked(path)
     try:
         with open(path, "rb") as f:
@@ -297,6 +360,31 @@ def read_meta(path: str | Path) -> contract.EpisodeMeta:
     except Exception as err:
         raise _damaged(path, err) from None
     return _meta_from(path, records)
+
+
+@dataclass(frozen=True)
+class Summary:
+    """What an episode file says about itself without its steps."""
+
+    meta: contract.EpisodeMeta
+    length: int | None  # steps, from the end record; None: the recording never finished
+
+
+def read_summary(path: str | Path) -> Summary:
+    """The metadata of an episode file, finished or not (a killed recorder's file has
+    its start record and no end record)."""
+    path = _open_checked(path)
+    records: dict[str, dict[str, Any]] = {}
+    try:
+        with open(path, "rb") as f:
+            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                if isinstance(record, Metadata):
+                    records[record.name] = _decode(record.metadata)
+    except Exception as err:
+        if META_START not in records:
+            raise _damaged(path, err) from None
+    end = records.get(META_END)
+    return Summary(_meta_from(path, records), None if end is None else int(end["length"]))
 
 
 def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.EpisodeMeta:
@@ -319,12 +407,34 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     vectors: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
     transitions: dict[int, Any] = {}
     frames: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
+    records: dict[str, dict[str, Any]] = {}
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    def take(record: object) -> None:
+        if isinstance(record, Message):
+            channel = channels.get(record.channel_id)
+            if channel is not None:
+                schema = schemas.get(channel.schema_id)
+                _collect(schema, channel, record, vectors, transitions, frames, images)
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+        elif isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Metadata):
+            records[record.name] = _decode(record.metadata)
+
     try:
         with open(path, "rb") as f:
-            reader = make_reader(f)
-            records = {m.name: _decode(m.metadata) for m in reader.iter_metadata()}
-            for schema, channel, message in reader.iter_messages():
-                _collect(schema, channel, message, vectors, transitions, frames, images)
+            for record in StreamReader(f, validate_crcs=True, emit_chunks=True).records:
+                if not isinstance(record, Chunk):
+                    take(record)
+                    continue
+                try:
+                    parts = breakup_chunk(record, validate_crc=True)
+                    for part in parts:
+                        take(part)
+                except Exception:
+                    raise _chunk_damage(path, record, records) from None
     except McapError:
         raise
     except Exception as err:
@@ -386,77 +496,3 @@ def _collect(
         image = CompressedImage.FromString(message.data)
         pixels = np.asarray(PIL.Image.open(io.BytesIO(image.data)).convert("RGB"))
         frames[channel.topic[len(CAMERA_PREFIX) :]][message.sequence] = pixels
-
-
-@dataclass(frozen=True)
-class Recovery:
-    """What :func:`recover` kept."""
-
-    source: Path
-    output: Path
-    messages: int
-    metadata: int
-    complete: bool  # the source was already a valid, finished file
-
-
-def recover(path: str | Path, output: str | Path | None = None, *, force: bool = False) -> Recovery:
-    """Rewrite a truncated episode log (e.g. from a killed recorder) into a valid file.
-
-    Every record before the damage is kept. ``output`` defaults to
-    ``<name>.recovered.mcap`` beside the source; it is not overwritten unless ``force``.
-    """
-    path = _open_checked(path)
-    output = Path(output) if output is not None else path.with_suffix(".recovered.mcap")
-    if output.resolve() == path.resolve():
-        raise McapError("recover writes a new file; choose an `output` other than the damaged file")
-    if output.exists() and not force:
-        raise McapError(
-            f"{output} already exists; choose another `output` or overwrite it (`force`)"
-        )
-    schemas: dict[int, Schema] = {}
-    channels: dict[int, Channel] = {}
-    messages: list[Message] = []
-    metadata: list[Metadata] = []
-    complete = False
-    with open(path, "rb") as f:
-        try:
-            for record in StreamReader(f, skip_magic=False).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                elif isinstance(record, Message):
-                    messages.append(record)
-                elif isinstance(record, Metadata):
-                    metadata.append(record)
-            complete = True
-        except Exception:
-            pass
-    kept = [
-        m
-        for m in messages
-        if m.channel_id in channels and channels[m.channel_id].schema_id in schemas
-    ]
-    with open(output, "wb") as f:
-        writer = Writer(f, compression=CompressionType.ZSTD)
-        writer.start(profile="twinrl", library="twinrl recover")
-        schema_ids = {
-            old: writer.register_schema(s.name, s.encoding, s.data) for old, s in schemas.items()
-        }
-        channel_ids = {
-            old: writer.register_channel(
-                c.topic, c.message_encoding, schema_ids[c.schema_id], c.metadata
-            )
-            for old, c in channels.items()
-            if c.schema_id in schema_ids
-        }
-        for m in kept:
-            writer.add_message(
-                channel_ids[m.channel_id], m.log_time, m.data, m.publish_time, m.sequence
-            )
-        for record in metadata:
-            writer.add_metadata(record.name, record.metadata)
-        writer.finish()
-    return Recovery(
-        source=path, output=output, messages=len(kept), metadata=len(metadata), complete=complete
-    )

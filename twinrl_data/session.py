@@ -6,50 +6,98 @@
       manifest.json                       # format, created_at, one entry per episode
       episodes/000000_<episode_id>.mcap   # one MCAP file per episode
       episodes/000001_<episode_id>.mcap
+      .lock                               # who last changed the manifest
 
-The manifest is rewritten atomically when an episode starts (status ``recording``) and
-when it ends (``complete``, with length and success), so a crash leaves it consistent.
+Every episode file carries its own metadata; the manifest is a cache of them (order,
+status, length, success) that :func:`twinrl_data.repair.repair_session` can always
+rebuild. Its changes are made under the session's lock (:mod:`twinrl_data.locking`),
+each re-reading the manifest first, so several recorders may append to one session at
+once, each episode under its own number. It is replaced atomically, fsynced, when an
+episode starts (status ``recording``) and ends (``complete``, with length and
+success). Readers never refuse a session whose manifest disagrees with its files: they
+list what can be read and say what is wrong (:attr:`Session.problems`).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import tempfile
+import re
+import warnings
 from pathlib import Path
 from typing import Any
 
-from twinrl_data.errors import DataError
-from twinrl_data.mcap_log import EpisodeWriter
+from twinrl_data.atomic import require_free_space, write_atomic
+from twinrl_data.errors import DataError, DataWarning
+from twinrl_data.locking import FolderLock
+from twinrl_data.mcap_log import EpisodeWriter, read_summary
 from twinrl_data.schema import Episode, EpisodeMeta, image_field, now_iso
 
 MANIFEST = "manifest.json"
 FORMAT = "twinrl-session"
+EPISODES = "episodes"
+READABLE = ("complete", "recovered")  # statuses of episodes readers list
+FREE_MARGIN = 256 * 2**20  # bytes that must be free before an episode starts
+NUMBERED = re.compile(r"^(\d{6})_(.+)\.mcap$")
 
 
 def is_session(path: str | Path) -> bool:
-    return (Path(path) / MANIFEST).is_file()
+    path = Path(path)
+    return (path / MANIFEST).is_file() or (
+        (path / EPISODES).is_dir()
+        and any(NUMBERED.match(p.name) for p in (path / EPISODES).iterdir())
+    )
+
+
+def entry_for(relative: str, meta: EpisodeMeta, status: str, length: int | None) -> dict:
+    """A manifest entry for an episode file (``relative`` to the session folder)."""
+    entry = {
+        "file": relative,
+        "episode_id": meta.episode_id,
+        "task": meta.task,
+        "source": meta.source,
+        "world": meta.world,
+        "created_at": meta.created_at,
+        "status": status,
+    }
+    if length is not None:
+        entry.update(length=length, success=meta.success)
+    return entry
+
+
+def entries_from_files(folder: Path) -> tuple[list[dict], list[str]]:
+    """Manifest entries read from the episode files themselves, in number order, and
+    what could not be read (one line each)."""
+    entries, problems = [], []
+    for path in sorted((folder / EPISODES).glob("*.mcap")):
+        if not NUMBERED.match(path.name):
+            continue
+        relative = f"{EPISODES}/{path.name}"
+        try:
+            summary = read_summary(path)
+        except DataError as err:
+            problems.append(f"{relative} cannot be read: {err}")
+            continue
+        status = "complete" if summary.length is not None else "partial"
+        entries.append(entry_for(relative, summary.meta, status, summary.length))
+    return entries, problems
 
 
 class Session:
-    """Open an existing session (``Session(path)``) or make one (``Session.create``)."""
+    """Open an existing session (``Session(path)``) or make one (``Session.create``).
 
-    def __init__(self, path: str | Path) -> None:
+    ``min_free`` is the free disk space (bytes) an episode needs to start.
+    """
+
+    def __init__(self, path: str | Path, *, min_free: int = FREE_MARGIN) -> None:
         self.path = Path(path)
-        manifest = self.path / MANIFEST
-        if not manifest.is_file():
+        self.min_free = min_free
+        if not is_session(self.path):
             raise DataError(
-                f"{self.path} is not a session (no {MANIFEST}); give a folder that episodes were "
-                "recorded into, or create one with Session.create"
+                f"{self.path} is not a session (no {MANIFEST}); give a folder that episodes "
+                "were recorded into, or create one with Session.create"
             )
-        try:
-            self.manifest: dict[str, Any] = json.loads(manifest.read_text())
-        except json.JSONDecodeError as err:
-            raise DataError(
-                f"{manifest} is not valid JSON ({err.msg}); the session is damaged"
-            ) from None
-        if self.manifest.get("format") != FORMAT:
-            raise DataError(f"{manifest} is not a twinrl session manifest")
+        self.problems: list[str] = []
+        self.manifest = self._load()
 
     @classmethod
     def create(cls, path: str | Path, *, exist_ok: bool = False) -> Session:
@@ -62,42 +110,124 @@ class Session:
                 f"session {path} already exists; choose another folder or add episodes to "
                 "it (`append`)"
             )
+        if path.is_file():
+            raise DataError(f"{path} is a file, not a folder; choose a new session folder")
         if path.exists() and any(path.iterdir()):
             raise DataError(
                 f"{path} exists and is not an empty folder; choose a new session folder"
             )
-        (path / "episodes").mkdir(parents=True, exist_ok=True)
-        _write_json(
-            path / MANIFEST,
-            {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []},
-        )
+        try:
+            (path / EPISODES).mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise DataError(f"cannot create the session folder {path} ({err.strerror})") from None
+        with FolderLock(path):
+            if not (path / MANIFEST).is_file():
+                manifest = {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []}
+                write_atomic(path / MANIFEST, _encode(manifest))
         return cls(path)
+
+    # ------------------------------------------------------------------ reading
+    def _load(self) -> dict[str, Any]:
+        """The manifest as it is on disk (rebuilt from the episode files when it is
+        damaged or missing), with :attr:`problems` saying how it disagrees with them."""
+        self.problems = []
+        manifest_path = self.path / MANIFEST
+        try:
+            manifest = json.loads(manifest_path.read_text())
+            if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+                raise ValueError("not a twinrl session manifest")
+            if not isinstance(manifest.get("episodes"), list):
+                raise ValueError("no episode list")
+        except (OSError, ValueError) as err:
+            reason = "missing" if not manifest_path.exists() else f"damaged ({err})"
+            entries, unreadable = entries_from_files(self.path)
+            self.problems.append(
+                f"{manifest_path} is {reason}; its {len(entries)} episodes were read from their "
+                f"files (`twinrl data repair {self.path}` rewrites it)"
+            )
+            self.problems += unreadable
+            return {"format": FORMAT, "version": 1, "created_at": None, "episodes": entries}
+        listed = {e.get("file") for e in manifest["episodes"]}
+        for entry in manifest["episodes"]:
+            file = self.path / entry["file"]
+            if not file.is_file():
+                self.problems.append(f"{entry['file']} is listed but missing")
+            elif entry.get("status") not in READABLE:
+                self.problems.append(
+                    f"{entry['file']} is {entry.get('status')}: its recorder did not finish it "
+                    f"(if none is running, `twinrl data repair {self.path}` recovers it)"
+                )
+        orphans = sorted(
+            p.name
+            for p in (self.path / EPISODES).glob("*.mcap")
+            if NUMBERED.match(p.name) and f"{EPISODES}/{p.name}" not in listed
+        )
+        if orphans:
+            self.problems.append(
+                f"{len(orphans)} episode files are not in the manifest ({', '.join(orphans[:3])}"
+                f"{', ...' if len(orphans) > 3 else ''}); `twinrl data repair {self.path}` "
+                "adopts them"
+            )
+        return manifest
+
+    def refresh(self) -> None:
+        """Read the manifest again (other recorders may have added episodes)."""
+        self.manifest = self._load()
+
+    def warn(self) -> None:
+        """Say every problem found as a :class:`~twinrl_data.errors.DataWarning`."""
+        for problem in self.problems:
+            warnings.warn(f"session {self.path}: {problem}", DataWarning, stacklevel=2)
 
     @property
     def entries(self) -> list[dict[str, Any]]:
         return list(self.manifest["episodes"])
 
     def episode_paths(self) -> list[Path]:
-        """Episode files in recording order."""
+        """Episode files in recording order, every entry (see :meth:`readable_paths`)."""
         return [self.path / e["file"] for e in self.manifest["episodes"]]
 
+    def readable_paths(self) -> list[Path]:
+        """The files of the finished episodes that exist, in recording order."""
+        return [
+            self.path / e["file"]
+            for e in self.manifest["episodes"]
+            if e.get("status") in READABLE and (self.path / e["file"]).is_file()
+        ]
+
+    # ------------------------------------------------------------------ writing
+    def _change(self, change) -> Any:
+        """Apply ``change`` to the manifest on disk under the session's lock."""
+        with FolderLock(self.path):
+            self.manifest = self._load()
+            result = change(self.manifest["episodes"])
+            self._save()
+        return result
+
     def record(self, meta: EpisodeMeta, **writer_options: Any) -> EpisodeWriter:
-        """Start recording an episode of this session; returns its :class:`EpisodeWriter`."""
-        index = len(self.manifest["episodes"])
-        relative = f"episodes/{index:06d}_{meta.episode_id}.mcap"
-        entry = {
-            "file": relative,
-            "episode_id": meta.episode_id,
-            "task": meta.task,
-            "source": meta.source,
-            "world": meta.world,
-            "created_at": meta.created_at,
-            "status": "recording",
-        }
-        writer = EpisodeWriter(self.path / relative, meta, on_close=self._closed, **writer_options)
-        self.manifest["episodes"].append(entry)
-        self._save()
-        return writer
+        """Start recording an episode of this session; returns its :class:`EpisodeWriter`.
+
+        Refused while less than ``min_free`` bytes are free. The episode takes the next
+        free number (under the lock, so two recorders never share one)."""
+        require_free_space(self.path, self.min_free, "recording an episode")
+
+        def start(episodes: list[dict]) -> EpisodeWriter:
+            taken = [
+                int(m.group(1)) for e in episodes if (m := NUMBERED.match(Path(e["file"]).name))
+            ]
+            taken += [
+                int(m.group(1))
+                for p in (self.path / EPISODES).glob("*.mcap")
+                if (m := NUMBERED.match(p.name))
+            ]
+            relative = f"{EPISODES}/{max(taken, default=-1) + 1:06d}_{meta.episode_id}.mcap"
+            writer = EpisodeWriter(
+                self.path / relative, meta, on_close=self._closed, **writer_options
+            )
+            episodes.append(entry_for(relative, meta, "recording", None))
+            return writer
+
+        return self._change(start)
 
     def add(self, episode: Episode) -> Path:
         """Write a whole in-memory episode into this session; returns its file."""
@@ -114,52 +244,43 @@ class Session:
         The file must already be inside this session's ``episodes/`` folder.
         """
         path = Path(path).resolve()
-        folder = (self.path / "episodes").resolve()
+        folder = (self.path / EPISODES).resolve()
         if path.parent != folder or not path.is_file():
             raise DataError(f"{path} is not an episode file inside {folder}")
-        self.manifest["episodes"].append(
-            {
-                "file": f"episodes/{path.name}",
-                "episode_id": meta.episode_id,
-                "task": meta.task,
-                "source": meta.source,
-                "world": meta.world,
-                "created_at": meta.created_at,
-                "status": "complete",
-                "length": length,
-                "success": meta.success,
-            }
+        self._change(
+            lambda episodes: episodes.append(
+                entry_for(f"{EPISODES}/{path.name}", meta, "complete", length)
+            )
         )
-        self._save()
 
     def truncate(self, keep: int) -> list[Path]:
         """Forget every episode after the first ``keep`` (e.g. a round an interrupted run
         did not finish): their files move to ``discarded/``, nothing is deleted."""
-        dropped = self.manifest["episodes"][keep:]
-        moved = []
-        if dropped:
-            (self.path / "discarded").mkdir(exist_ok=True)
-            for entry in dropped:
+
+        def drop(episodes: list[dict]) -> list[Path]:
+            moved = []
+            if episodes[keep:]:
+                (self.path / "discarded").mkdir(exist_ok=True)
+            for entry in episodes[keep:]:
                 source = self.path / entry["file"]
                 if source.exists():
                     moved.append(source.replace(self.path / "discarded" / source.name))
-            self.manifest["episodes"] = self.manifest["episodes"][:keep]
-            self._save()
-        return moved
+            del episodes[keep:]
+            return moved
 
-    def _closed(self, meta: EpisodeMeta, length: int) -> None:
-        for entry in self.manifest["episodes"]:
-            if entry["episode_id"] == meta.episode_id:
-                entry.update(status="complete", length=length, success=meta.success)
-        self._save()
+        return self._change(drop)
+
+    def _closed(self, meta: EpisodeMeta, length: int, status: str) -> None:
+        def close(episodes: list[dict]) -> None:
+            for entry in episodes:
+                if entry["episode_id"] == meta.episode_id:
+                    entry.update(status=status, length=length, success=meta.success)
+
+        self._change(close)
 
     def _save(self) -> None:
-        _write_json(self.path / MANIFEST, self.manifest)
+        write_atomic(self.path / MANIFEST, _encode(self.manifest))
 
 
-def _write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write atomically: a crash leaves the old or the new file, never half of one."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".manifest-")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1)
-    os.replace(tmp, path)
+def _encode(manifest: dict[str, Any]) -> bytes:
+    return json.dumps(manifest, indent=1).encode()

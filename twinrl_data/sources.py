@@ -48,12 +48,19 @@ def open_episodes(
     if path.suffix == ".mcap":
         return iter([read_episode(path, images=images)]), 1
     if is_session(path):
-        paths = Session(path).episode_paths()
+        paths = _session_paths(path)
         return (read_episode(p, images=images) for p in paths), len(paths)
     if is_dataset(path):
         count = int(json.loads((path / "meta" / "info.json").read_text())["total_episodes"])
         return iter_dataset_episodes(path, cameras=None if images else []), count
     raise DataError(f"{path} is not {KINDS}")
+
+
+def _session_paths(path: Path) -> list[Path]:
+    """The finished episodes of a session, saying (as warnings) what else it holds."""
+    session = Session(path)
+    session.warn()
+    return session.readable_paths()
 
 
 def open_episode(spec: str | Path, default_index: int = 0) -> Episode:
@@ -67,7 +74,7 @@ def open_episode(spec: str | Path, default_index: int = 0) -> Episode:
     if path.suffix == ".mcap":
         return read_episode(path)
     if is_session(path):
-        paths = Session(path).episode_paths()
+        paths = _session_paths(path)
         if not 0 <= index < len(paths):
             raise DataError(f"{path} has {len(paths)} episodes; episode {index} is out of range")
         return read_episode(paths[index])

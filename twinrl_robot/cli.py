@@ -101,7 +101,12 @@ def expert(
     if not as_json:
         console.print(success_table(reports))
         if session is not None:
-            console.print(f"recorded {len(session.entries)} episodes in {session.path}")
+            recorded = sum(len(r.episodes) for r in reports)
+            session.refresh()
+            console.print(
+                f"recorded {recorded} episodes in {session.path} "
+                f"({len(session.entries)} in the session)"
+            )
 
 
 def success_table(reports: list[ExpertReport]) -> Table:

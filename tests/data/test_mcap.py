@@ -16,7 +16,8 @@ from mcap.reader import make_reader
 
 from tests.data.conftest import make_meta, write_episode
 from twinrl_data.errors import DataError, McapError
-from twinrl_data.mcap_log import EpisodeWriter, read_episode, read_meta, recover
+from twinrl_data.mcap_log import EpisodeWriter, read_episode, read_meta
+from twinrl_data.salvage import recover
 
 
 def test_round_trip_keeps_every_field_in_order(episode_file):

@@ -11,12 +11,13 @@ simulator, the datasets) when it runs.
 from __future__ import annotations
 
 import sys
+import warnings
 
 import typer
 from rich.console import Console
 
 from twinrl_data import cli as data_cli
-from twinrl_data.errors import TwinrlError
+from twinrl_data.errors import DataWarning, TwinrlError
 from twinrl_data.settings_cli import describe
 from twinrl_learn.cli import bench, demo, evaluation, mine, train
 from twinrl_robot import cli as robot_cli
@@ -45,10 +46,23 @@ app.command("mine")(mine.mine_command)
 app.add_typer(bench.app, name="bench")
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A :class:`DataWarning` as one yellow line; other warnings as Python shows them."""
+    if issubclass(category, DataWarning):
+        Console(stderr=True).print(f"[yellow]warning:[/yellow] {message}", highlight=False)
+    else:
+        _python_show_warning(message, category, filename, lineno, file, line)
+
+
+_python_show_warning = warnings.showwarning
+
+
 def main() -> None:
     """Entry point: the project's errors (bad input of any kind) become one red line and
     exit status 2, a setting named by its flag; anything else is a bug and keeps its
-    traceback."""
+    traceback. Data warnings (a session whose manifest disagrees with its files) are one
+    yellow line each."""
+    warnings.showwarning = _show_warning
     try:
         app()
     except TwinrlError as err:
