@@ -15,9 +15,7 @@ from __future__ import annotations
 
 import difflib
 import json
-import os
 import re
-import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ import pyarrow.parquet as pq
 from mcap.reader import make_reader
 
 from twinrl_data import schema as contract
+from twinrl_data.atomic import write_atomic
 from twinrl_data.errors import DataError, SettingError
 from twinrl_data.lerobot_io import (
     episode_metadata,
@@ -234,11 +233,11 @@ def _read(catalog: Path) -> pa.Table:
 
 
 def _write(table: pa.Table, catalog: Path) -> None:
+    """Replace the catalog whole (fsynced, permissions from the umask)."""
     catalog.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=catalog.parent, suffix=".parquet")
-    os.close(fd)
-    pq.write_table(table, tmp)
-    os.replace(tmp, catalog)
+    buffer = pa.BufferOutputStream()
+    pq.write_table(table, buffer)
+    write_atomic(catalog, buffer.getvalue().to_pybytes())
 
 
 def open_catalog(catalog: str | Path = DEFAULT_CATALOG) -> duckdb.DuckDBPyConnection:

@@ -104,7 +104,8 @@ def repair_command(
     console.print(
         f"{session}: {report.episodes} episodes listed (manifest was {report.manifest_was}); "
         f"adopted {len(report.adopted)}, recovered {len(report.recovered)}, "
-        f"missing {len(report.missing)}, unreadable {len(report.unreadable)}"
+        f"missing {len(report.missing)}, empty {len(report.empty)}, "
+        f"unreadable {len(report.unreadable)}"
     )
     for line in report.missing:
         console.print(f"  missing: {line}")

@@ -410,6 +410,7 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     records: dict[str, dict[str, Any]] = {}
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
+
     def take(record: object) -> None:
         if isinstance(record, Message):
             channel = channels.get(record.channel_id)

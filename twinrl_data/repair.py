@@ -42,6 +42,7 @@ class Repair:
     adopted: list[str] = field(default_factory=list)  # files the old manifest lacked
     missing: list[str] = field(default_factory=list)  # listed files that are gone
     recovered: list[str] = field(default_factory=list)  # unfinished/damaged, salvaged
+    empty: list[str] = field(default_factory=list)  # unfinished before a whole step
     unreadable: list[str] = field(default_factory=list)  # nothing could be salvaged
     manifest_was: str = "consistent"  # consistent, damaged, missing
 
@@ -102,19 +103,21 @@ def _entry(path: Path, relative: str, file: Path, report: Repair) -> dict | None
         return entry_for(relative, summary.meta, "complete", summary.length)
     (path / DAMAGED).mkdir(exist_ok=True)
     kept = path / DAMAGED / file.name
+    salvaged = file.with_name(file.name.replace(".mcap", ".recovered.mcap"))
     try:
-        salvaged = file.with_name(file.name.replace(".mcap", ".recovered.mcap"))
         recover(file, salvaged, force=True)
-        read = read_summary(salvaged)
-    except DataError:
+        meta = read_summary(salvaged).meta
+        length = len(read_episode(salvaged, images=False))
+    except DataError as err:
+        salvaged.unlink(missing_ok=True)
         file.replace(kept)
-        report.unreadable.append(f"{relative} (moved to {DAMAGED}/)")
+        empty = "no complete step" in str(err)
+        (report.empty if empty else report.unreadable).append(f"{relative} (moved to {DAMAGED}/)")
         return None
     file.replace(kept)
     salvaged.replace(file)  # the salvaged episode takes the original's place and number
     report.recovered.append(relative)
-    length = len(read_episode(file, images=False))
-    return entry_for(relative, read.meta, "recovered", length)
+    return entry_for(relative, meta, "recovered", length)
 
 
 @dataclass

@@ -37,6 +37,7 @@ from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import TransitionBatch
 from twinrl_learn.settings import RLConfig
+from twinrl_learn.training_state import load_state, save_state
 
 
 class CriticEnsemble(nn.Module):
@@ -224,7 +225,7 @@ class Agent:
         path = Path(folder) / "agent.pt"
         if not path.is_file():
             return False
-        state = torch.load(path, weights_only=False)
+        state = load_state(path)
         try:
             self.critic.load_state_dict(state["critic"])
             self.target.load_state_dict(state["target"])
@@ -269,7 +270,7 @@ class Agent:
         ``agent.pt`` (critics, optimizers, counters, RNG) and ``rl_config.json``."""
         folder = Path(folder)
         self.policy.save_pretrained(folder)
-        torch.save(self.state_dict(), folder / "agent.pt")
+        save_state(self.state_dict(), folder / "agent.pt")
         (folder / "rl_config.json").write_text(json.dumps(asdict(self.config), indent=1))
         return folder
 
@@ -279,5 +280,5 @@ class Agent:
         if not (folder / "agent.pt").is_file():
             raise LearnError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
         agent = cls(Policy.from_pretrained(folder), RLConfig.load(folder))
-        agent.load_state_dict(torch.load(folder / "agent.pt", weights_only=False))
+        agent.load_state_dict(load_state(folder / "agent.pt"))
         return agent

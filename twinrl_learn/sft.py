@@ -34,6 +34,7 @@ from twinrl_data.training import FrameTable, load_frames
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, PolicyConfig
 from twinrl_learn.settings import STEM_STRIDES, SFTConfig
+from twinrl_learn.training_state import load_state, save_state
 
 # What a run saved before an option existed had: it did not locate objects, and it kept
 # its learning rate constant.
@@ -108,7 +109,7 @@ def train_sft(
         raise LearnError(f"{out} already holds a run; resume it or choose another folder")
     if resume and not state_file.is_file():
         raise LearnError(f"{state_file} does not exist: there is no run to resume")
-    saved = torch.load(state_file, weights_only=False) if resume else None
+    saved = load_state(state_file) if resume else None
     if saved is not None:
         _check_same_network(saved["config"], config.resolved(), out)
         config = _own_settings(config, saved["config"], out)
@@ -286,7 +287,7 @@ def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
 
 def _checkpoint(policy, optimizer, generator, step, losses, out: Path, config: SFTConfig) -> None:
     policy.save_pretrained(out / "checkpoints" / f"step_{step:06d}")
-    torch.save(
+    save_state(
         {
             "model": policy.state_dict(),
             "optimizer": optimizer.state_dict(),

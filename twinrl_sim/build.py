@@ -115,7 +115,23 @@ def compile_scene(scene: SceneSpec, *, extra_effects: dict | None = None) -> Com
             model = spec.compile()
     except ValueError as err:
         raise SpecError(f"scene '{scene.name}' does not compile in MuJoCo: {err}") from None
+    _check_stable(model, scene.name)
     return CompiledScene(spec=scene, model=model, layout=layout)
+
+
+STABILITY_STEPS = 25  # physics steps a compiled scene must take without diverging
+
+
+def _check_stable(model: mujoco.MjModel, name: str) -> None:
+    """Refuse a model that diverges at once (a NaN, an unstable acceleration)."""
+    data = mujoco.MjData(model)
+    mujoco.mj_step(model, data, nstep=STABILITY_STEPS)
+    diverged = data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0
+    if diverged or not (np.isfinite(data.qpos).all() and np.isfinite(data.qvel).all()):
+        raise SpecError(
+            f"scene '{name}' diverges in simulation within {STABILITY_STEPS} physics steps; "
+            "check its objects' positions, sizes and masses and its physics timestep"
+        )
 
 
 def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:

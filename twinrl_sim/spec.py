@@ -39,14 +39,20 @@ from twinrl_sim.errors import TwinError
 
 SCHEMA_VERSION = 1
 
-Vec3 = tuple[float, float, float]
+# Every number is finite and physically bounded: a NaN, an infinity or 1e300 anywhere
+# would compile and then simulate to NaN. Positions and sizes are metres within a cell.
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-10.0, le=10.0)]
+Angle = Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)]  # rad
+Vec3 = tuple[Coordinate, Coordinate, Coordinate]
+Unit = Annotated[float, Field(ge=0, le=1)]
 Rgba = tuple[
     Annotated[float, Field(ge=0, le=1)],
     Annotated[float, Field(ge=0, le=1)],
     Annotated[float, Field(ge=0, le=1)],
     Annotated[float, Field(ge=0, le=1)],
 ]
-Positive = Annotated[float, Field(gt=0)]
+Positive = Annotated[float, Field(gt=0, le=10.0, allow_inf_nan=False)]  # a size (m)
+Mass = Annotated[float, Field(gt=0, le=1000.0, allow_inf_nan=False)]  # kg
 
 
 class SpecError(TwinError):
@@ -72,7 +78,7 @@ class GeomSpec(_Strict):
     size: list[Positive] = Field(default_factory=list, max_length=3)
     file: Path | None = None
     pos: Vec3 = (0.0, 0.0, 0.0)
-    euler: Vec3 = (0.0, 0.0, 0.0)
+    euler: tuple[Angle, Angle, Angle] = (0.0, 0.0, 0.0)
     rgba: Rgba | None = None
     sides: int = Field(default=6, ge=3, le=64)
     contact: bool = True
@@ -100,8 +106,8 @@ class ObjectSpec(_Strict):
     name: str = Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
     role: Literal["manipulated", "target", "fixture"]
     pos: Vec3 = (0.5, 0.0, 0.0)
-    yaw: float = 0.0
-    mass: Positive | None = None
+    yaw: Angle = 0.0
+    mass: Mass | None = None
     friction: Annotated[float, Field(gt=0, le=5)] = 1.0
     rgba: Rgba = (0.8, 0.8, 0.8, 1.0)
     geoms: list[GeomSpec] = Field(min_length=1)
@@ -129,7 +135,7 @@ class RobotSpec(_Strict):
     tcp_site: str | None = None
     gripper: Literal["parallel_jaw", "none"] = "parallel_jaw"
     base_pos: Vec3 = (0.0, 0.0, 0.0)
-    home_qpos: list[float] | None = None
+    home_qpos: list[Angle] | None = None
 
     @model_validator(mode="after")
     def _one_source(self) -> RobotSpec:
@@ -158,8 +164,8 @@ class TableSpec(_Strict):
     """The table top: ``size`` along its own axes, turned by ``yaw`` about the vertical."""
 
     size: tuple[Positive, Positive] = (0.9, 1.3)
-    center: tuple[float, float] = (0.45, 0.0)
-    yaw: float = 0.0
+    center: tuple[Coordinate, Coordinate] = (0.45, 0.0)
+    yaw: Angle = 0.0
     thickness: Positive = 0.04
     top_height: Annotated[float, Field(ge=-1.0, le=1.5)] = 0.0
     friction: Annotated[float, Field(gt=0, le=5)] = 0.8
@@ -194,7 +200,7 @@ DEFAULT_CAMERAS = (
 class LightSpec(_Strict):
     pos: Vec3 = (0.4, 0.0, 1.5)
     dir: Vec3 = (0.0, 0.0, -1.0)
-    diffuse: tuple[float, float, float] = (0.7, 0.7, 0.7)
+    diffuse: tuple[Unit, Unit, Unit] = (0.7, 0.7, 0.7)
 
 
 class WorkspaceSpec(_Strict):
@@ -211,8 +217,8 @@ class WorkspaceSpec(_Strict):
 
 
 class PhysicsSpec(_Strict):
-    timestep: Annotated[float, Field(gt=0, le=0.01)] = 0.002
-    control_hz: Annotated[float, Field(gt=0, le=1000)] = 10.0
+    timestep: Annotated[float, Field(ge=1e-5, le=0.01)] = 0.002
+    control_hz: Annotated[float, Field(ge=0.1, le=1000)] = 10.0
 
     @model_validator(mode="after")
     def _whole_substeps(self) -> PhysicsSpec:

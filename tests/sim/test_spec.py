@@ -1,11 +1,13 @@
 """Scene specs: validation errors say what is wrong and where; digests; custom robots."""
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from twinrl_sim.build import compile_scene
+from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SpecError, load_spec, parse_spec, save_spec
 from twinrl_sim.tasks import TASKS, make_task
 
@@ -147,3 +149,57 @@ def test_custom_robot_with_wrong_names_says_which(tmp_path):
     }
     with pytest.raises(SpecError, match="lacks joint 'jX'"):
         compile_scene(parse_spec(data))
+
+
+def _leaves(node, path=()):
+    """Paths to every number of a parsed spec's dict."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            yield from _leaves(value, (*path, key))
+    elif isinstance(node, list | tuple):
+        for index, value in enumerate(node):
+            yield from _leaves(value, (*path, index))
+    elif isinstance(node, int | float) and not isinstance(node, bool):
+        yield path
+
+
+def _replaced(data, path, value):
+    import copy
+
+    changed = copy.deepcopy(data)
+    node = changed
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return changed
+
+
+@pytest.mark.parametrize("task", ["pick_place", "insert_hexagon"])
+def test_no_damaged_number_compiles_into_a_scene_that_diverges(task):
+    """Seeded fuzzing: one number of a built-in scene replaced by NaN, an infinity, a huge
+    value, a negative, zero or a wrong type. Each spec is refused with the project's
+    error, or compiles and simulates to finite states."""
+    from twinrl_sim.cell import Cell
+
+    data = json.loads(make_task(task).scene.model_dump_json())
+    paths = list(_leaves(data))
+    rng = np.random.default_rng(11)
+    values = [float("nan"), float("inf"), -float("inf"), 1e300, -1e300, -1.0, 0.0, 1e6, "x", []]
+    refused = accepted = 0
+    for _ in range(200):
+        path = paths[int(rng.integers(len(paths)))]
+        value = values[int(rng.integers(len(values)))]
+        try:
+            scene = parse_spec(_replaced(data, path, value))
+            cell = Cell(compile_scene(scene))
+        except TwinError:
+            refused += 1
+            continue
+        home = np.array(cell.layout.home_qpos)
+        cell.reset_robot()
+        for _ in range(5):
+            cell.send(home, 0.0)
+        assert np.isfinite(cell.state_vector()).all(), f"{path} = {value!r} diverged"
+        cell.close()
+        accepted += 1
+    assert refused + accepted == 200 and refused > 50 and accepted > 10, (refused, accepted)
