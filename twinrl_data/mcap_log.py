@@ -317,6 +317,11 @@ def _iso_to_ns(text: str) -> int:
 
 def _open_checked(path: str | Path) -> Path:
     path = Path(path)
+    if path.is_dir():
+        raise McapError(
+            f"{path} is a folder, not an episode file; give one of its .mcap files (a session "
+            "folder is read whole by the commands that take sessions)"
+        )
     if not path.is_file():
         raise McapError(f"{path} does not exist (expected an episode .mcap file)")
     with open(path, "rb") as f:

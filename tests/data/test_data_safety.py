@@ -163,12 +163,12 @@ def test_files_take_their_permissions_from_the_umask(tmp_path):
 class FullDisk:
     """A file object that fails with ENOSPC once ``room`` bytes were written."""
 
-    def __init__(self, file, room: int) -> None:
-        self.file, self.room = file, room
+    def __init__(self, file, room: int, error: int = errno.ENOSPC) -> None:
+        self.file, self.room, self.error = file, room, error
 
     def write(self, data) -> int:
         if self.room < len(data):
-            raise OSError(errno.ENOSPC, "No space left on device")
+            raise OSError(self.error, os.strerror(self.error))
         self.room -= len(data)
         return self.file.write(data)
 
@@ -176,20 +176,25 @@ class FullDisk:
         return getattr(self.file, name)
 
 
-def test_a_full_disk_mid_episode_keeps_what_was_written_as_a_partial_episode(tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    ("error", "said"), [(errno.ENOSPC, "is full"), (errno.EIO, "Input/output error")]
+)
+def test_a_failed_write_mid_episode_keeps_what_was_written_as_a_partial_episode(
+    tmp_path, monkeypatch, error, said
+):
     session = Session.create(tmp_path / "s")
     _record(session, 2)
     real_fdopen = os.fdopen
 
     def fdopen(fd, mode):  # episode files only: the manifest still has room
         episode = os.readlink(f"/proc/self/fd/{fd}").endswith(".mcap")
-        return FullDisk(real_fdopen(fd, mode), 30_000) if episode else real_fdopen(fd, mode)
+        return FullDisk(real_fdopen(fd, mode), 30_000, error) if episode else real_fdopen(fd, mode)
 
     monkeypatch.setattr(mcap_log.os, "fdopen", fdopen)
     recorder = Recorder(session, flush_seconds=0.1)
     recorder.start_episode(make_meta())
     rng = np.random.default_rng(0)
-    with pytest.raises(DataError, match="is full; .* steps written so far are kept"):
+    with pytest.raises(DataError, match=f"{said}.*; the .* steps written so far are kept"):
         for t in range(1000):
             recorder.add_frame(make_step(t, 1000, rng, cameras=()))
     monkeypatch.undo()
@@ -343,3 +348,53 @@ def test_an_export_that_fails_leaves_the_old_path_as_it_was(tmp_path):
     episodes, _ = open_episodes(tmp_path / "s", images=False)
     export_dataset(episodes, to)
     assert verify(to).problems == []
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MiB tmpfs (skipped where this machine may not mount one)."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    made = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(mount)], capture_output=True
+    )
+    if made.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here: " + made.stderr.decode().strip())
+    yield mount
+    subprocess.run(["umount", str(mount)], check=True)
+
+
+def test_recording_until_a_real_disk_is_full(small_disk):
+    session = Session(Session.create(small_disk / "s").path, min_free=0)
+    rng = np.random.default_rng(0)
+    recorder = Recorder(session, image_format="png", flush_seconds=0.2)
+    with pytest.raises(DataError, match="is full") as error:
+        while True:
+            recorder.start_episode(make_meta())
+            for t in range(20):
+                noise = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)  # incompressible
+                recorder.add_frame(
+                    make_step(t, 20, rng, cameras=()) | {"observation.images.front": noise}
+                )
+            recorder.save_episode()
+    assert "\n" not in str(error.value)
+    session.refresh()
+    finished = session.readable_paths()
+    assert finished, "the disk held at least one episode"
+    for path in finished:
+        assert len(read_episode(path)) == 20
+    assert not list((small_disk / "s").glob(".*.tmp"))
+
+
+def test_a_read_only_session_is_read_and_refuses_a_recording_in_one_line(small_disk):
+    session = Session(Session.create(small_disk / "s").path, min_free=0)
+    _record(session, 2)
+    subprocess.run(["mount", "-o", "remount,ro", str(small_disk)], check=True)
+    try:
+        reread = Session(small_disk / "s", min_free=0)
+        assert [len(read_episode(p)) for p in reread.readable_paths()] == [6, 6]
+        with pytest.raises(DataError, match="Read-only file system") as error:
+            reread.record(make_meta())
+        assert "\n" not in str(error.value)
+    finally:
+        subprocess.run(["mount", "-o", "remount,rw", str(small_disk)], check=True)
