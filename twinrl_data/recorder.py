@@ -20,9 +20,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
+from twinrl_data.atomic import require_free_space
 from twinrl_data.errors import DataError
 from twinrl_data.mcap_log import EpisodeWriter
 from twinrl_data.schema import EpisodeMeta
+from twinrl_data.session import FREE_MARGIN
 
 
 class EpisodeTarget(Protocol):
@@ -39,6 +41,7 @@ class EpisodeFolder:
 
     def record(self, meta: EpisodeMeta, **writer_options: Any) -> EpisodeWriter:
         self.folder.mkdir(parents=True, exist_ok=True)
+        require_free_space(self.folder, FREE_MARGIN, "recording an episode")
         return EpisodeWriter(
             self.folder / f"{self.prefix}{meta.episode_id}.mcap", meta, **writer_options
         )

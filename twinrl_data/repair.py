@@ -24,10 +24,10 @@ from twinrl_data.session import (
     EPISODES,
     FORMAT,
     MANIFEST,
-    NUMBERED,
     READABLE,
     Session,
     entry_for,
+    episode_files,
     is_session,
 )
 
@@ -58,11 +58,7 @@ def repair_session(path: str | Path) -> Repair:
     with FolderLock(path):
         old = _old_manifest(path, report)
         listed = {e.get("file"): e for e in old.get("episodes", []) if isinstance(e, dict)}
-        on_disk = {
-            f"{EPISODES}/{p.name}": p
-            for p in sorted((path / EPISODES).glob("*.mcap"))
-            if NUMBERED.match(p.name)
-        }
+        on_disk = {f"{EPISODES}/{p.name}": p for p in episode_files(path)}
         report.missing = sorted(f for f in listed if f not in on_disk)
         entries = []
         for relative, file in on_disk.items():

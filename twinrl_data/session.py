@@ -42,10 +42,15 @@ NUMBERED = re.compile(r"^(\d{6})_(.+)\.mcap$")
 
 def is_session(path: str | Path) -> bool:
     path = Path(path)
-    return (path / MANIFEST).is_file() or (
-        (path / EPISODES).is_dir()
-        and any(NUMBERED.match(p.name) for p in (path / EPISODES).iterdir())
-    )
+    return (path / MANIFEST).is_file() or bool(episode_files(path))
+
+
+def episode_files(folder: Path) -> list[Path]:
+    """The episode files in a session's ``episodes/`` folder: numbered ones in number
+    order, then any others (written by worker processes and registered) by name."""
+    episodes = Path(folder) / EPISODES
+    files = list(episodes.glob("*.mcap")) if episodes.is_dir() else []
+    return sorted(files, key=lambda p: (0, p.name) if NUMBERED.match(p.name) else (1, p.name))
 
 
 def entry_for(relative: str, meta: EpisodeMeta, status: str, length: int | None) -> dict:
@@ -68,9 +73,7 @@ def entries_from_files(folder: Path) -> tuple[list[dict], list[str]]:
     """Manifest entries read from the episode files themselves, in number order, and
     what could not be read (one line each)."""
     entries, problems = [], []
-    for path in sorted((folder / EPISODES).glob("*.mcap")):
-        if not NUMBERED.match(path.name):
-            continue
+    for path in episode_files(folder):
         relative = f"{EPISODES}/{path.name}"
         try:
             summary = read_summary(path)
@@ -97,6 +100,7 @@ class Session:
                 "were recorded into, or create one with Session.create"
             )
         self.problems: list[str] = []
+        self._finished_unlisted: list[Path] = []  # finished files the manifest misses
         self.manifest = self._load()
 
     @classmethod
@@ -131,6 +135,7 @@ class Session:
         """The manifest as it is on disk (rebuilt from the episode files when it is
         damaged or missing), with :attr:`problems` saying how it disagrees with them."""
         self.problems = []
+        self._finished_unlisted = []
         manifest_path = self.path / MANIFEST
         try:
             manifest = json.loads(manifest_path.read_text())
@@ -148,27 +153,36 @@ class Session:
             self.problems += unreadable
             return {"format": FORMAT, "version": 1, "created_at": None, "episodes": entries}
         listed = {e.get("file") for e in manifest["episodes"]}
+        self._finished_unlisted = []
         for entry in manifest["episodes"]:
             file = self.path / entry["file"]
             if not file.is_file():
                 self.problems.append(f"{entry['file']} is listed but missing")
             elif entry.get("status") not in READABLE:
+                if self._finished(file):
+                    self._finished_unlisted.append(file)
+                    continue  # the recorder finished it; only its entry was not updated
                 self.problems.append(
                     f"{entry['file']} is {entry.get('status')}: its recorder did not finish it "
                     f"(if none is running, `twinrl data repair {self.path}` recovers it)"
                 )
-        orphans = sorted(
-            p.name
-            for p in (self.path / EPISODES).glob("*.mcap")
-            if NUMBERED.match(p.name) and f"{EPISODES}/{p.name}" not in listed
-        )
+        orphans = [p for p in episode_files(self.path) if f"{EPISODES}/{p.name}" not in listed]
         if orphans:
+            self._finished_unlisted += [p for p in orphans if self._finished(p)]
             self.problems.append(
-                f"{len(orphans)} episode files are not in the manifest ({', '.join(orphans[:3])}"
-                f"{', ...' if len(orphans) > 3 else ''}); `twinrl data repair {self.path}` "
-                "adopts them"
+                f"{len(orphans)} episode files are not in the manifest "
+                f"({', '.join(p.name for p in orphans[:3])}{', ...' if len(orphans) > 3 else ''}"
+                f"); `twinrl data repair {self.path}` adopts them"
             )
         return manifest
+
+    @staticmethod
+    def _finished(path: Path) -> bool:
+        """Whether ``path`` is an episode file its recorder finished."""
+        try:
+            return read_summary(path).length is not None
+        except DataError:
+            return False
 
     def refresh(self) -> None:
         """Read the manifest again (other recorders may have added episodes)."""
@@ -188,12 +202,14 @@ class Session:
         return [self.path / e["file"] for e in self.manifest["episodes"]]
 
     def readable_paths(self) -> list[Path]:
-        """The files of the finished episodes that exist, in recording order."""
-        return [
+        """The files of the finished episodes, in number order: those the manifest lists
+        as finished, and finished files it does not (see :attr:`problems`)."""
+        listed = [
             self.path / e["file"]
             for e in self.manifest["episodes"]
             if e.get("status") in READABLE and (self.path / e["file"]).is_file()
         ]
+        return listed + [p for p in self._finished_unlisted if p not in listed]
 
     # ------------------------------------------------------------------ writing
     def _change(self, change) -> Any:

@@ -138,7 +138,7 @@ def test_repair_adopts_orphans_reports_missing_and_recovers_an_unfinished_episod
     assert any("missing" in p for p in session.problems)
     assert any("not in the manifest" in p for p in session.problems)
     assert any("recording" in p for p in session.problems)
-    assert len(session.readable_paths()) == 2  # the finished, present ones
+    assert len(session.readable_paths()) == 3  # the finished ones, the orphan among them
     report = repair_session(tmp_path / "s")
     assert report.missing == [f"episodes/{paths[1].name}"]
     assert report.adopted == ["episodes/000007_orphan.mcap"]

@@ -20,7 +20,8 @@ from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_eval
 from twinrl_learn.settings import RLConfig
 from twinrl_learn.studies.pipeline import run_demo
 from twinrl_learn.studies.presets import METHOD_TABLE, PRESETS
-from twinrl_learn.studies.stages import StagesSettings, measure_stages
+from twinrl_learn.studies.settings import StagesSettings
+from twinrl_learn.studies.stages import measure_stages
 from twinrl_robot.backends import open_robot
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.wrappers import OperatorTakeover

@@ -1,7 +1,7 @@
 """``twinrl bench``: the paper's experiments (Table I, the stages study), their options
 derived from the studies' settings records
-(:class:`~twinrl_learn.studies.table1.Stage1Settings`,
-:class:`~twinrl_learn.studies.stages.StagesSettings`)."""
+(:class:`~twinrl_learn.studies.settings.Stage1Settings`,
+:class:`~twinrl_learn.studies.settings.StagesSettings`)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,7 @@ import typer
 from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.settings_cli import options, settings_command
 from twinrl_learn.cli.common import console
-from twinrl_learn.studies.stages import StagesSettings
-from twinrl_learn.studies.table1 import Stage1Settings
+from twinrl_learn.studies.settings import Stage1Settings, StagesSettings
 
 app = typer.Typer(help="Reproduce the paper's experiments.", no_args_is_help=True)
 

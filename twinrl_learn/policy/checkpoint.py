@@ -13,8 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
+from twinrl_data.atomic import write_atomic
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy.config import KINDS, PolicyConfig
 
@@ -23,11 +24,13 @@ WEIGHTS_FILE = "model.safetensors"
 
 
 def save_checkpoint(path: str | Path, config: PolicyConfig, weights: dict[str, Any]) -> Path:
-    """Write ``config`` and ``weights`` (a state dict) into the folder ``path``."""
+    """Write ``config`` and ``weights`` (a state dict) into the folder ``path``, each file
+    whole (written beside its name and renamed into place: a kill leaves the old file or
+    the new one)."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
-    (path / CONFIG_FILE).write_text(json.dumps(asdict(config), indent=1))
-    save_file({k: v.contiguous() for k, v in weights.items()}, path / WEIGHTS_FILE)
+    write_atomic(path / WEIGHTS_FILE, save({k: v.contiguous() for k, v in weights.items()}))
+    write_atomic(path / CONFIG_FILE, json.dumps(asdict(config), indent=1).encode())
     return path
 
 

@@ -34,36 +34,13 @@ from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.studies.layout import stage1_paths
 from twinrl_learn.studies.pipeline import RealRLJob, real_rl_settings, run_preset
 from twinrl_learn.studies.presets import METHOD_TABLE, Method
+from twinrl_learn.studies.settings import StagesSettings
 from twinrl_sim.tasks import REGION_NAMES
 
 EVAL_SEED = 20_000  # apart from the pipeline's own evaluations (10_000 + ...)
 WITH_BUFFER = "Stage II + offline phase, with the twin buffer"
 WITHOUT_BUFFER = "Stage II + offline phase, without the twin buffer"
 TWIN_RL_METHODS = [m for m in METHOD_TABLE if m.from_twin]  # with and without the buffer
-
-
-@dataclass(frozen=True)
-class StagesSettings:
-    """What ``twinrl bench stages`` measures: each field is also its option and help."""
-
-    run: Path
-    """A `twinrl demo` run folder (Stage II done)."""
-    out: Path
-    """Folder for stages.md, stages.json, stages.png."""
-    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
-    """Seeds: one evaluation and offline phase each (comma-separated)."""
-    grid: tuple[int, int] = (8, 8)
-    """Evaluation grid over ID and OOD, e.g. 8x8."""
-    episodes: int = 2
-    """Evaluation episodes per grid cell."""
-    finals: bool = True
-    """Also measure the final policies of the run's TwinRL runs."""
-
-    def __post_init__(self) -> None:
-        if self.episodes < 1:
-            raise SettingError("episodes", f"must be at least 1, got {self.episodes}")
-        if not self.seeds:
-            raise SettingError("seeds", "needs at least one seed")
 
 
 @dataclass(frozen=True)

@@ -31,15 +31,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import SFTConfig, check_inputs
+from twinrl_learn.settings import SFTConfig
 from twinrl_learn.sft import train_sft
+from twinrl_learn.studies.settings import Stage1Settings
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.expand import expand
 from twinrl_sim.gap.diagnose import diagnose
@@ -50,52 +50,6 @@ from twinrl_sim.tasks import make_task
 TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operator corrects
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
 PAPER_TABLE1 = {(0, 0): (40, 0), (30, 30): (70, 30), (60, 30): (80, 40), (30, 60): (70, 70)}
-
-
-@dataclass
-class Stage1Settings:
-    """What ``twinrl bench stage1`` runs: each field is also its option and help."""
-
-    tasks: tuple[str, ...] = ("pick_place", "insert_hexagon")
-    """Tasks to run (repeatable)."""
-    policies: tuple[str, ...] = ("state",)
-    """Policy kinds to train: state, vla (repeatable)."""
-    real: int = 30
-    """Real (plant) demonstrations in the ID region."""
-    scale: float = 1.0
-    """Multiplies every demo count (0.1 for a smoke run)."""
-    grid: tuple[int, int] = (4, 4)
-    """Evaluation grid over ID and OOD, e.g. 4x4."""
-    episodes_per_cell: int = 4
-    """Evaluation episodes per grid cell."""
-    vla_steps: int | None = None
-    """SFT steps of the image policy (default: its own)."""
-    state_steps: int | None = None
-    """SFT steps of the state policy (default: its own)."""
-    fit_look: bool = False
-    """Fit the twin's appearance (light, table colour) to the real demos' images (gap
-    diagnose) and synthesize the twin demos in that look."""
-    detours: float = 0.0
-    """Share of the twin demos that first stray beside the object (see expand)."""
-    state_inputs: str = "relative"
-    """The state policy's inputs: relative (objects seen from the TCP, the quick
-    pipeline's: with absolute poses the best mix varied) or absolute (poses in the base
-    frame)."""
-    seed: int = 0
-    """Seed for demos, SFT and evaluation."""
-
-    def __post_init__(self) -> None:
-        check_inputs(self.state_inputs, "state")
-        if self.episodes_per_cell < 1:
-            raise SettingError(
-                "episodes_per_cell", f"must be at least 1, got {self.episodes_per_cell}"
-            )
-        if not 0.0 <= self.detours <= 1.0:
-            raise SettingError("detours", f"is a share from 0 to 1, got {self.detours}")
-
-    def sft_steps(self, kind: str) -> int | None:
-        """The SFT steps asked for policies of ``kind`` (None: the kind's own)."""
-        return {"vla": self.vla_steps, "state": self.state_steps}.get(kind)
 
 
 @dataclass

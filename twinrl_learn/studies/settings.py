@@ -1,0 +1,80 @@
+"""The studies' settings records, light to import: the command line derives its
+options from them without loading torch or the simulator."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from twinrl_data.errors import SettingError
+from twinrl_learn.settings import check_inputs
+
+
+@dataclass
+class Stage1Settings:
+    """What ``twinrl bench stage1`` runs: each field is also its option and help."""
+
+    tasks: tuple[str, ...] = ("pick_place", "insert_hexagon")
+    """Tasks to run (repeatable)."""
+    policies: tuple[str, ...] = ("state",)
+    """Policy kinds to train: state, vla (repeatable)."""
+    real: int = 30
+    """Real (plant) demonstrations in the ID region."""
+    scale: float = 1.0
+    """Multiplies every demo count (0.1 for a smoke run)."""
+    grid: tuple[int, int] = (4, 4)
+    """Evaluation grid over ID and OOD, e.g. 4x4."""
+    episodes_per_cell: int = 4
+    """Evaluation episodes per grid cell."""
+    vla_steps: int | None = None
+    """SFT steps of the image policy (default: its own)."""
+    state_steps: int | None = None
+    """SFT steps of the state policy (default: its own)."""
+    fit_look: bool = False
+    """Fit the twin's appearance (light, table colour) to the real demos' images (gap
+    diagnose) and synthesize the twin demos in that look."""
+    detours: float = 0.0
+    """Share of the twin demos that first stray beside the object (see expand)."""
+    state_inputs: str = "relative"
+    """The state policy's inputs: relative (objects seen from the TCP, the quick
+    pipeline's: with absolute poses the best mix varied) or absolute (poses in the base
+    frame)."""
+    seed: int = 0
+    """Seed for demos, SFT and evaluation."""
+
+    def __post_init__(self) -> None:
+        check_inputs(self.state_inputs, "state")
+        if self.episodes_per_cell < 1:
+            raise SettingError(
+                "episodes_per_cell", f"must be at least 1, got {self.episodes_per_cell}"
+            )
+        if not 0.0 <= self.detours <= 1.0:
+            raise SettingError("detours", f"is a share from 0 to 1, got {self.detours}")
+
+    def sft_steps(self, kind: str) -> int | None:
+        """The SFT steps asked for policies of ``kind`` (None: the kind's own)."""
+        return {"vla": self.vla_steps, "state": self.state_steps}.get(kind)
+
+
+@dataclass(frozen=True)
+class StagesSettings:
+    """What ``twinrl bench stages`` measures: each field is also its option and help."""
+
+    run: Path
+    """A `twinrl demo` run folder (Stage II done)."""
+    out: Path
+    """Folder for stages.md, stages.json, stages.png."""
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
+    """Seeds: one evaluation and offline phase each (comma-separated)."""
+    grid: tuple[int, int] = (8, 8)
+    """Evaluation grid over ID and OOD, e.g. 8x8."""
+    episodes: int = 2
+    """Evaluation episodes per grid cell."""
+    finals: bool = True
+    """Also measure the final policies of the run's TwinRL runs."""
+
+    def __post_init__(self) -> None:
+        if self.episodes < 1:
+            raise SettingError("episodes", f"must be at least 1, got {self.episodes}")
+        if not self.seeds:
+            raise SettingError("seeds", "needs at least one seed")
