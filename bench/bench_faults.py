@@ -38,7 +38,7 @@ sys.path.insert(0, str(ROOT))
 from tests.data.conftest import make_meta, make_step, write_episode  # noqa: E402
 from twinrl_data.errors import DataError, TwinrlError  # noqa: E402
 from twinrl_data.lerobot_io import export_dataset, verify_dataset  # noqa: E402
-from twinrl_data.mcap_log import read_episode  # noqa: E402
+from twinrl_data.mcap_log import read_episode, read_summary  # noqa: E402
 from twinrl_data.recorder import Recorder  # noqa: E402
 from twinrl_data.session import MANIFEST, Session  # noqa: E402
 from twinrl_data.sources import open_episodes  # noqa: E402
@@ -72,14 +72,9 @@ def _recorder(session: Path, seed: int, episodes: int) -> subprocess.Popen:
 
 def _finished(session: Path) -> set[str]:
     """Files of the finished episodes that read whole."""
-    listed = Session(session)
     good = set()
-    for entry, path in zip(
-        [e for e in listed.entries if e["status"] in ("complete", "recovered")],
-        listed.readable_paths(),
-        strict=True,
-    ):
-        if len(read_episode(path, images=False)) == entry["length"]:
+    for path in Session(session).readable_paths():
+        if len(read_episode(path, images=False)) == read_summary(path).length:
             good.add(path.name)
     return good
 

@@ -122,6 +122,8 @@ class ColumnMap:
             raise DataError(f"{path}: {err}") from None
 
 
+MAX_VALUE = 1e6  # no logged angle, speed, torque or position is larger
+
 RTDE_MAP = ColumnMap(
     time="timestamp",
     commanded=[f"target_q_{i}" for i in range(6)],
@@ -233,6 +235,15 @@ def import_csv(
     """One CSV log as an episode of source ``imported`` on a uniform ``fps`` clock."""
     path = Path(path)
     times, values = _signals(read_table(path), cmap, path)
+    for column, column_values in {cmap.time: times, **values}.items():
+        limit = np.inf if column == cmap.time else MAX_VALUE  # stamps may be epoch times
+        bad = np.flatnonzero(~np.isfinite(column_values) | (np.abs(column_values) > limit))
+        if len(bad):
+            more = f" (and {len(bad) - 1} more rows)" if len(bad) > 1 else ""
+            raise DataError(
+                f"{path}: column {column} has a missing, non-numeric or absurd value in data "
+                f"row {bad[0] + 1}{more}; fix or drop those rows"
+            )
     order = np.argsort(times, kind="stable")
     times = times[order]
     keep = np.concatenate([[True], np.diff(times) > 0])  # drop repeated stamps
@@ -297,6 +308,7 @@ def import_csv(
         names=names,
         policy=f"csv:{path.name}",
     )
-    if not np.isfinite(data[contract.STATE]).all():
-        raise DataError(f"{path}: non-numeric or missing values in the joint columns")
+    for key, array in data.items():
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise DataError(f"{path}: {key} comes out non-finite; check the log's values")
     return contract.Episode(meta, data)

@@ -398,3 +398,46 @@ def test_a_read_only_session_is_read_and_refuses_a_recording_in_one_line(small_d
         assert "\n" not in str(error.value)
     finally:
         subprocess.run(["mount", "-o", "remount,rw", str(small_disk)], check=True)
+
+
+def _rtde_csv(rows: int, rng: np.random.Generator) -> str:
+    from twinrl_data.importers import RTDE_MAP
+
+    columns = [RTDE_MAP.time, *RTDE_MAP.commanded, *RTDE_MAP.measured, *RTDE_MAP.velocity]
+    columns += [*RTDE_MAP.effort, *RTDE_MAP.tcp]
+    lines = [" ".join(columns)]
+    for t in range(rows):
+        q = np.sin(0.05 * t + np.arange(6))
+        values = [t * 0.008, *q, *(q + 1e-4), *np.cos(0.05 * t + np.arange(6))]
+        values += [*rng.normal(size=6), 0.4, 0.1, 0.3, 0.0, 3.1, 0.0]
+        lines.append(" ".join(f"{v:.6f}" for v in values))
+    return "\n".join(lines) + "\n"
+
+
+def test_no_damaged_csv_log_imports_to_non_finite_data(tmp_path):
+    """Seeded damage to an RTDE CSV log (a cell made NaN, inf, 1e308, text or empty; a
+    line cut): each import is refused with the project's error or gives finite data."""
+    from twinrl_data.errors import TwinrlError
+    from twinrl_data.importers import import_csv
+
+    rng = np.random.default_rng(5)
+    lines = _rtde_csv(60, rng).splitlines()
+    refused = imported = 0
+    for _ in range(150):
+        damaged = [line.split(" ") for line in lines]
+        row = int(rng.integers(len(damaged)))
+        if rng.random() < 0.2:
+            damaged[row] = damaged[row][: int(rng.integers(len(damaged[row])))]
+        else:
+            column = int(rng.integers(len(damaged[row])))
+            damaged[row][column] = ["nan", "inf", "-inf", "1e308", "abc", ""][int(rng.integers(6))]
+        path = tmp_path / "log.csv"
+        path.write_text("\n".join(" ".join(cells) for cells in damaged) + "\n")
+        try:
+            episode = import_csv(path)
+        except TwinrlError:
+            refused += 1
+            continue
+        assert all(np.isfinite(values).all() for values in episode.data.values())
+        imported += 1
+    assert refused + imported == 150 and refused > 0
