@@ -122,3 +122,8 @@ def publishing(final: str | Path) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(building, ignore_errors=True)
         raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> None:
+    """:func:`write_atomic` for text (reports, JSON results, scene specs)."""
+    write_atomic(path, text.encode())

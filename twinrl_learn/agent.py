@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import TransitionBatch
@@ -271,7 +272,7 @@ class Agent:
         folder = Path(folder)
         self.policy.save_pretrained(folder)
         save_state(self.state_dict(), folder / "agent.pt")
-        (folder / "rl_config.json").write_text(json.dumps(asdict(self.config), indent=1))
+        write_text_atomic(folder / "rl_config.json", json.dumps(asdict(self.config), indent=1))
         return folder
 
     @classmethod

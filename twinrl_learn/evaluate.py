@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
@@ -160,7 +161,7 @@ def evaluate(
         robot.close()
         torch.set_rng_state(torch_state)
     report = EvalReport(task=task_name, world=world, policy=runner.name, cells=cells)
-    (out / "eval.json").write_text(json.dumps(report.to_json(), indent=1))
+    write_text_atomic(out / "eval.json", json.dumps(report.to_json(), indent=1))
     plot_heatmap(report, grid, out / "heatmap.png")
     return report
 

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from twinrl_data import schema as contract
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.sources import open_episodes
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
@@ -148,7 +149,7 @@ def locating_errors(
         },
     }
     out.mkdir(parents=True, exist_ok=True)
-    (out / "locating.json").write_text(json.dumps(report, indent=1))
+    write_text_atomic(out / "locating.json", json.dumps(report, indent=1))
     plot_locating(report, out / "locating.png")
     return report
 

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from scipy.stats import beta as beta_dist
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.catalog import query
 from twinrl_data.errors import SettingError
 from twinrl_data.mcap_log import read_meta
@@ -198,7 +199,7 @@ def mine(
         "targets": [asdict(t) for t in targets],
     }
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    write_text_atomic(out, json.dumps(result, indent=1))
     return result
 
 

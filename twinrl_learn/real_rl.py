@@ -50,6 +50,7 @@ import numpy as np
 import rerun as rr
 import torch
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
 from twinrl_learn.agent import Agent
@@ -209,7 +210,7 @@ class RealRL:
             kept.parent.mkdir(parents=True)
             shutil.copyfile(settings.targets, kept)
             run.extra["targets"] = str(kept)
-        (run.out / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
+        write_text_atomic(run.out / "settings.json", json.dumps(asdict(settings), indent=1))
         return cls(settings, run, _operator(settings, operator))
 
     @classmethod
@@ -274,7 +275,7 @@ class RealRL:
         plot_evaluations(
             self.evaluations, self.out / "curve.png", title=f"real RL: {self.task.name}"
         )
-        (self.out / TIMING_FILE).write_text(json.dumps(loop_timing(self.periods), indent=1))
+        write_text_atomic(self.out / TIMING_FILE, json.dumps(loop_timing(self.periods), indent=1))
         return run
 
     def close(self) -> None:
@@ -394,7 +395,7 @@ class RealRL:
         )
         self.evaluations.append(point)
         evaluations = [asdict(p) for p in self.evaluations]
-        (self.out / EVALUATIONS_FILE).write_text(json.dumps(evaluations, indent=1))
+        write_text_atomic(self.out / EVALUATIONS_FILE, json.dumps(evaluations, indent=1))
         return point
 
     def _show_reset(self, index: int, config: TaskConfig, region: str, origin: str) -> None:

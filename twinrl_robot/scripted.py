@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
@@ -57,8 +58,9 @@ class ExpertReport:
         }
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(
-            json.dumps({**self.to_json(), "runs": [asdict(e) for e in self.episodes]}, indent=1)
+        write_text_atomic(
+            Path(path),
+            json.dumps({**self.to_json(), "runs": [asdict(e) for e in self.episodes]}, indent=1),
         )
 
 

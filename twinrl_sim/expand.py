@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
 from twinrl_data.lerobot_io import export_dataset
@@ -272,5 +273,5 @@ def expand(
         export_dataset(episodes, out / "dataset", repo_id=f"twinrl/{task}_twin_demos")
         report.seconds_export = time.perf_counter() - start
         report.dataset = str(out / "dataset")
-    (out / "expand.json").write_text(json.dumps(report.to_json(), indent=1))
+    write_text_atomic(out / "expand.json", json.dumps(report.to_json(), indent=1))
     return report

@@ -34,6 +34,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.effects import validate_effects
 from twinrl_sim.errors import TwinError
 
@@ -372,7 +373,7 @@ def save_spec(spec: SceneSpec, path: str | Path) -> Path:
     path = Path(path)
     if path.exists():
         raise SpecError(f"{path} already exists; choose another path or delete it first")
-    path.write_text(spec.to_yaml())
+    write_text_atomic(path, spec.to_yaml())
     return path
 
 

@@ -45,6 +45,7 @@ from typing import Any
 
 import torch
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import quiet_encoders
 from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
@@ -140,7 +141,7 @@ def _check_same_run(path: Path, settings: dict[str, Any]) -> None:
                     f"not {value!r}; resume it with the same settings or choose another folder"
                 )
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(settings, indent=1))
+    write_text_atomic(path, json.dumps(settings, indent=1))
 
 
 # ------------------------------------------------------------------ stages
@@ -149,7 +150,7 @@ def _done(folder: Path) -> bool:
 
 
 def _mark_done(folder: Path) -> None:
-    (folder / ".done").write_text("")
+    write_text_atomic(folder / ".done", "")
 
 
 def _fresh(folder: Path) -> Path:

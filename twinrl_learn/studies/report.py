@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.catalog import build_index
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -163,7 +164,7 @@ def write_report(
         "stages": start_rates,
         "methods": methods,
     }
-    (out / "report.json").write_text(json.dumps(report, indent=1))
+    write_text_atomic(out / "report.json", json.dumps(report, indent=1))
     plot_methods(runs, out / "curves.png", f"{task}: real RL in the plant ({preset_name})")
     per_region = " / ".join(
         str(sum(c.region == region for c in grid_cells(task, p.eval_grid)) * p.eval_episodes)
@@ -227,7 +228,7 @@ def write_report(
         "",
         "Settings: " + json.dumps(asdict(p)),
     ]
-    (out / "report.md").write_text("\n".join(lines) + "\n")
+    write_text_atomic(out / "report.md", "\n".join(lines) + "\n")
     build_index([out], out / "catalog.parquet")
     _representative(runs[METHOD_TABLE[0].name], out / "representative.rrd")
     return report

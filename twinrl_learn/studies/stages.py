@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
@@ -154,9 +155,9 @@ def measure_stages(
             else None
         ),
     }
-    (out / "stages.json").write_text(json.dumps(result, indent=1))
+    write_text_atomic(out / "stages.json", json.dumps(result, indent=1))
     _plot(result, out / "stages.png")
-    (out / "stages.md").write_text(_markdown(result, per_region))
+    write_text_atomic(out / "stages.md", _markdown(result, per_region))
     return result
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -181,12 +182,13 @@ def run_stage1(
                 )
                 rows.append(Stage1Row(task, kind, mix_id, mix_ood, report.success_rate()))
                 log(f"{task}: {name}: {report.success_rate()}")
-    (out / "stage1.json").write_text(
+    write_text_atomic(
+        out / "stage1.json",
         json.dumps(
             {"rows": [r.__dict__ for r in rows], "seconds": time.perf_counter() - started}, indent=1
-        )
+        ),
     )
-    (out / "table1.md").write_text(markdown_table(rows, settings))
+    write_text_atomic(out / "table1.md", markdown_table(rows, settings))
     return rows
 
 

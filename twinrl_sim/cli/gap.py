@@ -13,6 +13,7 @@ from rich.table import Table
 
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
 from twinrl_sim.cli.common import console
@@ -59,11 +60,12 @@ def localize_command(
             bar.advance(job)
     rows = localize(replays)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "localization.json").write_text(
+    write_text_atomic(
+        out / "localization.json",
         json.dumps(
             {"episodes": len(episodes), "window": window, "rows": [r.to_dict() for r in rows]},
             indent=1,
-        )
+        ),
     )
     plot_localization(rows, out / "localization.png")
     console.print(localization_table(rows, f"{len(episodes)} episodes against the twin '{twin}'"))

@@ -10,6 +10,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.gap.diagnose import BIC_MARGIN, MIN_HELDOUT_GAIN, MIN_IMAGE_GAIN, Diagnosis
 from twinrl_sim.gap.localize import Disagreement, plot_localization
 from twinrl_sim.spec import SceneSpec, save_spec
@@ -365,7 +366,7 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
             f"{1000 * r.lag_s:+.0f} | {worst} |"
         )
     lines += ["", "![localization](localization.png)", ""]
-    path.write_text("\n".join(lines))
+    write_text_atomic(path, "\n".join(lines))
 
 
 def format_params(params: dict) -> str:
@@ -389,7 +390,9 @@ def write_report(
 ) -> None:
     """Every output of ``twinrl gap diagnose`` into ``out`` (which must be new or empty)."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gap_report.json").write_text(json.dumps(report_json(diagnosis, localization), indent=1))
+    write_text_atomic(
+        out / "gap_report.json", json.dumps(report_json(diagnosis, localization), indent=1)
+    )
     write_fitted_spec(scene, diagnosis, out / "twin_fitted.yaml")
     plot_candidates(diagnosis, out / "candidates.png")
     plot_signals(diagnosis, out / "signals.png")

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_sim.build import compile_scene
 from twinrl_sim.errors import TwinError
@@ -414,5 +415,5 @@ def _write_scene(scene: SceneSpec, objects: list[TwinObject], out: Path) -> Path
             )
             o3d.io.write_triangle_mesh(str(meshes / f"{obj.name}_part{k}.obj"), part)
     path = out / "scene.yaml"
-    path.write_text(scene.to_yaml())
+    write_text_atomic(path, scene.to_yaml())
     return path

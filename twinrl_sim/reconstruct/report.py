@@ -10,6 +10,7 @@ import mujoco
 import numpy as np
 import rerun as rr
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.gap.report import _pyplot
 from twinrl_sim.reconstruct.segment import planar_axes
@@ -153,7 +154,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
     lines += [f"| total | {sum(built.seconds.values()):.1f} |", ""]
     lines += [f"![{plot.stem}]({plot.name})" for plot in plots]
     path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
     return path
 
 

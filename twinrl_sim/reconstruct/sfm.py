@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.reconstruct.frames import CaptureError
 
 MIN_REGISTERED_FRACTION = 0.6
@@ -84,7 +85,7 @@ def run_sfm(
         fixed_images[camera] = name
         extract([name])
         pairs = work_dir / f"pairs_{camera}.txt"
-        pairs.write_text("".join(f"{name} {frame}\n" for frame in frame_names))
+        write_text_atomic(pairs, "".join(f"{name} {frame}\n" for frame in frame_names))
         imported = pycolmap.ImportedPairingOptions()
         imported.match_list_path = str(pairs)
         pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported)
