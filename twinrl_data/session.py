@@ -143,6 +143,9 @@ class Session:
                 raise ValueError("not a twinrl session manifest")
             if not isinstance(manifest.get("episodes"), list):
                 raise ValueError("no episode list")
+            for number, entry in enumerate(manifest["episodes"]):
+                if not _well_formed(entry):
+                    raise ValueError(f"entry {number} is malformed")
         except (OSError, ValueError) as err:
             reason = "missing" if not manifest_path.exists() else f"damaged ({err})"
             entries, unreadable = entries_from_files(self.path)
@@ -296,6 +299,21 @@ class Session:
 
     def _save(self) -> None:
         write_atomic(self.path / MANIFEST, _encode(self.manifest))
+
+
+def _well_formed(entry: Any) -> bool:
+    """Whether a manifest entry names an episode file of the session, with an id."""
+    if not isinstance(entry, dict):
+        return False
+    file, ident = entry.get("file"), entry.get("episode_id")
+    return (
+        isinstance(file, str)
+        and isinstance(ident, str)
+        and file.startswith(f"{EPISODES}/")
+        and "/" not in file[len(EPISODES) + 1 :]
+        and file.endswith(".mcap")
+        and ".." not in file
+    )
 
 
 def _encode(manifest: dict[str, Any]) -> bytes:
