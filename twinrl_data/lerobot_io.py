@@ -17,6 +17,7 @@ into episodes; contract fields the dataset lacks are reported, not invented.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 from collections.abc import Callable, Iterable, Sequence
@@ -27,10 +28,11 @@ from typing import Any
 import numpy as np
 
 from twinrl_data import schema as contract
-from twinrl_data.atomic import publishing
+from twinrl_data.atomic import publishing, write_text_atomic
 from twinrl_data.errors import DataError
 
 SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
+CHECKSUMS = Path("meta") / "twinrl" / "files.json"  # sha256 of every file, at export
 ACTION_NAMES = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]
 VIDEO_BACKEND = "pyav"  # decodes everywhere, also without a system FFmpeg
 # Encode camera streams in background threads while frames are added (about twice as
@@ -124,9 +126,24 @@ def export_dataset(
     # ``root`` as it was (absent, or the old dataset), never half a dataset.
     with publishing(root) as building:
         count, frames = _write(building, repo_id, first, iterator, on_episode)
+        _write_checksums(building)
         if root.exists():
             shutil.rmtree(root)  # replaced (``force``) only once the new one is whole
     return ExportResult(root=root, repo_id=repo_id, episodes=count, frames=frames)
+
+
+def _checksums(root: Path) -> dict[str, str]:
+    """The sha256 of every file under ``root`` but the checksum file itself."""
+    sums = {}
+    for file in sorted(p for p in root.rglob("*") if p.is_file()):
+        relative = file.relative_to(root).as_posix()
+        if relative != CHECKSUMS.as_posix():
+            sums[relative] = hashlib.sha256(file.read_bytes()).hexdigest()
+    return sums
+
+
+def _write_checksums(root: Path) -> None:
+    write_text_atomic(root / CHECKSUMS, json.dumps(_checksums(root), indent=1))
 
 
 def _write(
@@ -340,9 +357,10 @@ def episode_metadata(
 def verify_dataset(root: str | Path) -> tuple[int, list[str]]:
     """Check a LeRobot dataset folder: (files checked, problems one line each).
 
-    Its metadata parses and lerobot opens it; the data files' rows add up to the frames
+    Every file matches the checksum recorded when twinrl exported it (where it did);
+    its metadata parses and lerobot opens it; the data files' rows add up to the frames
     and episodes its metadata declares; twinrl's sidecar has one line per episode; every
-    video file exists and decodes its first frame.
+    video file decodes its first frame.
     """
     import av
     import pyarrow.parquet as pq
@@ -385,6 +403,18 @@ def verify_dataset(root: str | Path) -> tuple[int, list[str]]:
                 next(container.decode(video=0))
         except Exception as err:
             problems.append(f"{video} does not decode ({type(err).__name__})")
+    if (root / CHECKSUMS).is_file():
+        try:
+            recorded = json.loads((root / CHECKSUMS).read_text())
+        except ValueError:
+            recorded = {}
+            problems.append(f"{root / CHECKSUMS} is damaged")
+        found = _checksums(root)
+        for relative, digest in recorded.items():
+            if relative not in found:
+                problems.append(f"{root}/{relative} is missing")
+            elif found[relative] != digest:
+                problems.append(f"{root}/{relative} changed since it was exported (checksum)")
     if not problems:
         try:
             open_dataset(root)

@@ -441,3 +441,20 @@ def test_no_damaged_csv_log_imports_to_non_finite_data(tmp_path):
         assert all(np.isfinite(values).all() for values in episode.data.values())
         imported += 1
     assert refused + imported == 150 and refused > 0
+
+
+def test_verify_finds_any_damaged_file_of_an_exported_dataset(tmp_path):
+    from twinrl_data.lerobot_io import export_dataset, verify_dataset
+
+    _record(Session.create(tmp_path / "s"), 2)
+    export_dataset(open_episodes(tmp_path / "s", images=False)[0], tmp_path / "d")
+    assert verify_dataset(tmp_path / "d")[1] == []
+    rng = np.random.default_rng(2)
+    files = sorted(p for p in (tmp_path / "d").rglob("*") if p.is_file())
+    for file in files:
+        original = file.read_bytes()
+        damaged = bytearray(original)
+        damaged[int(rng.integers(len(damaged)))] ^= 0x20
+        file.write_bytes(bytes(damaged))
+        assert verify_dataset(tmp_path / "d")[1], f"damage to {file.name} went unseen"
+        file.write_bytes(original)
