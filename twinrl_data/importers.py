@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +34,7 @@ import pyarrow.csv as pacsv
 import yaml
 
 from twinrl_data import schema as contract
-from twinrl_data.errors import DataError, SettingError
+from twinrl_data.errors import DataError, DataWarning, SettingError
 
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 ANGLE_UNITS = {"rad": 1.0, "deg": math.pi / 180.0}
@@ -48,7 +49,8 @@ ForwardKinematics = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 class ColumnMap:
     """Where each signal lives in a CSV file (the YAML file of ``--map``)::
 
-    time: t_ms            # column with the time stamps
+    time: t_ms            # column with the time stamps (may be left out with a rate)
+    rate: 125             # optional: the log's sample rate (Hz); time = row / rate
     time_unit: ms         # s, ms, us or ns
     angle_unit: deg       # rad or deg (positions and velocities)
     layout: wide          # wide, or long: columns signal/value per line
@@ -62,9 +64,10 @@ class ColumnMap:
     value_column: value                           # long layout only
     """
 
-    time: str
+    time: str | None
     commanded: list[str]
     measured: list[str]
+    rate: float | None = None
     time_unit: str = "s"
     angle_unit: str = "rad"
     layout: str = "wide"
@@ -77,6 +80,14 @@ class ColumnMap:
 
     def __post_init__(self) -> None:
         problems = []
+        if self.rate is not None and not (
+            isinstance(self.rate, int | float) and math.isfinite(self.rate) and 0 < self.rate <= 1e5
+        ):
+            problems.append(f"rate must be a sample rate in Hz (0 to 100000), got {self.rate!r}")
+        if self.time is None and self.rate is None:
+            problems.append("give the time column (time) or the log's sample rate (rate)")
+        if self.rate is not None and self.layout == "long":
+            problems.append("rate applies to the wide layout (one row per sample)")
         if self.time_unit not in TIME_UNITS:
             problems.append(f"time_unit must be one of {', '.join(TIME_UNITS)}")
         if self.angle_unit not in ANGLE_UNITS:
@@ -113,11 +124,13 @@ class ColumnMap:
             raise DataError(
                 f"{path}: unknown key(s) {unknown}; known: {sorted(cls.__dataclass_fields__)}"
             )
-        missing = [k for k in ("time", "commanded", "measured") if k not in data]
+        missing = [k for k in ("commanded", "measured") if k not in data]
+        if "time" not in data and "rate" not in data:
+            missing.append("time (or rate)")
         if missing:
             raise DataError(f"{path}: missing key(s) {missing}")
         try:
-            return cls(**data)
+            return cls(**{"time": None} | data)
         except ValueError as err:
             raise DataError(f"{path}: {err}") from None
 
@@ -179,7 +192,9 @@ def _signals(
     """(time in s, column -> values on that time base), from a wide or long table."""
     wanted = [*cmap.commanded, *cmap.measured, *cmap.velocity, *cmap.effort, *cmap.tcp]
     if cmap.layout == "wide":
-        values = _columns(table, [cmap.time, *wanted], path)
+        values = _columns(table, [c for c in (cmap.time, *wanted) if c is not None], path)
+        if cmap.time is None:
+            return np.arange(table.num_rows, dtype=float), values  # the rate gives time
         return values.pop(cmap.time) * TIME_UNITS[cmap.time_unit], values
     need = [cmap.time, cmap.signal_column, cmap.value_column]
     missing = [c for c in need if c not in table.column_names]
@@ -221,6 +236,32 @@ def _relative_rotvec(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     return np.divide(v * angle, s, out=np.zeros_like(v), where=s > 1e-12)
 
 
+def _clock(times: np.ndarray, cmap: ColumnMap, path: Path) -> np.ndarray:
+    """Each row's time (s, from 0): from the log's rate and the row index when the column
+    map gives one, else from the stamps, which must advance at every row (a row is never
+    dropped: repeated or backward stamps are an error that says what to do)."""
+    if len(times) < 2:
+        raise DataError(f"{path}: needs at least two rows, got {len(times)}")
+    if cmap.rate is not None:
+        return np.arange(len(times)) / cmap.rate
+    steps = np.diff(times)
+    stuck = int((steps == 0).sum())
+    backward = int((steps < 0).sum())
+    if stuck or backward:
+        tick = np.median(steps[steps > 0]) if (steps > 0).any() else 0.0
+        what = []
+        if stuck:
+            what.append(f"{stuck} of {len(times)} rows repeat the stamp of the row before")
+        if backward:
+            what.append(f"{backward} rows go back in time")
+        coarse = f" (the clock ticks every {tick:g} s, coarser than the rows)" if stuck else ""
+        raise DataError(
+            f"{path}: {' and '.join(what)}{coarse}; no row is dropped: give the log's sample "
+            "rate in the column map (rate: 125) to take time from the row index"
+        )
+    return times - times[0]  # relative: epoch stamps lose precision in arithmetic
+
+
 def import_csv(
     path: str | Path,
     cmap: ColumnMap = RTDE_MAP,
@@ -235,8 +276,8 @@ def import_csv(
     """One CSV log as an episode of source ``imported`` on a uniform ``fps`` clock."""
     path = Path(path)
     times, values = _signals(read_table(path), cmap, path)
-    for column, column_values in {cmap.time: times, **values}.items():
-        limit = np.inf if column == cmap.time else MAX_VALUE  # stamps may be epoch times
+    for column, column_values in {cmap.time or "time": times, **values}.items():
+        limit = np.inf if column == (cmap.time or "time") else MAX_VALUE  # epoch stamps
         bad = np.flatnonzero(~np.isfinite(column_values) | (np.abs(column_values) > limit))
         if len(bad):
             more = f" (and {len(bad) - 1} more rows)" if len(bad) > 1 else ""
@@ -244,18 +285,25 @@ def import_csv(
                 f"{path}: column {column} has a missing, non-numeric or absurd value in data "
                 f"row {bad[0] + 1}{more}; fix or drop those rows"
             )
-    order = np.argsort(times, kind="stable")
-    times = times[order]
-    keep = np.concatenate([[True], np.diff(times) > 0])  # drop repeated stamps
-    times = times[keep] - times[0]  # relative: epoch stamps lose precision in arithmetic
-    if len(times) < 2:
-        raise DataError(f"{path}: needs at least two time stamps, got {len(times)}")
+    times = _clock(times, cmap, path)
     rate = float(f"{1.0 / float(np.median(np.diff(times))):.4g}")  # 125 Hz, not 124.99998
     fps = float(fps or rate)
     if not fps > 0:
         raise SettingError("fps", f"must be positive, got {fps}")
     clock = np.arange(0.0, times[-1] + 1e-9, 1.0 / fps)
-    at = {c: np.interp(clock, times, v[order][keep]) for c, v in values.items()}
+    if abs(fps - rate) > 1e-3 * rate:
+        kind = (
+            f"motion faster than {fps / 2:g} Hz is lost"
+            if fps < rate
+            else ("the steps between rows are interpolated, not measured")
+        )
+        warnings.warn(
+            f"{path}: resampled from {rate:g} Hz to {fps:g} Hz ({len(times)} rows became "
+            f"{len(clock)} steps); {kind}",
+            DataWarning,
+            stacklevel=2,
+        )
+    at = {c: np.interp(clock, times, v) for c, v in values.items()}
     angle = ANGLE_UNITS[cmap.angle_unit]
     stack = lambda cols, scale=1.0: np.stack([at[c] for c in cols], axis=1) * scale  # noqa: E731
 

@@ -5,6 +5,7 @@ import pytest
 
 from tests.test_cli import twinrl
 from twinrl_data import schema as contract
+from twinrl_data.errors import DataWarning
 from twinrl_data.importers import ColumnMap, import_csv
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -116,7 +117,8 @@ def test_rtde_csv_round_trip(tmp_path, plant_excitation):
     np.testing.assert_allclose(
         moves, np.diff(episode.data[contract.STATE][:, 12:15], axis=0), atol=1e-6
     )
-    half = import_csv(csv_path, fps=5.0)  # resampled onto a slower clock
+    with pytest.warns(DataWarning, match="from 10 Hz to 5 Hz"):
+        half = import_csv(csv_path, fps=5.0)  # resampled onto a slower clock
     assert len(half) == 50 and half.meta.fps == 5.0
 
 
