@@ -362,10 +362,26 @@ def test_cli_rejects_bad_input(tmp_path, option, message):
     assert not (tmp_path / "d").exists()
 
 
-def test_needs_two_episodes(tmp_path):
-    episodes = _record(tmp_path / "s", {}, episodes=1)
-    with pytest.raises(ValueError, match="at least 2 episodes"):
-        diagnose(episodes, SCENE)
+def test_one_long_log_is_split_in_time_and_its_delay_named(tmp_path):
+    session = Session.create(tmp_path / "s")
+    run_excitation(
+        "pick_place",
+        world="plant",
+        effects={"actuator_delay": {"seconds": 0.04}},
+        episodes=1,
+        settings=ExcitationSettings(duration=24.0),
+        session=session,
+        seed=4,
+    )
+    episodes = [read_episode(p, images=False) for p in session.episode_paths()]
+    diagnosis = diagnose(episodes, SCENE, allowed=["actuator_delay", "payload"])
+    assert diagnosis.split.startswith("one log split in time: the first ")
+    assert [s["effect"] for s in diagnosis.selected] == ["actuator_delay"]
+    assert abs(diagnosis.effects["actuator_delay"]["seconds"] - 0.04) < 0.006
+    assert diagnosis.heldout_reduction > 0.7
+    assert diagnosis.heldout.start.min() == 20 * diagnosis.windows["train"]  # the last span
+    with pytest.raises(ValueError, match="single window"):
+        diagnose(episodes, SCENE, window=230)
 
 
 HIDDEN = [

@@ -95,6 +95,7 @@ class Diagnosis:
     train_episodes: list[str]
     heldout_episodes: list[str]
     windows: dict[str, int]
+    split: str  # how the data was split into fitted and held-out, with how much each
     skipped: dict[str, str]  # candidate -> why it was not fitted
     seconds: float
     cameras: list[CandidateResult]  # camera_pose per logged camera, best first
@@ -123,20 +124,69 @@ class Diagnosis:
 UNITS = {"q": "rad", "qd": "rad/s", "tcp": "m", "tau": "N m", "object": "m"}
 
 
-def split_episodes(
-    episodes: Sequence[contract.Episode], heldout: float, seed: int
-) -> tuple[list[int], list[int]]:
-    """Indices of training and held-out episodes (at least one each), drawn by seed."""
+@dataclass(frozen=True)
+class Split:
+    """The windows fitted on and those held out, and how they were chosen."""
+
+    train: Windows
+    held: Windows
+    train_episodes: list[int]  # episode indices (one long log: the same on both sides)
+    held_episodes: list[int]
+    by: str  # "episodes", or "time" (one log: its last span held out)
+
+    def describe(self) -> str:
+        """How much data each side got, in words."""
+        seconds = lambda w: len(w) * w.rows / w.fps  # noqa: E731
+        if self.by == "time":
+            return (
+                f"one log split in time: the first {seconds(self.train):.0f} s "
+                f"({len(self.train)} windows) to fit, the last {seconds(self.held):.0f} s "
+                f"({len(self.held)} windows) held out"
+            )
+        return (
+            f"{len(self.train_episodes)} training episodes ({seconds(self.train):.0f} s, "
+            f"{len(self.train)} windows), {len(self.held_episodes)} held out "
+            f"({seconds(self.held):.0f} s, {len(self.held)} windows)"
+        )
+
+
+def split_windows(
+    episodes: Sequence[contract.Episode], windows: Windows, heldout: float, seed: int
+) -> Split:
+    """Training and held-out windows. Several episodes: whole episodes held out, drawn by
+    seed (at least one each side). One long log: its last ``heldout`` share of windows,
+    a span in time, so that nothing held out lies between fitted windows."""
     if not 0 < heldout < 1:
         raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
-    if len(episodes) < 2:
-        raise TwinError(
-            f"the gap workflow needs at least 2 episodes (one to fit, one held out), got "
-            f"{len(episodes)}; record more with twinrl sim excite"
+    if not episodes:
+        raise TwinError("the gap workflow needs measured episodes; none were given")
+    if len(episodes) == 1:
+        order = np.argsort(windows.start)
+        held_count = min(max(1, round(heldout * len(order))), len(order) - 1)
+        if len(order) < 2:
+            raise TwinError(
+                "one log gives the gap workflow a single window; record a longer log (or "
+                "more episodes) or use a smaller `window`"
+            )
+        cut = len(order) - held_count
+        return Split(
+            windows.subset(np.sort(order[:cut])),
+            windows.subset(np.sort(order[cut:])),
+            [0],
+            [0],
+            "time",
         )
     order = np.random.default_rng(seed).permutation(len(episodes))
     held = min(max(1, round(heldout * len(episodes))), len(episodes) - 1)
-    return sorted(order[held:].tolist()), sorted(order[:held].tolist())
+    train_idx, held_idx = sorted(order[held:].tolist()), sorted(order[:held].tolist())
+    train = windows.subset(np.isin(windows.episode, train_idx))
+    held_windows = windows.subset(np.isin(windows.episode, held_idx))
+    if not len(train) or not len(held_windows):
+        raise TwinError(
+            "the training or held-out episodes are all shorter than one window; record "
+            "longer episodes or use a smaller `window`"
+        )
+    return Split(train, held_windows, train_idx, held_idx, "episodes")
 
 
 def candidate_pool(
@@ -193,24 +243,23 @@ def diagnose(
     """Find, fit and name the effects that ``scene`` lacks to explain ``episodes``."""
     started = time.perf_counter()
     noise = noise or NoiseFloor()
-    train_idx, held_idx = split_episodes(episodes, heldout, seed)
-    train_episodes = [episodes[i] for i in train_idx]
-    held_episodes = [episodes[i] for i in held_idx]
+    if not 0 < heldout < 1:
+        raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
     layout = compile_scene(scene).layout
     objects = [o.name for o in scene.objects]
     windows = cut_windows(episodes, layout, objects, window=window)
-    train = windows.subset(np.isin(windows.episode, train_idx))
-    held = windows.subset(np.isin(windows.episode, held_idx))
-    if not len(train) or not len(held):
-        raise TwinError(
-            "the training or held-out episodes are all shorter than one window; record "
-            "longer episodes or use a smaller `window`"
-        )
+    split = split_windows(episodes, windows, heldout, seed)
+    train, held = split.train, split.held
+    train_episodes = [episodes[i] for i in split.train_episodes]
+    held_episodes = [episodes[i] for i in split.held_episodes]
     fit_on = _spread(train, fit_windows, seed)
     pool, skipped = candidate_pool(windows, allowed)
     logged = logged_cameras(episodes, layout)
     wanted = {e: allowed is None or e in allowed for e in IMAGE_EFFECTS}
     for effect in IMAGE_EFFECTS:
+        if wanted[effect] and logged and split.by == "time":
+            wanted[effect] = False  # images are held out by episode
+            skipped[effect] = "one log: camera images are compared across episodes"
         if wanted[effect] and not logged:
             if allowed:
                 raise TwinError(
@@ -219,10 +268,7 @@ def diagnose(
                 )
             skipped[effect] = "no camera images in the episodes"
     cameras = logged if wanted["camera_pose"] else []
-    log(
-        f"{len(train_idx)} training episodes ({len(fit_on)} of {len(train)} windows fitted), "
-        f"{len(held_idx)} held out ({len(held)} windows); candidates: {', '.join(pool)}"
-    )
+    log(f"{split.describe()}; {len(fit_on)} windows fitted; candidates: {', '.join(pool)}")
     rollout = Rollout(nthread=2)
     try:
         fixed: dict[str, dict] = {}
@@ -311,6 +357,7 @@ def diagnose(
         train_episodes=[e.meta.episode_id for e in train_episodes],
         heldout_episodes=[e.meta.episode_id for e in held_episodes],
         windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},
+        split=split.describe(),
         skipped=skipped,
         seconds=time.perf_counter() - started,
         cameras=camera_results,

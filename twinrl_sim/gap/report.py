@@ -66,6 +66,7 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
         "skipped": d.skipped,
         "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
         "windows": d.windows,
+        "split": d.split,
         "seconds": d.seconds,
         "localization": [r.to_dict() for r in localization],
     }
@@ -230,9 +231,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
     lines = [
         "# Sim-to-real gap diagnosis",
         "",
-        f"{len(d.train_episodes)} training episodes ({d.windows['fitted']} of "
-        f"{d.windows['train']} windows fitted), {len(d.heldout_episodes)} held-out episodes "
-        f"({d.windows['heldout']} windows); {d.seconds:.0f} s.",
+        f"{d.split[0].upper()}{d.split[1:]}; {d.windows['fitted']} of {d.windows['train']} "
+        f"training windows fitted; {d.seconds:.0f} s.",
         "",
         "## Named effects",
         "",
