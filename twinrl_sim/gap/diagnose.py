@@ -1,6 +1,7 @@
 """Name the effects the twin lacks: fit every candidate, keep what held-out data supports.
 
-1. The measured episodes are split into training and held-out episodes (``heldout``).
+1. The measured episodes are split into training and held-out episodes (``heldout``);
+   one long log is split in time (its last span held out).
 2. Every candidate effect (:data:`CANDIDATES`) is fitted on the training windows with
    the effects already named held fixed, then scored on the held-out windows
    (``heldout_error``: RMS residual in sensor-noise units, 1 at the noise floor) and by
@@ -10,8 +11,10 @@
    **and** it cuts the held-out error by at least :data:`MIN_HELDOUT_GAIN`. Time-
    correlated residuals make information criteria over-confident; the held-out test
    keeps a candidate that only fits noise from being named.
-4. Repeat with the named effects added, among the candidates that were significant on
-   their own, until none is; then refit all named effects together.
+4. Repeat with the named effects added, until no candidate is significant: among every
+   remaining candidate while the held-out error is far above the noise floor
+   (:data:`FAR_ABOVE_NOISE`; a large effect can mask a smaller one in the first round),
+   else among those significant on their own; then refit all named effects together.
 5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
@@ -53,6 +56,9 @@ MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must
 MIN_IMAGE_GAIN = 0.2
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
 MAX_EFFECTS = 3  # rounds of naming
+# Held-out error (noise units: 1 is a twin that explains everything but sensor noise)
+# above which the next round refits every remaining candidate, not only the significant.
+FAR_ABOVE_NOISE = 2.0
 
 
 @dataclass
@@ -291,7 +297,11 @@ def diagnose(
             selected.append({"effect": best.effect, "params": best.params, "ci": best.ci})
             fixed = {**fixed, best.effect: best.params}
             baseline = _score(scene, fit_on, held, noise, fixed, rollout)
-            pool = [r.effect for r in results[1:] if r.significant]
+            # While what remains is far above the sensor noise, every other candidate
+            # is refit on it: an effect masked by a larger one is not significant in the
+            # first round, yet may explain most of what is left.
+            far = baseline.heldout_error > FAR_ABOVE_NOISE
+            pool = [r.effect for r in results[1:] if far or r.significant]
             log(f"named {best.effect} {best.params}")
         if len(selected) > 1:
             log(f"refitting {', '.join(s['effect'] for s in selected)} together")
