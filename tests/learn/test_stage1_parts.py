@@ -2,6 +2,7 @@
 
 import json
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -509,3 +510,43 @@ def test_the_table_i_benchmark_end_to_end_at_smoke_scale(tmp_path):
         assert (out / "pick_place" / f"{name}_eval" / "heatmap.png").is_file()
     twin = Session(out / "pick_place" / "twin_ood" / "session").episode_paths()
     assert {read_episode(p, images=False).meta.policy for p in twin} == {"synthesis:plan+detour"}
+
+
+TRAINER = """
+    import sys
+    from twinrl_learn.settings import SFTConfig
+    from twinrl_learn.sft import train_sft
+    config = SFTConfig(datasets=[sys.argv[1]], out=sys.argv[2], policy="state", steps=400,
+                       batch_size=16, checkpoint_every=7, log_every=1)
+    train_sft(config, progress=lambda step, metrics: print(step, flush=True))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(3))
+def test_training_killed_at_a_random_step_resumes(dataset, tmp_path, seed):
+    """SIGKILL at a seeded random step (possibly mid-checkpoint): the run resumes from its
+    last whole checkpoint and finishes."""
+    import signal
+    import subprocess
+    import sys
+    import textwrap
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(TRAINER), str(dataset), str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=Path(__file__).resolve().parents[2],
+    )
+    stop = int(np.random.default_rng(seed).integers(8, 60))
+    for line in proc.stdout:
+        if int(line) >= stop:
+            break
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    common = {"datasets": [str(dataset)], "policy": "state", "batch_size": 16}
+    resumed = train_sft(SFTConfig(out=str(out), checkpoint_every=7, **common), resume=True)
+    assert resumed.steps == 400
+    Policy.from_pretrained(out)
