@@ -139,6 +139,13 @@ def apply_table_height(spec: mujoco.MjSpec, layout: CellLayout, offset: float) -
     body.pos = np.array(body.pos) + [0.0, 0.0, offset]
 
 
+def apply_tool_offset(spec: mujoco.MjSpec, layout: CellLayout, xyz: list[float]) -> None:
+    """The tool centre point the robot reports sits ``xyz`` (m) from the twin's, in the
+    frame of the body that carries it: a tool, or a TCP setting, the twin lacks."""
+    site = spec.site(layout.tcp_site)
+    site.pos = np.asarray(site.pos) + np.asarray(xyz, float)
+
+
 def apply_joint_offset(spec: mujoco.MjSpec, layout: CellLayout, radians: list[float]) -> None:
     """Encoder calibration error: the measured angle is the true angle plus ``radians``.
 
@@ -292,6 +299,12 @@ EFFECTS: dict[str, EffectDef] = {
             {"radians": ParamDef(_PER_JOINT, "rad", -0.5, 0.5, "encoder offset per joint")},
             apply_joint_offset,
             apply_joint_offset.__doc__ or "",
+        ),
+        EffectDef(
+            "tool_offset",
+            {"xyz": ParamDef("vec3", "m", -0.3, 0.3, "TCP offset in the tool body's frame")},
+            apply_tool_offset,
+            apply_tool_offset.__doc__ or "",
         ),
         EffectDef(
             "camera_pose",

@@ -432,3 +432,14 @@ def test_two_modest_effects_at_once_are_both_named(tmp_path):
     assert abs(diagnosis.effects["actuator_delay"]["seconds"] - 0.025) < 0.004
     assert abs(diagnosis.effects["payload"]["mass"] - 0.7) < 0.15
     assert diagnosis.gap_after < 2.0
+
+
+def test_a_tool_the_twin_lacks_is_named_as_a_tool_offset(tmp_path):
+    """The robot reports its TCP at a tool 4 cm further along the flange than the twin's."""
+    hidden = {"tool_offset": {"xyz": [0.0, 0.01, 0.04]}}
+    episodes = _record(tmp_path / "s", hidden)
+    diagnosis = diagnose(episodes, SCENE, allowed=["tool_offset", "payload", "joint_offset"])
+    assert [s["effect"] for s in diagnosis.selected] == ["tool_offset"]
+    fitted = np.array(diagnosis.effects["tool_offset"]["xyz"])
+    assert np.abs(fitted - [0.0, 0.01, 0.04]).max() < 0.003, fitted
+    assert diagnosis.heldout_reduction > 0.9

@@ -36,6 +36,11 @@ class Candidate:
     def per_joint(self) -> bool:
         return EFFECTS[self.effect].params[self.param].kind == "per_joint"
 
+    @property
+    def vector(self) -> bool:
+        """Whether the parameter has several components (per joint, or x y z)."""
+        return EFFECTS[self.effect].params[self.param].kind in ("per_joint", "vec3")
+
     def bounds(self) -> tuple[float, float]:
         p = EFFECTS[self.effect].params[self.param]
         return p.low, p.high
@@ -50,6 +55,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("servo_gain", 1.0, 1.0, 1.0, "arm"),
         Candidate("payload", 1.0, 0.1, 0.0, "arm"),
         Candidate("joint_offset", 0.01, 0.0, 0.0, "arm"),
+        Candidate("tool_offset", 0.01, 0.0, 0.0, "arm"),
         Candidate("object_mass", 1.0, 1.0, 1.0, "grasp"),
         Candidate("object_friction", 0.5, None, None, "grasp"),
         Candidate("table_height", 0.01, 0.0, 0.0, "objects"),

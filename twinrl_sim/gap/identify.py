@@ -160,7 +160,9 @@ class WindowReplay:
         )
 
     def _size(self, candidate: Candidate) -> int:
-        return len(self.layout.arm_joints) if candidate.per_joint else 1
+        if candidate.per_joint:
+            return len(self.layout.arm_joints)
+        return 3 if candidate.vector else 1
 
     def _slices(self):
         """(candidate, slice of the parameter vector) of every free effect, in order."""
@@ -185,12 +187,12 @@ class WindowReplay:
 
     def physical(self, candidate: Candidate, value: np.ndarray) -> float | list[float]:
         values = np.clip(np.asarray(value, float) * candidate.scale, *candidate.bounds())
-        return [float(v) for v in values] if candidate.per_joint else float(values[0])
+        return [float(v) for v in values] if candidate.vector else float(values[0])
 
     def interval(self, candidate: Candidate, half_width: np.ndarray) -> float | list[float]:
         """Interval half-widths in the effect's units (``inf``: not identifiable)."""
         values = np.asarray(half_width, float) * candidate.scale
-        return [float(v) for v in values] if candidate.per_joint else float(values[0])
+        return [float(v) for v in values] if candidate.vector else float(values[0])
 
     def _apply(self, spec: mujoco.MjSpec, candidate: Candidate, value: np.ndarray) -> None:
         physical = self.physical(candidate, value)
