@@ -108,15 +108,20 @@ def writers(folder: Path, repeats: int) -> dict:
     return {"runs": runs, "faults": runs, "lost": lost}
 
 
-def manifests(folder: Path, count: int, rng: np.random.Generator) -> dict:
-    session = folder / "manifest"
-    recorder = Recorder(Session.create(session))
-    step_rng = np.random.default_rng(0)
-    for _ in range(4):
+def _session(path: Path, episodes: int, length: int, cameras: tuple[str, ...]) -> Path:
+    """A session of ``episodes`` finished episodes of ``length`` steps."""
+    recorder = Recorder(Session.create(path))
+    rng = np.random.default_rng(0)
+    for _ in range(episodes):
         recorder.start_episode(make_meta())
-        for t in range(6):
-            recorder.add_frame(make_step(t, 6, step_rng, cameras=()))
+        for t in range(length):
+            recorder.add_frame(make_step(t, length, rng, cameras=cameras))
         recorder.save_episode()
+    return path
+
+
+def manifests(folder: Path, count: int, rng: np.random.Generator) -> dict:
+    session = _session(folder / "manifest", episodes=4, length=6, cameras=())
     original = (session / MANIFEST).read_bytes()
     lost = 0
     for case in range(count):
@@ -214,14 +219,7 @@ def _leaves(node, path=()):
 
 
 def datasets(folder: Path, count: int, rng: np.random.Generator) -> dict:
-    source = folder / "for_dataset"
-    recorder = Recorder(Session.create(source))
-    step_rng = np.random.default_rng(1)
-    for _ in range(3):
-        recorder.start_episode(make_meta())
-        for t in range(12):
-            recorder.add_frame(make_step(t, 12, step_rng, cameras=("front",)))
-        recorder.save_episode()
+    source = _session(folder / "for_dataset", episodes=3, length=12, cameras=("front",))
     root = folder / "dataset"
     export_dataset(open_episodes(source)[0], root)
     files = [
