@@ -79,7 +79,9 @@ class ColumnMap:
     value_column: str = "value"
 
     def __post_init__(self) -> None:
-        problems = []
+        problems = self._type_problems()
+        if problems:
+            raise DataError("column map: " + "; ".join(problems))
         if self.rate is not None and not (
             isinstance(self.rate, int | float) and math.isfinite(self.rate) and 0 < self.rate <= 1e5
         ):
@@ -103,6 +105,23 @@ class ColumnMap:
             problems.append(f"tcp needs 6 columns (x y z rx ry rz), got {len(self.tcp)}")
         if problems:
             raise DataError("column map: " + "; ".join(problems))
+
+    def _type_problems(self) -> list[str]:
+        """Fields of the wrong type (a YAML file can hold anything)."""
+        problems = []
+        for name in ("commanded", "measured", "velocity", "effort", "tcp", "joints"):
+            value = getattr(self, name)
+            if not isinstance(value, list | tuple) or not all(isinstance(c, str) for c in value):
+                problems.append(f"{name} must be a list of column names, got {value!r}")
+        for name in ("time", "time_unit", "angle_unit", "layout", "signal_column", "value_column"):
+            value = getattr(self, name)
+            if not (isinstance(value, str) or (name == "time" and value is None)):
+                problems.append(f"{name} must be a name, got {value!r}")
+        if self.rate is not None and (
+            isinstance(self.rate, bool) or not isinstance(self.rate, int | float)
+        ):
+            problems.append(f"rate must be a number (Hz), got {self.rate!r}")
+        return problems
 
     @classmethod
     def load(cls, path: str | Path) -> ColumnMap:

@@ -458,3 +458,46 @@ def test_verify_finds_any_damaged_file_of_an_exported_dataset(tmp_path):
         file.write_bytes(bytes(damaged))
         assert verify_dataset(tmp_path / "d")[1], f"damage to {file.name} went unseen"
         file.write_bytes(original)
+
+
+def test_no_damaged_column_map_gives_anything_but_one_clear_error_or_finite_data(tmp_path):
+    """Seeded damage to a column map (a value replaced by NaN, inf, a huge number, a
+    wrong type, a missing column; a key renamed): loading and importing either fail
+    with the project's error or give finite data."""
+    import yaml
+
+    from twinrl_data.errors import TwinrlError
+    from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
+
+    rng = np.random.default_rng(9)
+    log = tmp_path / "log.csv"
+    log.write_text(_rtde_csv(40, rng))
+    good = {
+        "time": RTDE_MAP.time,
+        "rate": 125,
+        "commanded": RTDE_MAP.commanded,
+        "measured": RTDE_MAP.measured,
+        "velocity": RTDE_MAP.velocity,
+        "tcp": RTDE_MAP.tcp,
+        "time_unit": "s",
+        "angle_unit": "rad",
+    }
+    bad_values = [float("nan"), float("inf"), 1e300, -5, "x", [], None, ["nope"] * 6, {"a": 1}]
+    refused = imported = 0
+    for _ in range(150):
+        data = dict(good)
+        key = list(data)[int(rng.integers(len(data)))]
+        if rng.random() < 0.15:
+            data[key + "_typo"] = data.pop(key)
+        else:
+            data[key] = bad_values[int(rng.integers(len(bad_values)))]
+        path = tmp_path / "map.yaml"
+        path.write_text(yaml.safe_dump(data))
+        try:
+            episode = import_csv(log, ColumnMap.load(path))
+        except TwinrlError:
+            refused += 1
+            continue
+        assert all(np.isfinite(v).all() for v in episode.data.values() if v.dtype.kind == "f")
+        imported += 1
+    assert refused + imported == 150 and refused > 100
