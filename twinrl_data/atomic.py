@@ -74,24 +74,24 @@ def require_free_space(folder: str | Path, needed: int, what: str) -> None:
         )
 
 
-def _owner_tag() -> str:
+def owner_tag() -> str:
+    """This process, as ``<host>-<pid>``: who is writing something."""
     return f"{socket.gethostname()}-{os.getpid()}"
 
 
-def _is_ours_and_dead(candidate: Path) -> bool:
-    """Whether ``candidate`` (``<name>.partial-<host>-<pid>``) was left by a process of
-    this host that no longer runs (another host's may still be building)."""
-    tag = candidate.name.rpartition(PARTIAL)[2]
+def owner_alive(tag: str) -> bool:
+    """Whether the process ``tag`` (see :func:`owner_tag`) may still run: it does on
+    this host, or it is another host's (which cannot be asked)."""
     host, _, pid = tag.rpartition("-")
     if host != socket.gethostname() or not pid.isdigit():
-        return False
+        return True
     try:
         os.kill(int(pid), 0)
     except ProcessLookupError:
-        return True
-    except PermissionError:
         return False
-    return False
+    except PermissionError:
+        return True
+    return True
 
 
 @contextlib.contextmanager
@@ -107,9 +107,9 @@ def publishing(final: str | Path) -> Iterator[Path]:
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
     for leftover in final.parent.glob(f"{final.name}{PARTIAL}*"):
-        if _is_ours_and_dead(leftover):
+        if not owner_alive(leftover.name.rpartition(PARTIAL)[2]):
             shutil.rmtree(leftover, ignore_errors=True)
-    building = final.with_name(f"{final.name}{PARTIAL}{_owner_tag()}")
+    building = final.with_name(f"{final.name}{PARTIAL}{owner_tag()}")
     shutil.rmtree(building, ignore_errors=True)
     try:
         yield building

@@ -111,6 +111,8 @@ def repair_command(
         console.print(f"  missing: {line}")
     for line in report.unreadable:
         console.print(f"  unreadable: {line}")
+    for line in report.busy:
+        console.print(f"  still being recorded, left alone: {line}")
 
 
 @app.command("verify")

@@ -15,7 +15,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from twinrl_data.atomic import write_atomic
+from twinrl_data.atomic import owner_alive, write_atomic
 from twinrl_data.errors import DataError
 from twinrl_data.locking import FolderLock
 from twinrl_data.mcap_log import read_episode, read_summary
@@ -43,6 +43,7 @@ class Repair:
     missing: list[str] = field(default_factory=list)  # listed files that are gone
     recovered: list[str] = field(default_factory=list)  # unfinished/damaged, salvaged
     empty: list[str] = field(default_factory=list)  # unfinished before a whole step
+    busy: list[str] = field(default_factory=list)  # still being recorded: left alone
     unreadable: list[str] = field(default_factory=list)  # nothing could be salvaged
     manifest_was: str = "consistent"  # consistent, damaged, missing
 
@@ -64,6 +65,15 @@ def repair_session(path: str | Path) -> Repair:
         for relative, file in on_disk.items():
             if relative not in listed and report.manifest_was == "consistent":
                 report.adopted.append(relative)
+            recorder = listed.get(relative, {}).get("recorder")
+            if (
+                listed.get(relative, {}).get("status") == "recording"
+                and recorder
+                and (owner_alive(recorder))
+            ):
+                entries.append(listed[relative])  # still being recorded: left alone
+                report.busy.append(f"{relative} (process {recorder})")
+                continue
             entry = _entry(path, relative, file, report)
             if entry is not None:
                 entries.append(entry)

@@ -26,7 +26,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from twinrl_data.atomic import require_free_space, write_atomic
+from twinrl_data.atomic import owner_alive, owner_tag, require_free_space, write_atomic
 from twinrl_data.errors import DataError, DataWarning
 from twinrl_data.locking import FolderLock
 from twinrl_data.mcap_log import EpisodeWriter, read_summary
@@ -165,9 +165,11 @@ class Session:
                 if self._finished(file):
                     self._finished_unlisted.append(file)
                     continue  # the recorder finished it; only its entry was not updated
+                if entry.get("recorder") and owner_alive(entry["recorder"]):
+                    continue  # being recorded right now
                 self.problems.append(
-                    f"{entry['file']} is {entry.get('status')}: its recorder did not finish it "
-                    f"(if none is running, `twinrl data repair {self.path}` recovers it)"
+                    f"{entry['file']} is {entry.get('status')}: its recorder stopped before "
+                    f"finishing it (`twinrl data repair {self.path}` recovers it)"
                 )
         orphans = [p for p in episode_files(self.path) if f"{EPISODES}/{p.name}" not in listed]
         if orphans:
@@ -243,7 +245,8 @@ class Session:
             writer = EpisodeWriter(
                 self.path / relative, meta, on_close=self._closed, **writer_options
             )
-            episodes.append(entry_for(relative, meta, "recording", None))
+            started = entry_for(relative, meta, "recording", None)
+            episodes.append(started | {"recorder": owner_tag()})
             return writer
 
         return self._change(start)
@@ -294,6 +297,7 @@ class Session:
             for entry in episodes:
                 if entry["episode_id"] == meta.episode_id:
                     entry.update(status=status, length=length, success=meta.success)
+                    entry.pop("recorder", None)
 
         self._change(close)
 

@@ -5,6 +5,7 @@ import errno
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -134,10 +135,15 @@ def test_repair_adopts_orphans_reports_missing_and_recovers_an_unfinished_episod
         unfinished.append(make_step(t, 25, rng, cameras=()))
     unfinished._writer.flush()
     unfinished._file.flush()
+    manifest = json.loads((tmp_path / "s" / MANIFEST).read_text())
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    manifest["episodes"][-1]["recorder"] = f"{socket.gethostname()}-{dead.pid}"  # died
+    (tmp_path / "s" / MANIFEST).write_text(json.dumps(manifest))
     session.refresh()
     assert any("missing" in p for p in session.problems)
     assert any("not in the manifest" in p for p in session.problems)
-    assert any("recording" in p for p in session.problems)
+    assert any("recorder stopped" in p for p in session.problems)
     assert len(session.readable_paths()) == 3  # the finished ones, the orphan among them
     report = repair_session(tmp_path / "s")
     assert report.missing == [f"episodes/{paths[1].name}"]
@@ -147,6 +153,12 @@ def test_repair_adopts_orphans_reports_missing_and_recovers_an_unfinished_episod
     assert not repaired.problems and len(repaired.readable_paths()) == 4
     assert (tmp_path / "s" / "damaged" / unfinished.path.name).is_file()  # nothing deleted
     assert len(read_episode(unfinished.path, images=False)) >= 20  # at most a chunk lost
+    running = session.record(make_meta())  # its recorder (this process) is alive
+    running.append(make_step(0, 5, rng, cameras=()))
+    assert repair_session(tmp_path / "s").busy == [
+        f"episodes/{running.path.name} (process {socket.gethostname()}-{os.getpid()})"
+    ]
+    assert running.path.is_file()  # left alone
 
 
 def test_files_take_their_permissions_from_the_umask(tmp_path):
