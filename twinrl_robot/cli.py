@@ -167,3 +167,38 @@ def excite(
             on_episode=lambda _: bar.advance(job),
         )
     console.print(f"{out}: {episodes} excitation episodes of {duration:g} s ({world})")
+
+
+cell_app = typer.Typer(help="Real cells: their files (arm, gripper, cameras, safety).")
+
+
+@cell_app.command("check")
+def cell_check(
+    file: Annotated[Path, typer.Argument(help="Cell file (YAML).", show_default=False)],
+) -> None:
+    """Validate a cell file and the twin it names; print what it describes."""
+    from twinrl_robot.cell_file import load_cell
+    from twinrl_sim.tasks import twin_scene
+
+    cell = load_cell(file)
+    scene = twin_scene(cell.twin)
+    arm, safety = cell.arm, cell.safety
+    table = Table(title=f"cell {cell.name}", show_header=False)
+    table.add_row("arm", f"{arm.model} at {arm.host}")
+    table.add_row("rates", f"control {arm.control_hz:g} Hz, servo {arm.servo_rate:g} Hz")
+    table.add_row("tcp offset", " ".join(f"{v:g}" for v in arm.tcp_offset))
+    table.add_row("payload", f"{arm.payload.mass:g} kg")
+    table.add_row("gripper", cell.gripper.kind)
+    cameras = ", ".join(
+        f"{c.name} ({c.kind} {c.width}x{c.height} @ {c.fps:g})" for c in cell.cameras
+    )
+    table.add_row("cameras", cameras or "none")
+    table.add_row(
+        "safety",
+        f"box {list(safety.workspace.low)}..{list(safety.workspace.high)} m, tool cone "
+        f"{safety.tool_cone_deg:g} deg, {safety.max_step_translation:g} m and "
+        f"{safety.max_step_rotation:g} rad per step, joints {safety.max_joint_speed:g} rad/s, "
+        f"watchdog {safety.watchdog_ms:g} ms",
+    )
+    table.add_row("twin", f"{scene.name} ({cell.twin})")
+    console.print(table)

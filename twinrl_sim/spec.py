@@ -377,14 +377,15 @@ def save_spec(spec: SceneSpec, path: str | Path) -> Path:
     return path
 
 
-def format_validation_error(err: ValidationError) -> str:
-    """One line listing every problem pydantic found, with nearest-key suggestions."""
+def format_validation_error(err: ValidationError, root: type[BaseModel] | None = None) -> str:
+    """One line listing every problem pydantic found, with nearest-key suggestions
+    (keys looked up from ``root``, the validated model; default :class:`SceneSpec`)."""
     problems = []
     for item in err.errors():
         loc = ".".join(str(p) for p in item["loc"]) or "(top level)"
         if item["type"] == "extra_forbidden":
             key = str(item["loc"][-1])
-            parent_model = _model_at(SceneSpec, item["loc"][:-1])
+            parent_model = _model_at(root or SceneSpec, item["loc"][:-1])
             hint = ""
             if parent_model is not None:
                 close = difflib.get_close_matches(key, list(parent_model.model_fields), n=1)

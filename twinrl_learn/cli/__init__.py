@@ -34,6 +34,7 @@ sim_cli.app.command("excite")(robot_cli.excite)
 app.add_typer(sim_cli.app, name="sim")
 app.add_typer(sim_cli.gap_app, name="gap")
 app.add_typer(sim_cli.twin_app, name="twin")
+app.add_typer(robot_cli.cell_app, name="cell")
 data_cli.app.command("import-csv")(sim_cli.import_csv_command)  # needs the twin for FK
 app.add_typer(data_cli.app, name="data")
 app.command("view")(sim_cli.view)
