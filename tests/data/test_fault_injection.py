@@ -91,7 +91,7 @@ def test_recorders_killed_at_random_points_lose_no_finished_episode(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(2))
 def test_recorders_killed_at_random_points_many_seeds(tmp_path, seed):
     _recording_kills(tmp_path, kills=10, seed=seed)
 
