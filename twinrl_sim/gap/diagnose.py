@@ -14,7 +14,9 @@
 4. Repeat with the named effects added, until no candidate is significant: among every
    remaining candidate while the held-out error is far above the noise floor
    (:data:`FAR_ABOVE_NOISE`; a large effect can mask a smaller one in the first round),
-   else among those significant on their own; then refit all named effects together.
+   else among those significant on their own. After each effect is named, all named
+   effects are refit together, and the search stops once the held-out error is at the
+   noise floor (:data:`AT_NOISE`).
 5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
@@ -59,6 +61,7 @@ MAX_EFFECTS = 3  # rounds of naming
 # Held-out error (noise units: 1 is a twin that explains everything but sensor noise)
 # above which the next round refits every remaining candidate, not only the significant.
 FAR_ABOVE_NOISE = 2.0
+AT_NOISE = 1.2  # held-out error at which the named effects explain all but sensor noise
 
 
 @dataclass
@@ -296,16 +299,20 @@ def diagnose(
                 break
             selected.append({"effect": best.effect, "params": best.params, "ci": best.ci})
             fixed = {**fixed, best.effect: best.params}
+            log(f"named {best.effect} {best.params}")
+            if len(selected) > 1:
+                # Fitted one after the other, each effect absorbs some of the next; fitted
+                # together they explain what they really do, before anything more is sought.
+                log(f"refitting {', '.join(s['effect'] for s in selected)} together")
+                fixed, selected = _refit(scene, fit_on, noise, selected, rollout)
             baseline = _score(scene, fit_on, held, noise, fixed, rollout)
+            if baseline.heldout_error <= AT_NOISE:
+                break  # what is left is sensor noise: nothing more to name
             # While what remains is far above the sensor noise, every other candidate
             # is refit on it: an effect masked by a larger one is not significant in the
             # first round, yet may explain most of what is left.
             far = baseline.heldout_error > FAR_ABOVE_NOISE
             pool = [r.effect for r in results[1:] if far or r.significant]
-            log(f"named {best.effect} {best.params}")
-        if len(selected) > 1:
-            log(f"refitting {', '.join(s['effect'] for s in selected)} together")
-            fixed, selected = _refit(scene, fit_on, noise, selected, rollout)
         camera_results, image_gap = [], {}
         for camera in cameras:
             log(f"fitting camera_pose of the {camera} camera on its images")
