@@ -29,10 +29,10 @@ import json
 import math
 import os
 from collections import defaultdict
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import PIL.Image
@@ -331,6 +331,22 @@ def _open_checked(path: str | Path) -> Path:
     return path
 
 
+def intact_records(stream: IO[bytes], damaged: Callable[[Chunk], None]) -> Iterator[Any]:
+    """Every record of an MCAP stream, chunks broken up, every checksum checked (each
+    chunk's and, at its end, the data section's). A chunk that fails goes to
+    ``damaged``, which raises to stop the reading or returns to skip the chunk."""
+    for record in StreamReader(stream, validate_crcs=True, emit_chunks=True).records:
+        if not isinstance(record, Chunk):
+            yield record
+            continue
+        try:
+            parts = breakup_chunk(record, validate_crc=True)
+        except Exception:
+            damaged(record)
+            continue
+        yield from parts
+
+
 def _chunk_damage(path: Path, chunk: Chunk, records: Mapping[str, Any]) -> McapError:
     """A damaged chunk (its checksum or compression broken) as one line: which episode,
     and which span of it is lost."""
@@ -416,31 +432,23 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
 
-    def take(record: object) -> None:
-        if isinstance(record, Message):
-            channel = channels.get(record.channel_id)
-            if channel is not None:
-                schema = schemas.get(channel.schema_id)
-                _collect(schema, channel, record, vectors, transitions, frames, images)
-        elif isinstance(record, Channel):
-            channels[record.id] = record
-        elif isinstance(record, Schema):
-            schemas[record.id] = record
-        elif isinstance(record, Metadata):
-            records[record.name] = _decode(record.metadata)
+    def damaged(chunk: Chunk) -> None:
+        raise _chunk_damage(path, chunk, records)
 
     try:
         with open(path, "rb") as f:
-            for record in StreamReader(f, validate_crcs=True, emit_chunks=True).records:
-                if not isinstance(record, Chunk):
-                    take(record)
-                    continue
-                try:
-                    parts = breakup_chunk(record, validate_crc=True)
-                    for part in parts:
-                        take(part)
-                except Exception:
-                    raise _chunk_damage(path, record, records) from None
+            for record in intact_records(f, damaged):
+                if isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is not None:
+                        schema = schemas.get(channel.schema_id)
+                        _collect(schema, channel, record, vectors, transitions, frames, images)
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Metadata):
+                    records[record.name] = _decode(record.metadata)
     except McapError:
         raise
     except Exception as err:

@@ -11,11 +11,10 @@ checked.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from twinrl_data.atomic import owner_alive, write_atomic
+from twinrl_data.atomic import owner_alive
 from twinrl_data.errors import DataError
 from twinrl_data.locking import FolderLock
 from twinrl_data.mcap_log import read_episode, read_summary
@@ -23,12 +22,13 @@ from twinrl_data.salvage import check_episode_file, recover
 from twinrl_data.session import (
     EPISODES,
     FORMAT,
-    MANIFEST,
     READABLE,
     Session,
     entry_for,
     episode_files,
     is_session,
+    read_manifest,
+    write_manifest,
 )
 
 DAMAGED = "damaged"
@@ -58,7 +58,7 @@ def repair_session(path: str | Path) -> Repair:
     report = Repair()
     with FolderLock(path):
         old = _old_manifest(path, report)
-        listed = {e.get("file"): e for e in old.get("episodes", []) if isinstance(e, dict)}
+        listed = {e["file"]: e for e in old.get("episodes", [])}
         on_disk = {f"{EPISODES}/{p.name}": p for p in episode_files(path)}
         report.missing = sorted(f for f in listed if f not in on_disk)
         entries = []
@@ -83,17 +83,14 @@ def repair_session(path: str | Path) -> Repair:
             "created_at": old.get("created_at"),
             "episodes": entries,
         }
-        write_atomic(path / MANIFEST, json.dumps(manifest, indent=1).encode())
+        write_manifest(path, manifest)
         report.episodes = len(entries)
     return report
 
 
 def _old_manifest(path: Path, report: Repair) -> dict:
     try:
-        manifest = json.loads((path / MANIFEST).read_text())
-        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-            raise ValueError
-        return manifest
+        return read_manifest(path)
     except FileNotFoundError:
         report.manifest_was = "missing"
     except (OSError, ValueError):

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
 from twinrl_data import mcap_log
@@ -58,23 +57,18 @@ def _salvage(path: Path) -> _Salvaged:
         elif isinstance(record, Metadata):
             kept.metadata.append(record)
 
+    def skip(chunk: Chunk) -> None:
+        kept.lost_spans.append((chunk.message_start_time, chunk.message_end_time))
+
     with open(path, "rb") as f:
         try:
-            for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
-                if isinstance(record, Chunk):
-                    try:
-                        parts = breakup_chunk(record, validate_crc=True)
-                    except Exception:
-                        kept.lost_spans.append((record.message_start_time, record.message_end_time))
-                        continue
-                    for part in parts:
-                        keep(part)
-                else:
-                    keep(record)
-                if isinstance(record, Footer):
-                    kept.finished = True
+            for record in mcap_log.intact_records(f, skip):
+                keep(record)
+                kept.finished |= isinstance(record, Footer)
         except Exception:
-            pass  # a cut or damaged record: what came before it is kept
+            # A cut or damaged record ends the reading (the records after it cannot be
+            # found); everything before it is kept.
+            kept.finished = False
     return kept
 
 

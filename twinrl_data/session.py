@@ -127,7 +127,7 @@ class Session:
         with FolderLock(path):
             if not (path / MANIFEST).is_file():
                 manifest = {"format": FORMAT, "version": 1, "created_at": now_iso(), "episodes": []}
-                write_atomic(path / MANIFEST, _encode(manifest))
+                write_manifest(path, manifest)
         return cls(path)
 
     # ------------------------------------------------------------------ reading
@@ -138,14 +138,7 @@ class Session:
         self._finished_unlisted = []
         manifest_path = self.path / MANIFEST
         try:
-            manifest = json.loads(manifest_path.read_text())
-            if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-                raise ValueError("not a twinrl session manifest")
-            if not isinstance(manifest.get("episodes"), list):
-                raise ValueError("no episode list")
-            for number, entry in enumerate(manifest["episodes"]):
-                if not _well_formed(entry):
-                    raise ValueError(f"entry {number} is malformed")
+            manifest = read_manifest(self.path)
         except (OSError, ValueError) as err:
             reason = "missing" if not manifest_path.exists() else f"damaged ({err})"
             entries, unreadable = entries_from_files(self.path)
@@ -155,18 +148,17 @@ class Session:
             )
             self.problems += unreadable
             return {"format": FORMAT, "version": 1, "created_at": None, "episodes": entries}
-        listed = {e.get("file") for e in manifest["episodes"]}
-        self._finished_unlisted = []
+        listed = {e["file"] for e in manifest["episodes"]}
         for entry in manifest["episodes"]:
             file = self.path / entry["file"]
             if not file.is_file():
                 self.problems.append(f"{entry['file']} is listed but missing")
             elif entry.get("status") not in READABLE:
+                if entry.get("recorder") and owner_alive(entry["recorder"]):
+                    continue  # being recorded right now (its file is not read)
                 if self._finished(file):
                     self._finished_unlisted.append(file)
                     continue  # the recorder finished it; only its entry was not updated
-                if entry.get("recorder") and owner_alive(entry["recorder"]):
-                    continue  # being recorded right now
                 self.problems.append(
                     f"{entry['file']} is {entry.get('status')}: its recorder stopped before "
                     f"finishing it (`twinrl data repair {self.path}` recovers it)"
@@ -207,8 +199,8 @@ class Session:
         return [self.path / e["file"] for e in self.manifest["episodes"]]
 
     def readable_paths(self) -> list[Path]:
-        """The files of the finished episodes, in number order: those the manifest lists
-        as finished, and finished files it does not (see :attr:`problems`)."""
+        """The files of the finished episodes: those the manifest lists as finished, in
+        its order, then finished files it does not (see :attr:`problems`)."""
         listed = [
             self.path / e["file"]
             for e in self.manifest["episodes"]
@@ -302,7 +294,25 @@ class Session:
         self._change(close)
 
     def _save(self) -> None:
-        write_atomic(self.path / MANIFEST, _encode(self.manifest))
+        write_manifest(self.path, self.manifest)
+
+
+def read_manifest(folder: Path) -> dict[str, Any]:
+    """A session's manifest as written; ``ValueError`` when it is not one (damaged)."""
+    manifest = json.loads((Path(folder) / MANIFEST).read_text())
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise ValueError("not a twinrl session manifest")
+    if not isinstance(manifest.get("episodes"), list):
+        raise ValueError("no episode list")
+    for number, entry in enumerate(manifest["episodes"]):
+        if not _well_formed(entry):
+            raise ValueError(f"entry {number} is malformed")
+    return manifest
+
+
+def write_manifest(folder: Path, manifest: dict[str, Any]) -> None:
+    """Replace a session's manifest whole (see :func:`twinrl_data.atomic.write_atomic`)."""
+    write_atomic(Path(folder) / MANIFEST, json.dumps(manifest, indent=1).encode())
 
 
 def _well_formed(entry: Any) -> bool:
@@ -318,7 +328,3 @@ def _well_formed(entry: Any) -> bool:
         and file.endswith(".mcap")
         and ".." not in file
     )
-
-
-def _encode(manifest: dict[str, Any]) -> bytes:
-    return json.dumps(manifest, indent=1).encode()
