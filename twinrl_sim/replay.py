@@ -66,9 +66,9 @@ def replay(
         start = Starts.capture(cell.model, cell.data)
         with Rollout(nthread=1) as pool:
             engine = WindowedReplay(cell.layout, 1.0 / cell.control_dt, pool)
-            ticks, inputs = engine.rollout([cell.model], start, targets[None], grip[None])
+            ticks, held = engine.rollout([cell.model], start, targets[None], grip[None])
         for row, tick in enumerate(ticks[0, 0]):
-            engine.restore(cell.model, cell.data, tick, inputs[0], row)
+            engine.restore(cell.model, cell.data, tick, held[0, row])
             states.append(cell.state_vector())
             env_states.append(cell.environment_vector())
             success.append(tracker.update().success)

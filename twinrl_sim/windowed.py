@@ -72,6 +72,22 @@ class WindowedReplay:
         self.fps = fps
         self.pool = pool or Rollout(nthread=2)
 
+    def period_inputs(
+        self,
+        model: mujoco.MjModel,
+        starts: Starts,
+        targets: np.ndarray,
+        gripper: np.ndarray,
+    ) -> np.ndarray:
+        """(n, W, inputs size): what each window holds during each control period, its
+        targets (n, W, n_arm) and gripper commands (n, W), mocap bodies where they were
+        at the start. ``ctrl`` comes first in the inputs (mjtState order)."""
+        inputs = np.repeat(starts.inputs[:, None], targets.shape[1], axis=1)
+        inputs[:, :, [model.actuator(a).id for a in self.layout.arm_actuators]] = targets
+        if self.layout.gripper_actuator:
+            inputs[:, :, model.actuator(self.layout.gripper_actuator).id] = gripper
+        return inputs
+
     def inputs(
         self,
         model: mujoco.MjModel,
@@ -79,14 +95,9 @@ class WindowedReplay:
         targets: np.ndarray,
         gripper: np.ndarray,
     ) -> np.ndarray:
-        """(n, W * substeps, inputs size): each window's targets (n, W, n_arm) and gripper
-        commands (n, W) held for their control period, mocap bodies where they were at
-        the start. ``ctrl`` comes first in the inputs (mjtState order)."""
-        inputs = np.repeat(starts.inputs[:, None], targets.shape[1], axis=1)
-        inputs[:, :, [model.actuator(a).id for a in self.layout.arm_actuators]] = targets
-        if self.layout.gripper_actuator:
-            inputs[:, :, model.actuator(self.layout.gripper_actuator).id] = gripper
-        return np.repeat(inputs, control_substeps(model, self.fps), axis=1)
+        """(n, W * substeps, inputs size): :meth:`period_inputs` at every physics step."""
+        held = self.period_inputs(model, starts, targets, gripper)
+        return np.repeat(held, control_substeps(model, self.fps), axis=1)
 
     def rollout(
         self,
@@ -96,33 +107,29 @@ class WindowedReplay:
         gripper: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Every window under every model (which share one structure): the physics state
-        at the end of each control period, (len(models), n, W, state size), and the
-        inputs that were held (n, W * substeps, inputs size)."""
+        at the end of each control period, (len(models), n, W, state size), and what was
+        held during each period (n, W, inputs size; see :meth:`restore`)."""
         targets = np.asarray(targets, float)
         n, rows = targets.shape[:2]
-        inputs = self.inputs(models[0], starts, targets, np.asarray(gripper, float))
+        held = self.period_inputs(models[0], starts, targets, np.asarray(gripper, float))
         substeps = control_substeps(models[0], self.fps)
         state, _ = self.pool.rollout(
             [m for m in models for _ in range(n)],
             [mujoco.MjData(models[0]) for _ in range(max(self.pool.nthread, 1))],
             np.tile(starts.state, (len(models), 1)),
-            np.tile(inputs, (len(models), 1, 1)),
+            np.tile(np.repeat(held, substeps, axis=1), (len(models), 1, 1)),
             control_spec=INPUTS,
         )
         ticks = state[:, substeps - 1 :: substeps]
-        return ticks.reshape(len(models), n, rows, -1), inputs
+        return ticks.reshape(len(models), n, rows, -1), held
 
+    @staticmethod
     def restore(
-        self,
-        model: mujoco.MjModel,
-        data: mujoco.MjData,
-        tick: np.ndarray,
-        inputs: np.ndarray,
-        row: int,
+        model: mujoco.MjModel, data: mujoco.MjData, tick: np.ndarray, held: np.ndarray
     ) -> None:
-        """Put ``data`` at control period ``row``'s end (``tick``, one window's ``inputs``),
-        derived quantities (site poses, actuator forces) included."""
+        """Put ``data`` at a control period's end: its physics state ``tick`` and the
+        inputs ``held`` during it, derived quantities (site poses, actuator forces)
+        included."""
         mujoco.mj_setState(model, data, tick, STATE)
-        substeps = control_substeps(model, self.fps)
-        mujoco.mj_setState(model, data, inputs[(row + 1) * substeps - 1], INPUTS)
+        mujoco.mj_setState(model, data, held, INPUTS)
         mujoco.mj_forward(model, data)

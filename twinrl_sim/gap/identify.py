@@ -36,7 +36,7 @@ from twinrl_sim.effects import apply_effects
 from twinrl_sim.gap.candidates import CANDIDATES, Candidate
 from twinrl_sim.gap.windows import DELAY_HISTORY, Windows, measured_starts, replay_signals
 from twinrl_sim.spec import SceneSpec
-from twinrl_sim.windowed import WindowedReplay, control_substeps
+from twinrl_sim.windowed import WindowedReplay
 
 FD_STEP = 1e-3  # finite-difference step in optimiser units (see Candidate.scale)
 MAX_ITERS = 12  # Levenberg-Marquardt iterations per fit; these fits converge in 3-8
@@ -224,8 +224,8 @@ class WindowReplay:
             w.measured.reshape(rows, -1),
             [(n, 1, sysid.SignalType.CustomObs) for n in w.names],
         )
-        held = self.engine.inputs(model, self.starts, w.targets, w.gripper)
-        ctrl = held[:, :: control_substeps(model, w.fps), : model.nu].reshape(rows, -1)
+        held = self.engine.period_inputs(model, self.starts, w.targets, w.gripper)
+        ctrl = held[:, :, : model.nu].reshape(rows, -1)
         control = sysid.TimeSeries.from_control_names(np.arange(rows) / w.fps, ctrl, model)
         absl_logging.set_verbosity(absl_logging.ERROR)  # "sensor dimension" warnings
         return sysid.ModelSequences(

@@ -313,7 +313,7 @@ def replay_signals(
     """The compared signals each model predicts for every window, (len(models), n, W,
     n_signals), and the physics states at the compared rows, (len(models), n, W, size)."""
     w = windows
-    ticks, inputs = engine.rollout(models, starts, w.targets, w.gripper)
+    ticks, held = engine.rollout(models, starts, w.targets, w.gripper)
     signals = np.empty((len(models), len(w), w.rows, len(w.names)))
     for m, model in enumerate(models):
         data = mujoco.MjData(model)
@@ -328,7 +328,7 @@ def replay_signals(
         ]
         for i in range(len(w)):
             for r in range(w.rows):
-                engine.restore(model, data, ticks[m, i, r], inputs[i], r)
+                engine.restore(model, data, ticks[m, i, r], held[i, r])
                 row = [data.qpos[arm_qpos], data.qvel[arm_dof], data.site_xpos[tcp]]
                 if tau:
                     row.append(data.qfrc_actuator[arm_dof])
