@@ -36,11 +36,10 @@ import ipaddress
 from pathlib import Path
 from typing import Annotated, Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinrl_robot.errors import RobotError
-from twinrl_sim.spec import format_validation_error
+from twinrl_sim.spec import read_yaml, validate_model
 
 ARM_MODELS = {
     "ur3e": 500.0,
@@ -161,26 +160,13 @@ class CellFile(_Strict):
 
 def parse_cell(data: object, source: str = "cell file") -> CellFile:
     """Validate a mapping as a :class:`CellFile`; every problem in one :class:`CellFileError`."""
-    if not isinstance(data, dict):
-        raise CellFileError(f"{source}: expected a mapping at the top level")
-    try:
-        return CellFile.model_validate(data)
-    except ValidationError as err:
-        raise CellFileError(f"{source}: {format_validation_error(err, CellFile)}") from None
+    return validate_model(CellFile, data, source, CellFileError)
 
 
 def load_cell(path: str | Path) -> CellFile:
     """Read and validate a cell file (YAML); its ``twin`` is resolved beside it."""
     path = Path(path)
-    if path.is_dir():
-        raise CellFileError(f"{path} is a folder; give a cell file (YAML)")
-    if not path.is_file():
-        raise CellFileError(f"cell file {path} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise CellFileError(f"{path}: not valid YAML ({err.__class__.__name__})") from None
-    cell = parse_cell(data, source=str(path))
+    cell = parse_cell(read_yaml(path, "cell file", CellFileError), source=str(path))
     twin = path.parent / cell.twin
     if twin.suffix in (".yaml", ".yml"):
         if not twin.is_file():

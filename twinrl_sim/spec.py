@@ -307,29 +307,45 @@ class SceneSpec(_Strict):
         return yaml.safe_dump(self.model_dump(mode="json", exclude_defaults=False), sort_keys=False)
 
 
+def validate_model[Model: BaseModel](
+    model: type[Model], data: object, source: str, error: type[Exception]
+) -> Model:
+    """Validate a mapping as ``model``; raise ``error`` naming every problem in one line,
+    unknown keys with the nearest valid one (scene specs, cell files)."""
+    if not isinstance(data, dict):
+        raise error(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise error(f"{source}: {format_validation_error(err, model)}") from None
+
+
+def read_yaml(path: Path, what: str, error: type[Exception], hint: str = "") -> object:
+    """The YAML document of ``path`` (a ``what``: scene spec, cell file), or ``error`` in
+    one line when it is a folder, missing or not YAML."""
+    if path.is_dir():
+        raise error(f"{path} is a folder; give a {what} (YAML)")
+    if not path.is_file():
+        raise error(f"{what} {path} does not exist{hint}")
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise error(f"{path}: not valid YAML ({err.__class__.__name__}: {err})") from None
+
+
 def parse_spec(data: dict[str, Any], source: str = "scene spec") -> SceneSpec:
     """Validate a mapping as a :class:`SceneSpec`; raise :class:`SpecError` on any problem.
 
     All problems are reported in one message, each with its location and, for unknown
     keys, the nearest valid key.
     """
-    if not isinstance(data, dict):
-        raise SpecError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
-    try:
-        return SceneSpec.model_validate(data)
-    except ValidationError as err:
-        raise SpecError(f"{source}: {format_validation_error(err)}") from None
+    return validate_model(SceneSpec, data, source, SpecError)
 
 
 def load_spec(path: str | Path) -> SceneSpec:
     """Read and validate a scene spec YAML file."""
     path = Path(path)
-    if not path.is_file():
-        raise SpecError(f"scene spec {path} does not exist; give a YAML file or a task name")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise SpecError(f"{path}: not valid YAML ({err.__class__.__name__}: {err})") from None
+    data = read_yaml(path, "scene spec", SpecError, "; give a YAML file or a task name")
     spec = parse_spec(data or {}, source=str(path))
     return resolve_files(spec, path.parent)
 
