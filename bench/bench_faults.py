@@ -18,7 +18,6 @@ written). The target for both is 0. Usage::
 
 from __future__ import annotations
 
-import copy
 import json
 import signal
 import subprocess
@@ -26,6 +25,7 @@ import sys
 import tempfile
 import textwrap
 import time
+import warnings
 from pathlib import Path
 from typing import Annotated
 
@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.data.conftest import make_meta, make_step, write_episode  # noqa: E402
+from tests.sim.test_spec import number_paths, replaced  # noqa: E402
 from twinrl_data.errors import DataError, TwinrlError  # noqa: E402
 from twinrl_data.lerobot_io import export_dataset, verify_dataset  # noqa: E402
 from twinrl_data.mcap_log import read_episode, read_summary  # noqa: E402
@@ -120,22 +121,26 @@ def _session(path: Path, episodes: int, length: int, cameras: tuple[str, ...]) -
     return path
 
 
+def _damaged(original: bytes, case: int, rng: np.random.Generator, run: int) -> bytes:
+    """``original`` with one seeded fault, by ``case``: a bit flipped, ``run`` bytes
+    overwritten at random, or the rest cut off."""
+    data = bytearray(original)
+    at = int(rng.integers(len(data)))
+    if case % 3 == 0:
+        data[at] ^= 1 << int(rng.integers(8))
+    elif case % 3 == 1:
+        data[at : at + run] = rng.integers(0, 256, run, dtype=np.uint8).tobytes()
+    else:
+        data = data[:at]
+    return bytes(data)
+
+
 def manifests(folder: Path, count: int, rng: np.random.Generator) -> dict:
     session = _session(folder / "manifest", episodes=4, length=6, cameras=())
     original = (session / MANIFEST).read_bytes()
     lost = 0
     for case in range(count):
-        data = bytearray(original)
-        at = int(rng.integers(len(data)))
-        if case % 3 == 0:
-            data[at] ^= 1 << int(rng.integers(8))
-        elif case % 3 == 1:
-            data = data[:at]
-        else:
-            data[at : at + 8] = rng.integers(0, 256, 8, dtype=np.uint8).tobytes()
-        (session / MANIFEST).write_bytes(bytes(data))
-        import warnings
-
+        (session / MANIFEST).write_bytes(_damaged(original, case, rng, run=8))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             try:
@@ -155,15 +160,7 @@ def episodes(folder: Path, count: int, rng: np.random.Generator) -> dict:
     silent = refused = 0
     copy_path = folder / "damaged.mcap"
     for case in range(count):
-        data = bytearray(original)
-        at = int(rng.integers(len(data)))
-        if case % 3 == 0:
-            data[at] ^= 1 << int(rng.integers(8))
-        elif case % 3 == 1:
-            data[at : at + 16] = rng.integers(0, 256, 16, dtype=np.uint8).tobytes()
-        else:
-            data = data[:at]
-        copy_path.write_bytes(bytes(data))
+        copy_path.write_bytes(_damaged(original, case, rng, run=16))
         try:
             read = read_episode(copy_path)
         except DataError:
@@ -187,13 +184,10 @@ def specs(count: int, rng: np.random.Generator) -> dict:
     silent = refused = 0
     bases = {t: json.loads(make_task(t).scene.model_dump_json()) for t in TASKS}
     for case in range(count):
-        data = copy.deepcopy(bases[list(TASKS)[case % len(TASKS)]])
-        leaves = list(_leaves(data))
-        path = leaves[int(rng.integers(len(leaves)))]
-        node = data
-        for key in path[:-1]:
-            node = node[key]
-        node[path[-1]] = values[int(rng.integers(len(values)))]
+        base = bases[list(TASKS)[case % len(TASKS)]]
+        paths = list(number_paths(base))
+        path = paths[int(rng.integers(len(paths)))]
+        data = replaced(base, path, values[int(rng.integers(len(values)))])
         try:
             cell = Cell(compile_scene(parse_spec(data)))
         except TwinrlError:
@@ -205,17 +199,6 @@ def specs(count: int, rng: np.random.Generator) -> dict:
         silent += not np.isfinite(cell.state_vector()).all()
         cell.close()
     return {"runs": count, "inputs": count, "refused": refused, "silent": silent}
-
-
-def _leaves(node, path=()):
-    if isinstance(node, dict):
-        for key, value in node.items():
-            yield from _leaves(value, (*path, key))
-    elif isinstance(node, list):
-        for index, value in enumerate(node):
-            yield from _leaves(value, (*path, index))
-    elif isinstance(node, int | float) and not isinstance(node, bool):
-        yield path
 
 
 def datasets(folder: Path, count: int, rng: np.random.Generator) -> dict:

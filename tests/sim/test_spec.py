@@ -1,5 +1,6 @@
 """Scene specs: validation errors say what is wrong and where; digests; custom robots."""
 
+import copy
 import json
 from pathlib import Path
 
@@ -151,21 +152,20 @@ def test_custom_robot_with_wrong_names_says_which(tmp_path):
         compile_scene(parse_spec(data))
 
 
-def _leaves(node, path=()):
+def number_paths(node, path=()):
     """Paths to every number of a parsed spec's dict."""
     if isinstance(node, dict):
         for key, value in node.items():
-            yield from _leaves(value, (*path, key))
+            yield from number_paths(value, (*path, key))
     elif isinstance(node, list | tuple):
         for index, value in enumerate(node):
-            yield from _leaves(value, (*path, index))
+            yield from number_paths(value, (*path, index))
     elif isinstance(node, int | float) and not isinstance(node, bool):
         yield path
 
 
-def _replaced(data, path, value):
-    import copy
-
+def replaced(data, path, value):
+    """A deep copy of ``data`` with the value at ``path`` replaced."""
     changed = copy.deepcopy(data)
     node = changed
     for key in path[:-1]:
@@ -182,7 +182,7 @@ def test_no_damaged_number_compiles_into_a_scene_that_diverges(task):
     from twinrl_sim.cell import Cell
 
     data = json.loads(make_task(task).scene.model_dump_json())
-    paths = list(_leaves(data))
+    paths = list(number_paths(data))
     rng = np.random.default_rng(11)
     values = [float("nan"), float("inf"), -float("inf"), 1e300, -1e300, -1.0, 0.0, 1e6, "x", []]
     refused = accepted = 0
@@ -190,7 +190,7 @@ def test_no_damaged_number_compiles_into_a_scene_that_diverges(task):
         path = paths[int(rng.integers(len(paths)))]
         value = values[int(rng.integers(len(values)))]
         try:
-            scene = parse_spec(_replaced(data, path, value))
+            scene = parse_spec(replaced(data, path, value))
             cell = Cell(compile_scene(scene))
         except TwinError:
             refused += 1
