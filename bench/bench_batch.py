@@ -83,7 +83,8 @@ def main(
 
     replayer = BatchRollout(task, nthread=threads)
     starts = replayer.initial_states(configs)
-    control = replayer.engine.inputs(cell.model, starts, targets, gripper)
+    held = replayer.engine.period_inputs(cell.model, starts, targets, gripper)
+    control = np.repeat(held, cell.substeps, axis=1)
     datas = [mujoco.MjData(cell.model) for _ in range(threads)]
     with mj_rollout.Rollout(nthread=threads) as pool:
         start = time.perf_counter()

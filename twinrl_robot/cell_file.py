@@ -39,7 +39,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinrl_robot.errors import RobotError
-from twinrl_sim.spec import read_yaml, validate_model
+from twinrl_sim.spec import WorkspaceSpec, read_yaml, validate_model
 
 ARM_MODELS = {
     "ur3e": 500.0,
@@ -117,19 +117,8 @@ class CameraSpec(_Strict):
     fps: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=240.0)] = 30.0
 
 
-class WorkspaceBox(_Strict):
-    low: tuple[Metre, Metre, Metre] = (0.15, -0.55, 0.005)
-    high: tuple[Metre, Metre, Metre] = (0.85, 0.55, 0.6)
-
-    @model_validator(mode="after")
-    def _ordered(self) -> WorkspaceBox:
-        if any(lo >= hi for lo, hi in zip(self.low, self.high, strict=True)):
-            raise ValueError(f"low {self.low} must be below high {self.high} on every axis")
-        return self
-
-
 class SafetySpec(_Strict):
-    workspace: WorkspaceBox = WorkspaceBox()
+    workspace: WorkspaceSpec = WorkspaceSpec()  # the twin's box: base frame, m
     tool_cone_deg: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=180.0)] = 45.0
     max_step_translation: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=0.1)] = 0.02
     max_step_rotation: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=0.5)] = 0.1

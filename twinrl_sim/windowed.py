@@ -88,17 +88,6 @@ class WindowedReplay:
             inputs[:, :, model.actuator(self.layout.gripper_actuator).id] = gripper
         return inputs
 
-    def inputs(
-        self,
-        model: mujoco.MjModel,
-        starts: Starts,
-        targets: np.ndarray,
-        gripper: np.ndarray,
-    ) -> np.ndarray:
-        """(n, W * substeps, inputs size): :meth:`period_inputs` at every physics step."""
-        held = self.period_inputs(model, starts, targets, gripper)
-        return np.repeat(held, control_substeps(model, self.fps), axis=1)
-
     def rollout(
         self,
         models: Sequence[mujoco.MjModel],
