@@ -1,0 +1,143 @@
+"""The joint-level safety guard every joint target passes before it reaches a real arm.
+
+Whatever chose the target (a policy through the IK, a person at a teleop device, a
+logged episode being replayed, an excitation trajectory), the guard makes it one the
+cell's limits allow: joint positions kept ``joint_margin`` from the limits, joint speed
+and acceleration bounded over the control period, and the tool centre point kept inside
+the workspace box with the tool axis inside the cone around straight down. Targets are
+clipped, never refused: the result is the farthest point toward the request that keeps
+every limit (the previous target is safe by induction, so a bisection along the step
+finds it). A *start* pose outside the limits is refused (:meth:`JointGuard.check_start`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinrl_robot.errors import RobotError
+
+Kinematics = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""Joint positions (rad) -> TCP position (m) and quaternion (wxyz) in the base frame."""
+
+BOX_TOLERANCE = 1e-3  # m a target's TCP may stand outside the box (IK rounding)
+BISECTIONS = 12
+
+
+class UnsafeStart(RobotError):
+    """A start pose (a reset, a replay's first target) lies outside the safety limits."""
+
+
+@dataclass(frozen=True)
+class GuardLimits:
+    """The numbers the guard keeps (base frame, SI units)."""
+
+    q_low: np.ndarray  # rad, the joints' limits with the margin taken off
+    q_high: np.ndarray
+    max_speed: float  # rad/s per joint
+    max_acceleration: float  # rad/s^2 per joint
+    box_low: np.ndarray  # m
+    box_high: np.ndarray
+    cone_deg: float  # tool axis within this angle of straight down
+
+
+@dataclass(frozen=True)
+class Guarded:
+    """A guarded target and what was clipped to make it safe (empty: nothing)."""
+
+    q: np.ndarray
+    clipped: tuple[str, ...]
+
+
+class JointGuard:
+    """Keeps a stream of joint targets inside ``limits`` (see the module docstring).
+
+    ``period`` is the time between targets (the control period); ``kinematics`` the
+    twin's forward kinematics, the same the IK inverts.
+    """
+
+    def __init__(self, limits: GuardLimits, kinematics: Kinematics, period: float) -> None:
+        self.limits, self.kinematics, self.period = limits, kinematics, period
+        self._last: np.ndarray | None = None
+        self._velocity: np.ndarray | None = None
+
+    def reset(self, q: np.ndarray) -> None:
+        """Start guarding from the arm at rest at ``q`` (which must be a safe start)."""
+        self.check_start(q)
+        self._last = np.asarray(q, float).copy()
+        self._velocity = np.zeros_like(self._last)
+
+    def check_start(self, q: np.ndarray, what: str = "the start pose") -> None:
+        """Refuse (:class:`UnsafeStart`) a pose outside the joint limits, box or cone."""
+        problem = self.violation(np.asarray(q, float))
+        if problem:
+            raise UnsafeStart(
+                f"{what} is outside the cell's safety limits ({problem}); move the arm "
+                "inside them by hand or widen the cell file's `safety` section"
+            )
+
+    def violation(self, q: np.ndarray) -> str:
+        """What ``q`` breaks (joint limits, box, cone), or ``""`` when it is safe."""
+        lim = self.limits
+        below = np.flatnonzero(q < lim.q_low - 1e-9)
+        above = np.flatnonzero(q > lim.q_high + 1e-9)
+        if below.size or above.size:
+            joints = ", ".join(str(int(j) + 1) for j in np.concatenate([below, above]))
+            return f"joint {joints} beyond its limit and margin"
+        position, quat = self.kinematics(q)
+        outside = (position < lim.box_low - BOX_TOLERANCE) | (
+            position > lim.box_high + BOX_TOLERANCE
+        )
+        if outside.any():
+            axes = "".join("xyz"[i] for i in np.flatnonzero(outside))
+            return f"tool centre point {np.round(position, 3).tolist()} m outside the box in {axes}"
+        tilt = tool_tilt_deg(quat)
+        if tilt > lim.cone_deg + 1e-6:
+            return f"tool axis {tilt:.0f} deg from straight down, the cone allows {lim.cone_deg:g}"
+        return ""
+
+    def __call__(self, target: np.ndarray) -> Guarded:
+        """The safe target nearest ``target`` for the next period."""
+        if self._last is None or self._velocity is None:
+            raise RobotError("the guard has no start pose: reset it before streaming targets")
+        lim, dt = self.limits, self.period
+        wanted = np.asarray(target, float)
+        clipped: list[str] = []
+        q = np.clip(wanted, lim.q_low, lim.q_high)
+        if not np.allclose(q, wanted):
+            clipped.append("joint limits")
+        velocity = (q - self._last) / dt
+        slow = np.clip(velocity, -lim.max_speed, lim.max_speed)
+        change = np.clip(
+            slow - self._velocity, -lim.max_acceleration * dt, lim.max_acceleration * dt
+        )
+        bounded = self._velocity + change
+        if not np.allclose(bounded, velocity):
+            clipped.append("joint speed" if not np.allclose(slow, velocity) else "acceleration")
+        q = np.clip(self._last + bounded * dt, lim.q_low, lim.q_high)
+        problem = self.violation(q)
+        if problem:
+            q = self._farthest_safe(self._last, q)
+            clipped.append(problem.split(" (")[0])
+        self._velocity = (q - self._last) / dt
+        self._last = q
+        return Guarded(q=q, clipped=tuple(clipped))
+
+    def _farthest_safe(self, safe: np.ndarray, unsafe: np.ndarray) -> np.ndarray:
+        low, high = 0.0, 1.0
+        for _ in range(BISECTIONS):
+            middle = 0.5 * (low + high)
+            if self.violation(safe + (unsafe - safe) * middle):
+                high = middle
+            else:
+                low = middle
+        return safe + (unsafe - safe) * low
+
+
+def tool_tilt_deg(quat: np.ndarray) -> float:
+    """Angle (deg) between the tool's z axis and straight down (-z of the base)."""
+    x, y = np.asarray(quat, float)[1:3]
+    tool_z_down = -(1.0 - 2.0 * (x * x + y * y))  # -(R[2, 2]): the tool z axis against -z
+    return float(np.degrees(np.arccos(np.clip(tool_z_down, -1.0, 1.0))))

@@ -1,0 +1,324 @@
+"""A Universal Robots arm behind the :class:`~twinrl_robot.robot.Robot` protocol.
+
+It talks to the controller through ur_rtde's own ``RTDEControlInterface`` and
+``RTDEReceiveInterface`` (and ``DashboardClient`` to explain a stop). An episode's 7-D
+action goes through the twin's IK (the same :class:`~twinrl_sim.control.EndEffectorController`
+the twin and the plant use, so the twin and the arm execute the same joint targets),
+then the :class:`~twinrl_robot.guard.JointGuard`, then the
+:class:`~twinrl_robot.ur.servo.ServoStream` that servoJ's it at the controller's rate.
+``act`` returns at the end of the control period, so the loop above keeps the rate.
+
+Faults are checked at every step and by the stream at every servo period: a protective
+stop, an emergency stop, a program that stopped (the watchdog, the pendant, the
+controller leaving remote control) or a lost connection raises :class:`RobotStopped`
+with one line saying what happened and how to recover; from then on nothing is sent
+until :meth:`URArm.acknowledge`.
+
+What is real-cell honest here: observations are the controller's measured joints, the
+TCP from the twin's kinematics of those joints (the contract's frame), the gripper's own
+reading and the joint torques the controller applies (RTDE ``target_moment``). Nothing
+reads object poses: on a real cell ``privileged`` is ``None``; an emulated cell may lend
+its ground truth (:mod:`.emulator.harness`) for tests and scripted experts, and says so.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, effort_names
+from twinrl_robot.cell_file import CellFile
+from twinrl_robot.errors import RobotError
+from twinrl_robot.guard import GuardLimits, JointGuard
+from twinrl_robot.robot import Privileged, Sent
+from twinrl_robot.ur.cameras import CameraRig
+from twinrl_robot.ur.gripper import Gripper, NoGripper
+from twinrl_robot.ur.servo import ServoStream
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.control import EndEffectorController, IKSettings
+from twinrl_sim.tasks import Task, TaskConfig
+
+RTDE_PORT = 30004
+CONNECT_TIMEOUT = 3.0  # s to reach the controller before saying it is unreachable
+RESET_SPEED, RESET_ACCELERATION = 0.6, 1.2  # rad/s, rad/s^2 of the move to a start pose
+SERVO_STOP_DECELERATION = 10.0  # rad/s^2
+Arrange = Callable[[TaskConfig], None]
+"""Sets a configuration's objects up in the cell (a person guided by the twin; the
+emulator's harness in tests); the arm is already at its start pose."""
+
+
+class RobotConnectionError(RobotError):
+    """The controller cannot be reached or refuses the connection."""
+
+
+class RobotStopped(RobotError):
+    """The arm stopped for a reason outside the program (see the message)."""
+
+
+class URArm:
+    """A UR arm on a real (or emulated) controller, driven like a robot.
+
+    Args:
+        cell: the cell file (host, rates, safety limits).
+        task: the task, whose scene is the cell's twin (kinematics and start pose).
+        gripper: the gripper (default: none).
+        cameras: the cell's cameras, matched to control steps.
+        arrange: sets a configuration's objects up at each reset (``None``: the person
+            does it before the episode starts; the arm only goes to its start pose).
+        effort: report joint torques (``observation.effort``).
+        privileged: the ground truth of an emulated cell (never of a real one).
+    """
+
+    world = "real"
+
+    def __init__(
+        self,
+        cell: CellFile,
+        task: Task,
+        *,
+        gripper: Gripper | None = None,
+        cameras: CameraRig | None = None,
+        arrange: Arrange | None = None,
+        effort: bool = True,
+        privileged: Privileged | None = None,
+    ) -> None:
+        self.cell, self.task = cell, task
+        self.host = cell.arm.host
+        self.control_hz = cell.arm.control_hz
+        self.servo_hz = cell.arm.servo_rate
+        self.gripper = gripper or NoGripper()
+        self.cameras = cameras or CameraRig([])
+        self.arrange, self.effort, self.privileged = arrange, effort, privileged
+        twin = Cell(compile_scene(task.scene))
+        self._twin = twin
+        safety = cell.safety
+        settings = IKSettings(
+            joint_margin=safety.joint_margin, max_joint_speed=safety.max_joint_speed
+        )
+        workspace = (np.array(safety.workspace.low), np.array(safety.workspace.high))
+        self.kinematics = EndEffectorController(
+            twin.model, twin.layout, workspace, 1.0 / self.control_hz, settings
+        )
+        self.guard = JointGuard(
+            GuardLimits(
+                q_low=self.kinematics.q_low,
+                q_high=self.kinematics.q_high,
+                max_speed=safety.max_joint_speed,
+                max_acceleration=safety.max_joint_acceleration,
+                box_low=workspace[0],
+                box_high=workspace[1],
+                cone_deg=safety.tool_cone_deg,
+            ),
+            self.kinematics.forward,
+            1.0 / self.control_hz,
+        )
+        self.names = twin.contract_names()
+        self.names.pop(ENVIRONMENT_STATE, None)
+        if effort:
+            self.names[EFFORT] = effort_names(twin.layout.arm_joints)
+        self.start_q = np.array(twin.layout.home_qpos, float)
+        self.fault: str | None = None
+        self.clipped_steps = 0  # control steps whose target the guard had to clip
+        self._receive, self._control = _connect(self.host, self.servo_hz)
+        self._apply_cell_settings()
+        self.stream = ServoStream(self._control, self.servo_hz)
+        self._next_step: float | None = None
+
+    # ---------------------------------------------------------------- episode
+    def reset(self, config: TaskConfig | dict) -> dict[str, np.ndarray]:
+        """Bring the arm to the start pose, have the configuration set up, start servoing."""
+        self._check()
+        config = TaskConfig.from_dict(config)
+        self.stream.stop()
+        self.guard.check_start(self.start_q, "the task's start pose")
+        if not self._control.moveJ(self.start_q.tolist(), RESET_SPEED, RESET_ACCELERATION):
+            self._check(refused="the controller did not finish the move to the start pose")
+        self.gripper.command(0.0)
+        if self.arrange is not None:
+            self.arrange(config)
+        q = self._measured_q()
+        self.guard.reset(q)
+        self.kinematics.reset(q)
+        self.stream.start(q)
+        self._next_step = time.monotonic() + 1.0 / self.control_hz
+        return self.observe()
+
+    def act(self, action: np.ndarray) -> Sent:
+        self._check()
+        action = np.asarray(action, np.float32)
+        target = self.kinematics.joint_targets(action, self._measured_q())
+        return self._send(target, float(action[6]), action)
+
+    def servo_joints(self, joint_target: np.ndarray, gripper: float) -> Sent:
+        """Hold joint targets for one control period (replay, excitation), guarded."""
+        self._check()
+        sent = self._send(np.asarray(joint_target, float), gripper, np.zeros(7, np.float32))
+        self.kinematics.reset(sent.joint_target)
+        return sent
+
+    def hold(self) -> None:
+        q = self._measured_q()
+        self.stream.hold(q)
+        self.kinematics.reset(q)
+        self.guard.reset(q)
+
+    def observe(self) -> dict[str, np.ndarray]:
+        self._check()
+        receive = self._receive
+        q = np.array(receive.getActualQ())
+        qd = np.array(receive.getActualQd())
+        position, quat = self.kinematics.forward(q)
+        state = np.concatenate([q, qd, position, quat, [self.gripper.opening()]])
+        observation = {"observation.state": state.astype(np.float32)}
+        if self.effort:  # the torques the controller applies (RTDE target_moment)
+            observation[EFFORT] = np.array(receive.getTargetMoment(), np.float32)
+        observation.update(self.cameras.images())
+        return observation
+
+    def close(self) -> None:
+        self.stream.stop()
+        try:
+            if self._control.isProgramRunning():
+                self._control.servoStop(SERVO_STOP_DECELERATION)
+                self._control.stopScript()
+        finally:
+            self._control.disconnect()
+            self._receive.disconnect()
+            self.gripper.close()
+            self.cameras.close()
+
+    # ------------------------------------------------------------------ faults
+    def acknowledge(self) -> None:
+        """The person has cleared the stop: check the arm is ready and restart the
+        control program; until then every command raises :class:`RobotStopped`."""
+        reason = self._stop_reason()
+        if reason and "program" not in reason:
+            raise RobotStopped(reason)
+        if not self._control.isProgramRunning():
+            self._control.reuploadScript()
+            deadline = time.monotonic() + 5.0
+            while not self._control.isProgramRunning():
+                if time.monotonic() > deadline:
+                    raise RobotStopped(
+                        "the control program did not start again on the controller; check the "
+                        "pendant for a popup and that it is in Remote Control"
+                    )
+                time.sleep(0.01)
+        self.fault = None
+
+    def _check(self, refused: str | None = None) -> None:
+        if self.fault is None:
+            reason = self._stop_reason() or self.stream.fault or refused
+            if reason:
+                self.stream.stop()
+                self.fault = reason
+        if self.fault is not None:
+            raise RobotStopped(self.fault)
+
+    def _stop_reason(self) -> str:
+        """Why the arm cannot be commanded now, in one line, or ``""``."""
+        receive, host = self._receive, self.host
+        if not receive.isConnected():
+            return (
+                f"lost the connection to the controller at {host}; check the network cable "
+                "and the controller, then reconnect"
+            )
+        if receive.isEmergencyStopped():
+            return (
+                "the emergency stop is pressed; release it, power the arm on and release the "
+                "brakes on the pendant, then acknowledge"
+            )
+        if receive.isProtectiveStopped():
+            return (
+                "the arm is in a protective stop (it hit something or exceeded a limit); "
+                "inspect the cell, unlock it on the pendant, then acknowledge"
+            )
+        if receive.getRuntimeState() != 2:
+            if not _in_remote_control(host):
+                return (
+                    "the controller left remote control; switch the pendant back to Remote "
+                    "Control, then acknowledge"
+                )
+            return (
+                "the control program on the controller stopped (watchdog: the host stopped "
+                "sending, or stopped from the pendant); acknowledge to start it again"
+            )
+        return ""
+
+    # ------------------------------------------------------------------ inside
+    def _send(self, target: np.ndarray, gripper: float, action: np.ndarray) -> Sent:
+        guarded = self.guard(target)
+        if guarded.clipped:
+            self.clipped_steps += 1
+        self.gripper.command(float(np.clip(gripper, 0.0, 1.0)))
+        period = 1.0 / self.control_hz
+        self.stream.push(guarded.q, period)
+        self._pace(period)
+        self._check()
+        return Sent(action=action, joint_target=guarded.q.astype(np.float32))
+
+    def _pace(self, period: float) -> None:
+        """Return at the end of this control period (the next one starts then)."""
+        now = time.monotonic()
+        if self._next_step is None or now - self._next_step > period:
+            self._next_step = now + period  # late by a whole period: start over, no burst
+        time.sleep(max(0.0, self._next_step - now))
+        self._next_step += period
+
+    def _measured_q(self) -> np.ndarray:
+        return np.array(self._receive.getActualQ(), float)
+
+    def _apply_cell_settings(self) -> None:
+        arm = self.cell.arm
+        self._control.setTcp(list(arm.tcp_offset))
+        self._control.setPayload(arm.payload.mass, list(arm.payload.cog))
+        watchdog_hz = 2000.0 / self.cell.safety.watchdog_ms  # trips at half the budget
+        self._control.setWatchdog(watchdog_hz)
+
+    def __repr__(self) -> str:
+        return f"URArm({self.cell.arm.model} at {self.host})"
+
+
+def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
+    """ur_rtde's receive and control interfaces, or one line on why not."""
+    try:
+        with socket.create_connection((host, RTDE_PORT), timeout=CONNECT_TIMEOUT):
+            pass
+    except OSError as err:
+        raise RobotConnectionError(
+            f"cannot reach the UR controller at {host}:{RTDE_PORT} ({err.strerror or err}); "
+            "check that the arm is powered, the cell file's `host`, and the network"
+        ) from None
+    import rtde_control
+    import rtde_receive
+
+    try:
+        receive = rtde_receive.RTDEReceiveInterface(host, servo_hz)
+        control = rtde_control.RTDEControlInterface(host, servo_hz)
+    except RuntimeError as err:
+        message = str(err).splitlines()[0].removeprefix("ur_rtde: ")
+        raise RobotConnectionError(
+            f"the UR controller at {host} refused the connection: {message}; put the pendant "
+            "in Remote Control and check that no other program drives the arm"
+        ) from None
+    return receive, control
+
+
+def _in_remote_control(host: str) -> bool:
+    """Whether the controller's dashboard says it is in remote control (``True`` when the
+    dashboard cannot be asked)."""
+    import dashboard_client
+
+    dashboard = dashboard_client.DashboardClient(host)
+    try:
+        dashboard.connect()
+        return bool(dashboard.isInRemoteControl())
+    except RuntimeError:
+        return True
+    finally:
+        dashboard.disconnect()

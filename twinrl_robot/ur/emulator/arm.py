@@ -1,0 +1,377 @@
+"""The emulated arm: the plant's MuJoCo cell stepped at a UR controller's servo rate.
+
+It executes what a controller program asks (servo targets, joint speeds, moves, stops)
+one servo period at a time, raises a protective stop when the arm hits the table or
+presses on it harder than a UR's force limit, and reads back what the controller
+publishes (joint positions, speeds, torques, the TCP pose of the configured tool, modes).
+Nothing here knows about sockets: :mod:`.server` drives it from the protocols.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.control import quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.tasks import Task, TaskConfig
+
+
+class RobotMode(enum.IntEnum):
+    """UR robot modes (what ``robot_mode`` reports)."""
+
+    POWER_OFF = 3
+    IDLE = 5
+    RUNNING = 7
+
+
+class SafetyMode(enum.IntEnum):
+    """UR safety modes (what ``safety_mode`` reports)."""
+
+    NORMAL = 1
+    PROTECTIVE_STOP = 3
+    ROBOT_EMERGENCY_STOP = 7
+
+
+class RuntimeState(enum.IntEnum):
+    """UR program states (what ``runtime_state`` reports)."""
+
+    STOPPED = 1
+    PLAYING = 2
+
+
+PROTECTIVE_FORCE = 150.0  # N between the robot and the table: a UR's default force limit
+STOP_DECELERATION = 15.0  # rad/s^2 with which a stopped program brings the joints to rest
+
+
+@dataclass(frozen=True)
+class ArmReading:
+    """What the controller publishes each servo period (SI units, base frame)."""
+
+    timestamp: float
+    q: np.ndarray
+    qd: np.ndarray
+    target_q: np.ndarray
+    target_qd: np.ndarray
+    torque: np.ndarray  # N m the joints' servos apply
+    current: np.ndarray  # A, torque over a nominal torque constant
+    tcp_pose: np.ndarray  # x y z (m), rx ry rz (axis-angle, rad) of the configured TCP
+    tcp_speed: np.ndarray
+    tcp_force: np.ndarray  # N, N m at the TCP from the table and objects
+    robot_mode: int
+    safety_mode: int
+    runtime_state: int
+    gripper_position: float  # 0 open .. 1 closed (commanded)
+    gripper_opening: float  # m, measured
+    digital_out: int
+
+
+@dataclass
+class _Motion:
+    """The joint reference's law until the next command."""
+
+    kind: str = "idle"  # idle | servo | speed | move | stop
+    target: np.ndarray | None = None  # servo/move goal (rad)
+    velocity: np.ndarray | None = None  # speed command or the move's speed profile
+    speed: float = 1.0  # move: rad/s
+    acceleration: float = 1.4  # move/speed/stop: rad/s^2
+
+
+class EmulatedArm:
+    """The plant's cell of ``task`` as a UR controller runs it.
+
+    Args:
+        task: the task whose cell (scene) the arm stands in.
+        effects: the plant's hidden effects compiled into the cell.
+        servo_hz: the controller's servo rate (a whole number of physics steps).
+        tcp_offset: the TCP configured on the controller (m, axis-angle rad, flange frame).
+        torque_constant: N m per A, to report currents as a UR does.
+    """
+
+    def __init__(
+        self,
+        task: Task,
+        *,
+        effects: dict | None = None,
+        servo_hz: float = 500.0,
+        tcp_offset: tuple[float, ...] = (0.0,) * 6,
+        torque_constant: float = 10.0,
+    ) -> None:
+        self.task = task
+        self.cell = Cell(compile_scene(task.scene, extra_effects=effects or None))
+        model = self.cell.model
+        steps = model.opt.timestep * servo_hz
+        self.physics_per_tick = max(1, round(1.0 / steps))
+        self.period = self.physics_per_tick * model.opt.timestep
+        self.lock = threading.RLock()
+        self.tcp_offset = np.asarray(tcp_offset, float)
+        self.torque_constant = torque_constant
+        self.robot_mode = RobotMode.RUNNING
+        self.safety_mode = SafetyMode.NORMAL
+        self.program_running = False
+        self.digital_out = 0
+        self.gripper_position = 0.0
+        self.ticks = 0
+        self._motion = _Motion()
+        self._flange = model.body(self.cell.layout.flange_body).id
+        self._base = model.body("robot_mount").id
+        self._table = model.geom(self.cell.layout.table_geom).id
+        self._robot_bodies = _subtree(model, self._base)
+        self._arm_link_bodies = self._robot_bodies - _subtree(model, self._flange)
+        self._tracker = task.start(self.cell, task.sample_config(np.random.default_rng(0)))
+        self._reference = self.cell.arm_q  # the arm powers up at rest at the twin's home
+        self._reference_velocity = np.zeros_like(self._reference)
+
+    # -------------------------------------------------------------- commands
+    def servo(self, q: np.ndarray) -> None:
+        """servoJ: track ``q`` from the next period on (the newest target wins)."""
+        with self.lock:
+            if self._may_move():
+                self._motion = _Motion("servo", target=np.asarray(q, float))
+
+    def speed(self, qd: np.ndarray, acceleration: float) -> None:
+        """speedJ: run the joints at ``qd`` (rad/s), reached at ``acceleration``."""
+        with self.lock:
+            if self._may_move():
+                self._motion = _Motion(
+                    "speed", velocity=np.asarray(qd, float), acceleration=acceleration
+                )
+
+    def move(self, q: np.ndarray, speed: float, acceleration: float) -> None:
+        """moveJ: go to ``q`` with a joint-space trapezoidal profile."""
+        with self.lock:
+            if self._may_move():
+                self._motion = _Motion(
+                    "move", target=np.asarray(q, float), speed=speed, acceleration=acceleration
+                )
+
+    def stop(self, deceleration: float = STOP_DECELERATION) -> None:
+        """Bring the joints to rest from their current speed at ``deceleration``."""
+        with self.lock:
+            self._motion = _Motion("stop", acceleration=max(deceleration, 1e-3))
+
+    @property
+    def moving(self) -> bool:
+        """Whether a move (moveJ) is still under way."""
+        return self._motion.kind == "move"
+
+    @property
+    def resting(self) -> bool:
+        """Whether nothing is commanded and the joints have come to rest."""
+        speed = float(np.abs(self.cell.data.qvel[self.cell.arm_dof]).max())
+        return self._motion.kind == "idle" and speed < 1e-2
+
+    def _may_move(self) -> bool:
+        return self.safety_mode == SafetyMode.NORMAL and self.robot_mode == RobotMode.RUNNING
+
+    # ----------------------------------------------------------------- faults
+    def protective_stop(self) -> None:
+        with self.lock:
+            self.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self._halt()
+
+    def emergency_stop(self) -> None:
+        with self.lock:
+            self.safety_mode = SafetyMode.ROBOT_EMERGENCY_STOP
+            self.robot_mode = RobotMode.POWER_OFF
+            self._halt()
+
+    def unlock_protective_stop(self) -> bool:
+        with self.lock:
+            if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
+                return False
+            self.safety_mode = SafetyMode.NORMAL
+            return True
+
+    def release_emergency_stop(self) -> None:
+        """The person released the button and powered the arm on again."""
+        with self.lock:
+            if self.safety_mode == SafetyMode.ROBOT_EMERGENCY_STOP:
+                self.safety_mode = SafetyMode.NORMAL
+                self.robot_mode = RobotMode.RUNNING
+
+    def _halt(self) -> None:
+        self.program_running = False
+        self._motion = _Motion("idle")
+        self._reference = self.cell.arm_q
+        self._reference_velocity[:] = 0.0
+
+    # ------------------------------------------------------------------ scene
+    def arrange(self, config: TaskConfig) -> None:
+        """Put the task's objects where ``config`` says (what the person does at a reset);
+        the arm stays where it is."""
+        with self.lock:
+            q, qd = self.cell.arm_q, self.cell.data.qvel[self.cell.arm_dof].copy()
+            gripper = self.gripper_position
+            self._tracker = self.task.start(self.cell, config)
+            self.cell.data.qpos[self.cell.arm_qpos] = q
+            self.cell.data.qvel[self.cell.arm_dof] = qd
+            self.cell.data.ctrl[self.cell.arm_act] = self._reference
+            if self.cell.gripper_act is not None:
+                self.cell.data.ctrl[self.cell.gripper_act] = gripper
+            self.cell.finish_reset()
+
+    def ground_truth(self) -> dict:
+        """What only the emulator knows: the task's progress and the objects' poses."""
+        with self.lock:
+            progress = self._tracker.update()
+            return {
+                "success": bool(progress.success),
+                "terms": {k: float(v) for k, v in progress.terms.items()},
+                "environment_state": self.cell.environment_vector().tolist(),
+            }
+
+    # ------------------------------------------------------------------- tick
+    def tick(self) -> None:
+        """One servo period: advance the joint reference, step the physics, check safety."""
+        with self.lock:
+            self._advance_reference()
+            cell = self.cell
+            cell.data.ctrl[cell.arm_act] = self._reference
+            if cell.gripper_act is not None:
+                gripper = self.gripper_position
+                if self.digital_out & 1:
+                    gripper = 1.0
+                cell.data.ctrl[cell.gripper_act] = gripper
+            mujoco.mj_step(cell.model, cell.data, nstep=self.physics_per_tick)
+            mujoco.mj_forward(cell.model, cell.data)
+            self.ticks += 1
+            if self.safety_mode == SafetyMode.NORMAL and self._hits_table():
+                self.protective_stop()
+
+    def _advance_reference(self) -> None:
+        motion, dt = self._motion, self.period
+        previous = self._reference.copy()
+        if motion.kind == "servo" and motion.target is not None:
+            self._reference = motion.target.copy()
+        elif motion.kind == "speed" and motion.velocity is not None:
+            change = np.clip(
+                motion.velocity - self._reference_velocity,
+                -motion.acceleration * dt,
+                motion.acceleration * dt,
+            )
+            self._reference = self._reference + (self._reference_velocity + change) * dt
+        elif motion.kind == "move" and motion.target is not None:
+            self._reference = self._move_step(motion, dt)
+        elif motion.kind == "stop":
+            speed = np.linalg.norm(self._reference_velocity)
+            slower = max(0.0, speed - motion.acceleration * dt)
+            scale = slower / speed if speed > 0 else 0.0
+            self._reference = self._reference + self._reference_velocity * scale * dt
+            if slower == 0.0:
+                self._motion = _Motion("idle")
+        self._reference_velocity = (self._reference - previous) / dt
+
+    def _move_step(self, motion: _Motion, dt: float) -> np.ndarray:
+        """One period of a synchronised trapezoidal joint move toward ``motion.target``."""
+        assert motion.target is not None
+        remaining = motion.target - self._reference
+        distance = float(np.max(np.abs(remaining)))
+        if distance < 1e-6:
+            self._motion = _Motion("idle")
+            return motion.target.copy()
+        current = float(np.max(np.abs(self._reference_velocity)))
+        braking = np.sqrt(2.0 * motion.acceleration * distance)
+        speed = min(motion.speed, current + motion.acceleration * dt, braking)
+        step = min(distance, max(speed, motion.acceleration * dt) * dt)
+        return self._reference + remaining * (step / distance)
+
+    def _hits_table(self) -> bool:
+        data, model = self.cell.data, self.cell.model
+        force = np.zeros(6)
+        pressing = 0.0
+        for i in range(data.ncon):
+            contact = data.contact[i]
+            geoms = (contact.geom1, contact.geom2)
+            if self._table not in geoms:
+                continue
+            other = geoms[1] if geoms[0] == self._table else geoms[0]
+            body = int(model.geom_bodyid[other])
+            if body in self._arm_link_bodies:
+                return True
+            if body in self._robot_bodies:
+                mujoco.mj_contactForce(model, data, i, force)
+                pressing += abs(force[0])
+        return pressing > PROTECTIVE_FORCE
+
+    # ---------------------------------------------------------------- reading
+    def read(self) -> ArmReading:
+        with self.lock:
+            cell, data = self.cell, self.cell.data
+            q = cell.arm_q
+            qd = data.qvel[cell.arm_dof].copy()
+            torque = cell.joint_torques()
+            return ArmReading(
+                timestamp=self.ticks * self.period,
+                q=q,
+                qd=qd,
+                target_q=self._reference.copy(),
+                target_qd=self._reference_velocity.copy(),
+                torque=torque,
+                current=torque / self.torque_constant,
+                tcp_pose=self._tcp_pose(),
+                tcp_speed=self._tcp_speed(),
+                tcp_force=self._tcp_force(),
+                robot_mode=int(self.robot_mode),
+                safety_mode=int(self.safety_mode),
+                runtime_state=int(
+                    RuntimeState.PLAYING if self.program_running else RuntimeState.STOPPED
+                ),
+                gripper_position=self.gripper_position,
+                gripper_opening=cell.gripper_opening,
+                digital_out=self.digital_out,
+            )
+
+    def _tcp_pose(self) -> np.ndarray:
+        """The configured TCP in the robot base frame, as [x, y, z, rx, ry, rz]."""
+        data = self.cell.data
+        base_rot = data.xmat[self._base].reshape(3, 3)
+        flange_rot = data.xmat[self._flange].reshape(3, 3)
+        offset_rot = np.zeros(9)
+        mujoco.mju_quat2Mat(offset_rot, rotvec_to_quat(self.tcp_offset[3:]))
+        tool_world = data.xpos[self._flange] + flange_rot @ self.tcp_offset[:3]
+        position = base_rot.T @ (tool_world - data.xpos[self._base])
+        rotation = base_rot.T @ flange_rot @ offset_rot.reshape(3, 3)
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, rotation.flatten())
+        return np.concatenate([position, quat_to_rotvec(quat)])
+
+    def _tcp_speed(self) -> np.ndarray:
+        model, data = self.cell.model, self.cell.data
+        velocity = np.zeros(6)
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, self._flange, velocity, 0)
+        return np.concatenate([velocity[3:], velocity[:3]])
+
+    def _tcp_force(self) -> np.ndarray:
+        """Contact wrench on the robot's tool (flange subtree), world-aligned."""
+        model, data = self.cell.model, self.cell.data
+        tool = _subtree(model, self._flange)
+        total = np.zeros(6)
+        for i in range(data.ncon):
+            contact = data.contact[i]
+            bodies = (model.geom_bodyid[contact.geom1], model.geom_bodyid[contact.geom2])
+            if (bodies[0] in tool) == (bodies[1] in tool):
+                continue
+            local = np.zeros(6)
+            mujoco.mj_contactForce(model, data, i, local)
+            frame = contact.frame.reshape(3, 3)
+            sign = -1.0 if bodies[0] in tool else 1.0
+            total[:3] += sign * frame.T @ local[:3]
+        return total
+
+
+def _subtree(model: mujoco.MjModel, root: int) -> set[int]:
+    """Ids of ``root`` and every body below it."""
+    bodies = {root}
+    for body in range(model.nbody):
+        parent = body
+        while parent > 0 and parent not in bodies:
+            parent = int(model.body_parentid[parent])
+        if parent in bodies:
+            bodies.add(body)
+    return bodies

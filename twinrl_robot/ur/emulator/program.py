@@ -1,0 +1,174 @@
+"""ur_rtde's control script as the emulated controller runs it.
+
+The real library uploads a URScript program (port 30003) whose main loop reads a
+command id from ``input_int_register_0`` and its arguments from the double registers,
+every control cycle. The handshake on ``output_int_register_0``: 1 ready, 2 done.
+Realtime commands (servoJ, speedJ, ...) are applied every cycle and answer ready; other
+commands run once, to completion (a synchronous moveJ runs over many cycles), answer
+done, and wait for the client to clear the command (0). Command 255 ends the program;
+so do the RTDE watchdog, a protective or emergency stop, and the dashboard's ``stop``.
+
+Only the commands the driver and common ur_rtde use need an effect here; the rest
+answer as the script does (done) so that a client never hangs on them.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+
+from twinrl_robot.ur.emulator.arm import EmulatedArm, SafetyMode
+from twinrl_robot.ur.emulator.rtde_server import Registers
+
+REALTIME = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
+MOVEJ, MOVEL_FK, SPEEDJ, SERVOJ = 1, 4, 9, 11
+SPEED_STOP, SERVO_STOP, SET_PAYLOAD, SET_TCP = 15, 16, 17, 29
+PROTECTIVE_STOP, STOPL, STOPJ, SET_WATCHDOG = 31, 33, 34, 35
+GET_JOINT_TORQUES, GET_TCP_OFFSET, IS_STEADY, STOP_SCRIPT = 38, 40, 47, 255
+READY, DONE = 1, 2
+SCRIPT_END = "# NODE_CONTROL_LOOP_ENDS\nend\n"
+_OFFSET = re.compile(r"reg_offset_int = # int register offset\n(\d+)")
+
+
+def complete_script(text: str) -> int | None:
+    """The register offset of a complete ur_rtde control script, or ``None`` while the
+    upload is still incomplete (or is not that script)."""
+    if not text.startswith("def rtde_control():") or not text.endswith(SCRIPT_END):
+        return None
+    found = _OFFSET.search(text)
+    return int(found.group(1)) if found else 0
+
+
+class ControlProgram:
+    """The running control script (see the module docstring)."""
+
+    def __init__(self, arm: EmulatedArm, registers: Registers) -> None:
+        self.arm, self.registers = arm, registers
+        self.offset = 0
+        self.executing = False
+        self.pending: str | None = None  # a blocking command still under way
+        self.watchdog_period: float | None = None
+        self.started_at = 0.0
+        self.messages: list[str] = []  # what the program stopped for, newest last
+
+    @property
+    def running(self) -> bool:
+        return self.arm.program_running
+
+    def start(self, offset: int) -> None:
+        """A complete script arrived: (re)start the program."""
+        with self.arm.lock:
+            self.offset = offset
+            self.executing, self.pending, self.watchdog_period = False, None, None
+            self.started_at = time.monotonic()
+            if self.arm.safety_mode == SafetyMode.NORMAL and self.arm.robot_mode == 7:
+                self.arm.program_running = True
+                self._write_int(0, READY)
+
+    def end(self, reason: str) -> None:
+        """The program stops (command 255, watchdog, dashboard ``stop``, a fault)."""
+        with self.arm.lock:
+            if self.arm.program_running:
+                self.messages.append(reason)
+            self.arm.program_running = False
+            self.watchdog_period = None
+            self.pending = None
+            self.arm.stop()
+
+    # ------------------------------------------------------------------ cycle
+    def cycle(self) -> None:
+        """One control cycle of the script (called before each servo period)."""
+        if not self.running:
+            return
+        if self._watchdog_expired():
+            self.end("the RTDE watchdog expired: no command came in time")
+            return
+        cmd = int(self._read_int(0))
+        if cmd in REALTIME:
+            self._realtime(cmd)
+            self._write_int(0, READY)
+        elif cmd == 0:
+            self.executing = False
+            self._write_int(0, READY)
+        elif cmd == STOP_SCRIPT:
+            self.end("the client stopped the control script")
+        elif not self.executing:
+            self.executing = True
+            self._begin(cmd)
+        elif self.pending is not None and self._finished():
+            self.pending = None
+            self._write_int(0, DONE)
+
+    def _watchdog_expired(self) -> bool:
+        if self.watchdog_period is None:
+            return False
+        name = f"input_int_register_{self.offset}"
+        last = self.registers.updated.get(name, self.started_at)
+        return time.monotonic() - last > self.watchdog_period
+
+    def _realtime(self, cmd: int) -> None:
+        arm = self.arm
+        if cmd == SERVOJ:
+            arm.servo(self._doubles(0, 6))
+        elif cmd == SPEEDJ:
+            arm.speed(self._doubles(0, 6), acceleration=max(self._double(6), 1e-3))
+        elif cmd == GET_JOINT_TORQUES:
+            self._write_doubles(0, arm.read().torque)
+        elif cmd == 58:  # GET_ACTUAL_TOOL_FLANGE_POSE
+            self._write_doubles(0, arm.read().tcp_pose)
+
+    def _begin(self, cmd: int) -> None:
+        """Start a non-realtime command; it answers done now or when :meth:`_finished`."""
+        arm = self.arm
+        if cmd in (MOVEJ, MOVEL_FK):
+            arm.move(self._doubles(0, 6), speed=self._double(6), acceleration=self._double(7))
+            if self._read_int(1) == 0:  # synchronous: done when the arm arrives
+                self.pending = "move"
+                return
+        elif cmd in (SERVO_STOP, SPEED_STOP, STOPJ, STOPL):
+            arm.stop(max(self._double(0), 1e-3))
+            if not (cmd in (STOPJ, STOPL) and self._read_int(1) == 1):
+                self.pending = "stop"
+                return
+        elif cmd == SET_WATCHDOG:
+            frequency = self._double(0)
+            self.watchdog_period = 1.0 / frequency if frequency > 0 else None
+        elif cmd == PROTECTIVE_STOP:
+            arm.protective_stop()
+            self.end("a protective stop was triggered")
+            return
+        elif cmd == SET_TCP:
+            arm.tcp_offset = self._doubles(0, 6)
+        elif cmd == GET_TCP_OFFSET:
+            self._write_doubles(0, arm.tcp_offset)
+        elif cmd == IS_STEADY:
+            self._write_int(1, int(float(np.abs(arm.read().qd).max()) < 1e-3))
+        elif cmd == SET_PAYLOAD:
+            pass  # the plant's payload is a hidden effect; the controller just accepts it
+        self._write_int(0, DONE)
+
+    def _finished(self) -> bool:
+        if self.pending == "move":
+            return not self.arm.moving
+        if self.pending == "stop":
+            return self.arm.resting
+        return True
+
+    # -------------------------------------------------------------- registers
+    def _read_int(self, index: int) -> int:
+        return int(self.registers.get(f"input_int_register_{index + self.offset}"))
+
+    def _double(self, index: int) -> float:
+        return float(self.registers.get(f"input_double_register_{index + self.offset}"))
+
+    def _doubles(self, start: int, count: int) -> np.ndarray:
+        return np.array([self._double(start + i) for i in range(count)])
+
+    def _write_int(self, index: int, value: int) -> None:
+        self.registers.set(f"output_int_register_{index + self.offset}", value)
+
+    def _write_doubles(self, start: int, values: np.ndarray) -> None:
+        for i, value in enumerate(np.asarray(values, float)):
+            self.registers.set(f"output_double_register_{start + i + self.offset}", float(value))
