@@ -95,7 +95,7 @@ class URArm:
         self.cameras = cameras or CameraRig([])
         self.arrange, self.effort, self.privileged = arrange, effort, privileged
         twin = Cell(compile_scene(task.scene))
-        self._twin = twin
+        self.twin = twin  # the twin's model: kinematics, start pose, names
         safety = cell.safety
         settings = IKSettings(
             joint_margin=safety.joint_margin, max_joint_speed=safety.max_joint_speed
@@ -141,7 +141,7 @@ class URArm:
         self.gripper.command(0.0)
         if self.arrange is not None:
             self.arrange(config)
-        q = self._measured_q()
+        q = self.measured_q()
         self.guard.reset(q)
         self.kinematics.reset(q)
         self.stream.start(q)
@@ -151,7 +151,7 @@ class URArm:
     def act(self, action: np.ndarray) -> Sent:
         self._check()
         action = np.asarray(action, np.float32)
-        target = self.kinematics.joint_targets(action, self._measured_q())
+        target = self.kinematics.joint_targets(action, self.measured_q())
         return self._send(target, float(action[6]), action)
 
     def servo_joints(self, joint_target: np.ndarray, gripper: float) -> Sent:
@@ -162,7 +162,7 @@ class URArm:
         return sent
 
     def hold(self) -> None:
-        q = self._measured_q()
+        q = self.measured_q()
         self.stream.hold(q)
         self.kinematics.reset(q)
         self.guard.reset(q)
@@ -270,7 +270,8 @@ class URArm:
         time.sleep(max(0.0, self._next_step - now))
         self._next_step += period
 
-    def _measured_q(self) -> np.ndarray:
+    def measured_q(self) -> np.ndarray:
+        """The arm's joint positions (rad) as the controller measures them."""
         return np.array(self._receive.getActualQ(), float)
 
     def _apply_cell_settings(self) -> None:

@@ -17,10 +17,12 @@ that ur_rtde skips on 127.0.0.1.
 
 from __future__ import annotations
 
+import signal
 import socket
 import socketserver
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -246,3 +248,29 @@ def free_loopback_host(port: int = Ports.rtde, first: int = 2) -> str:
                 continue
             return host
     raise RobotError("no free loopback address for an emulator (127.0.0.2-254 all busy)")
+
+
+def banner(emulator: Emulator) -> str:
+    """The line that says an emulator serves (``EmulatorProcess`` waits for it)."""
+    cell, ports, host = emulator.cell, emulator.ports, emulator.host
+    served = [f"RTDE {ports.rtde}", f"script {ports.script}", f"dashboard {ports.dashboard}"]
+    if cell.gripper.kind.startswith("robotiq"):
+        served.append(f"Robotiq {cell.gripper.port}")
+    if cell.cameras:
+        served.append(f"cameras http://{host}:{ports.cameras}/<name>")
+    served.append(f"harness {ports.harness}")
+    return (
+        f"emulating {cell.arm.model} of cell {cell.name} at {host} "
+        f"({cell.arm.servo_rate:g} Hz, task {emulator.arm.task.name}): {', '.join(served)}; "
+        "an emulator of the controller's protocols backed by the plant, not URSim"
+    )
+
+
+def serve(emulator: Emulator, on_ready: Callable[[str], None]) -> None:
+    """Run ``emulator`` until SIGINT or SIGTERM; ``on_ready`` gets :func:`banner` first."""
+    stopped = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stopped.set())
+    with emulator:
+        on_ready(banner(emulator))
+        stopped.wait()

@@ -1,0 +1,85 @@
+"""``twinrl robot``: a real cell's arm: check it, or emulate its controller."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from twinrl_robot.cli import PlantEffects
+
+console = Console(soft_wrap=True)
+robot_app = typer.Typer(help="A real cell's arm (UR over ur_rtde): check it, emulate it.")
+CellArgument = Annotated[Path, typer.Argument(help="Cell file (YAML).", show_default=False)]
+TaskOption = Annotated[
+    str | None,
+    typer.Option(help="Task on the cell (default: the cell's twin, when it is a built-in cell)."),
+]
+
+
+def _cell_and_task(cell_file: Path, task: str | None):
+    from twinrl_robot.cell_file import load_cell
+    from twinrl_sim.tasks import make_task, task_on_twin
+
+    cell = load_cell(cell_file)
+    name = task or cell.twin
+    return cell, make_task(name, task_on_twin(name, cell.twin))
+
+
+@robot_app.command("emulate")
+def emulate(
+    cell_file: CellArgument,
+    task: TaskOption = None,
+    effects: PlantEffects = None,
+) -> None:
+    """Serve a UR controller's protocols for the cell on its (loopback) host, backed by the
+    plant: RTDE, the script port, the dashboard, the Robotiq socket, the cameras. An
+    emulator, not URSim. Ctrl-C stops it."""
+    from twinrl_robot.plant import hidden_effects
+    from twinrl_robot.ur.emulator.emulator import Emulator, serve
+
+    cell, spec_task = _cell_and_task(cell_file, task)
+    emulator = Emulator(cell, spec_task, effects=hidden_effects(effects), host=cell.arm.host)
+    serve(emulator, lambda line: print(line, flush=True))
+
+
+@robot_app.command("check")
+def check(
+    cell_file: CellArgument,
+    task: TaskOption = None,
+    seconds: Annotated[float, typer.Option(help="How long to measure.", min=0.5)] = 2.0,
+    rerun: Annotated[
+        Path | None,
+        typer.Option(help="Write the safety box, the arm and the tool's path to this .rrd file."),
+    ] = None,
+) -> None:
+    """Connect to the cell's arm, gripper and cameras and report what they measure."""
+    from twinrl_robot.ur.check import check_cell
+
+    cell, spec_task = _cell_and_task(cell_file, task)
+    report = check_cell(cell, spec_task, seconds=seconds, rerun=rerun)
+    table = Table(title=f"cell {cell.name} at {cell.arm.host}", show_header=False)
+    table.add_row("controller", report.controller)
+    table.add_row("modes", f"robot {report.robot_mode}, safety {report.safety_mode}")
+    table.add_row("remote control", "yes" if report.remote_control else "[red]no[/red]")
+    p50, p99, worst = report.period_ms
+    table.add_row(
+        "servo loop",
+        f"{report.servo_hz:g} Hz: period p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {worst:.2f} ms",
+    )
+    table.add_row("gripper", f"{report.gripper}, opening {report.gripper_opening * 1000:.0f} mm")
+    for camera in report.cameras:
+        table.add_row(
+            f"camera {camera.name}",
+            f"{camera.fps:.1f} fps, frame age p50 {camera.age_ms_p50:.0f} ms, "
+            f"{camera.dropped} dropped",
+        )
+    table.add_row("pose", report.pose_problem or "inside the safety limits")
+    if report.recording is not None:
+        table.add_row("recording", str(report.recording))
+    console.print(table)
+    if report.pose_problem:
+        raise typer.Exit(1)
