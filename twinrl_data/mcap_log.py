@@ -278,16 +278,22 @@ class EpisodeWriter:
             pil.save(buffer, format="PNG", compress_level=1)
         return buffer.getvalue()
 
-    def close(self, success: bool | None = None) -> contract.EpisodeMeta:
-        """Finish the file; ``success`` defaults to the last step's ``next.success``."""
+    def close(
+        self, success: bool | None = None, aborted: str | None = None
+    ) -> contract.EpisodeMeta:
+        """Finish the file; ``success`` defaults to the last step's ``next.success``;
+        ``aborted`` says why the episode ended early (kept with its data)."""
         if self._closed:
             return self.meta
         final_success = self.last_success if success is None else bool(success)
-        self.meta = self.meta.replace(success=final_success, num_interventions=self.interventions)
+        self.meta = self.meta.replace(
+            success=final_success, num_interventions=self.interventions, aborted=aborted
+        )
         end = {
             "success": final_success,
             "num_interventions": self.interventions,
             "length": self.steps,
+            "aborted": aborted,
         }
         self._guarded(lambda: self._finish(end))
         self._closed = True
@@ -414,7 +420,11 @@ def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.Ep
     meta = contract.EpisodeMeta.from_dict(records[META_START])
     end = records.get(META_END)
     if end is not None:
-        meta = meta.replace(success=end["success"], num_interventions=end["num_interventions"])
+        meta = meta.replace(
+            success=end["success"],
+            num_interventions=end["num_interventions"],
+            aborted=end.get("aborted"),
+        )
     return meta
 
 

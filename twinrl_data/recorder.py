@@ -78,12 +78,12 @@ class Recorder:
         every problem, and nothing of it is written."""
         self._require_open().append(frame)
 
-    def save_episode(self, *, success: bool | None = None) -> Path:
-        """Close the episode (``success`` defaults to the last frame's ``next.success``)
-        and return its file."""
+    def save_episode(self, *, success: bool | None = None, aborted: str | None = None) -> Path:
+        """Close the episode (``success`` defaults to the last frame's ``next.success``;
+        ``aborted``: why it ended early) and return its file."""
         writer = self._require_open()
         self._writer = None
-        self.saved = writer.close(success=success)
+        self.saved = writer.close(success=success, aborted=aborted)
         return writer.path
 
     def _require_open(self) -> EpisodeWriter:

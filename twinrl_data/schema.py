@@ -82,7 +82,8 @@ class EpisodeMeta:
     initial state); ``twin`` is the digest of the scene spec used; ``names`` maps vector
     fields to the names of their entries; ``randomization`` records the visual domain
     randomisation a synthesized episode was rendered with. ``success`` and ``num_interventions`` are
-    filled in when the episode ends.
+    filled in when the episode ends, and ``aborted`` says why it ended early (the arm
+    stopped, the connection was lost, the run was interrupted); ``None``: it ran its course.
     """
 
     task: str
@@ -100,6 +101,7 @@ class EpisodeMeta:
     operator: str | None = None
     names: dict[str, list[str]] = field(default_factory=dict)
     randomization: dict[str, Any] = field(default_factory=dict)
+    aborted: str | None = None
     episode_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
     created_at: str = field(default_factory=now_iso)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from twinrl_data.errors import SettingError
-from twinrl_robot.cell_file import CellFile
+from twinrl_robot.cell_file import CellFile, load_cell
 from twinrl_robot.errors import RobotError
 from twinrl_robot.plant import hidden_effects
 from twinrl_robot.robot import Robot
@@ -65,10 +65,12 @@ def open_robot(
             raise SettingError("cell", "a real robot needs its cell file")
         if effects is not None:
             raise RobotError("effects apply to the plant only; a real cell has its own physics")
+        cell = cell if isinstance(cell, CellFile) else load_cell(cell)
         real: Robot = _open_real(task, cell, cameras, effort, emulated)
         if object_poses:
             real = PrivilegedObservation(real)
-        return SafetyLimits(real)
+        limits = cell.safety
+        return SafetyLimits(real, limits.max_step_translation, limits.max_step_rotation)
     if cell is not None or emulated:
         raise RobotError(f"a cell file describes a real robot; the {world} takes none")
     if world == "twin" and effects is not None:
@@ -83,12 +85,10 @@ def open_robot(
 
 
 def _open_real(
-    task: Task, cell: CellFile | str | Path, cameras: tuple[str, ...], effort: bool, emulated: bool
+    task: Task, cell: CellFile, cameras: tuple[str, ...], effort: bool, emulated: bool
 ) -> Robot:
-    from twinrl_robot.cell_file import load_cell
     from twinrl_robot.ur.hardware import open_arm
 
-    cell = cell if isinstance(cell, CellFile) else load_cell(cell)
     if not emulated:
         return open_arm(cell, task, cameras=cameras, effort=effort)
     from twinrl_robot.ur.emulator.harness import EmulatedTruth, HarnessClient

@@ -24,6 +24,25 @@ PlantEffects = Annotated[
     Path | None,
     typer.Option(help=f"Hidden effects YAML for the plant (default: {DEFAULT_EFFECTS_FILE.name})."),
 ]
+CellOption = Annotated[
+    Path | None,
+    typer.Option(help="Cell file of the real arm (--world real), see 'twinrl cell check'."),
+]
+EmulatedOption = Annotated[
+    bool,
+    typer.Option(
+        help="The --cell is served by 'twinrl robot emulate': it sets each configuration up "
+        "and lends the plant's ground truth (object poses, success), which a real cell lacks."
+    ),
+]
+
+
+def check_real(worlds: list[str], cell: Path | None, emulated: bool) -> None:
+    """--world real needs --cell; --cell and --emulated need --world real."""
+    if "real" in worlds and cell is None:
+        raise UsageError("--world real needs the arm's --cell file")
+    if (cell is not None or emulated) and "real" not in worlds:
+        raise UsageError("--cell and --emulated describe a real arm; add --world real")
 
 
 def expert(
@@ -58,6 +77,8 @@ def expert(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print one JSON object per task and world.")
     ] = False,
+    cell: CellOption = None,
+    emulated: EmulatedOption = False,
 ) -> None:
     """Run a task's scripted expert, report its success per region, optionally record it."""
     worlds = world or ["twin"]
@@ -71,6 +92,7 @@ def expert(
         raise UsageError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
         raise UsageError(f"--effects {effects} does not exist")
+    check_real(worlds, cell, emulated)
     regions = (region,) if region else REGION_NAMES
     scene = None
     if twin is not None:
@@ -94,6 +116,8 @@ def expert(
                     action_noise=noise,
                     on_episode=lambda _, job=job: bar.advance(job),
                     scene=scene,
+                    cell=cell if place == "real" else None,
+                    emulated=emulated and place == "real",
                 )
                 reports.append(report)
                 if as_json:
@@ -134,7 +158,7 @@ def excite(
             "the task's objects. Default: the task's built-in cell."
         ),
     ] = None,
-    world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
+    world: Annotated[str, typer.Option(help="twin, plant or real (with --cell).")] = "twin",
     episodes: Annotated[int, typer.Option(help="Episodes to record.", min=1)] = 4,
     effects: PlantEffects = None,
     duration: Annotated[float, typer.Option(help="Seconds per episode.")] = 10.0,
@@ -142,10 +166,13 @@ def excite(
         float, typer.Option(help="Scale of the joint amplitudes (halved until safe).")
     ] = 1.0,
     seed: Annotated[int, typer.Option(help="Seed for phases and object placement.")] = 0,
+    cell: CellOption = None,
+    emulated: EmulatedOption = False,
 ) -> None:
     """Record safe multi-sine joint motions (source ``excitation``) for identification."""
     if world not in WORLDS:
         raise UsageError(f"--world must be {' or '.join(WORLDS)}, got '{world}'")
+    check_real([world], cell, emulated)
     if effects is not None and not effects.is_file():
         raise UsageError(f"--effects {effects} does not exist")
     settings = ExcitationSettings(duration=duration, amplitude=amplitude)
@@ -165,6 +192,8 @@ def excite(
             seed=seed,
             session=session,
             on_episode=lambda _: bar.advance(job),
+            cell=cell,
+            emulated=emulated,
         )
     console.print(f"{out}: {episodes} excitation episodes of {duration:g} s ({world})")
 

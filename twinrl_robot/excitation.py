@@ -27,6 +27,7 @@ from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
+from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import JointCommand, run_episode
 from twinrl_sim.build import CompiledScene, compile_scene
@@ -183,14 +184,26 @@ def run_excitation(
     seed: int = 0,
     session: Session,
     on_episode: Callable[[int], None] | None = None,
+    cell: CellFile | str | Path | None = None,
+    emulated: bool = False,
 ) -> list[Path]:
     """Record ``episodes`` excitation episodes into ``session``: ``task``'s built-in cell,
     or ``scene`` (any cell spec, e.g. with a custom robot MJCF) with the task's objects
-    placed as the task places them."""
+    placed as the task places them; in the ``real`` world, on the arm of ``cell`` (the
+    joint guard clips every target to the cell's safety limits)."""
     if episodes < 1:
         raise SettingError("episodes", f"must be at least 1, got {episodes}")
     spec_task = make_task(task, scene)
-    robot = open_robot(world, spec_task, effects=effects, seed=seed, effort=True)
+    robot = open_robot(
+        world,
+        spec_task,
+        effects=effects,
+        seed=seed,
+        effort=True,
+        object_poses=world != "real" or emulated,  # a real cell has no object poses
+        cell=cell,
+        emulated=emulated,
+    )
     scene = compile_scene(spec_task.scene)
     fk = TcpKinematics(scene)
     rng = np.random.default_rng(seed)

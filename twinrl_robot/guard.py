@@ -5,9 +5,12 @@ logged episode being replayed, an excitation trajectory), the guard makes it one
 cell's limits allow: joint positions kept ``joint_margin`` from the limits, joint speed
 and acceleration bounded over the control period, and the tool centre point kept inside
 the workspace box with the tool axis inside the cone around straight down. Targets are
-clipped, never refused: the result is the farthest point toward the request that keeps
-every limit (the previous target is safe by induction, so a bisection along the step
-finds it). A *start* pose outside the limits is refused (:meth:`JointGuard.check_start`).
+clipped, never refused, and the guard brakes ahead of a boundary: a target is accepted
+only if the arm could still stop from it, braking at the acceleration limit, without
+crossing a limit. Between full braking (safe by induction) and the requested motion, a
+bisection picks the motion nearest the request that keeps that promise, so speed and
+acceleration limits hold even while it stops the arm at the box's wall. A *start* pose
+outside the limits is refused (:meth:`JointGuard.check_start`).
 """
 
 from __future__ import annotations
@@ -102,38 +105,47 @@ class JointGuard:
         """The safe target nearest ``target`` for the next period."""
         if self._last is None or self._velocity is None:
             raise RobotError("the guard has no start pose: reset it before streaming targets")
-        lim, dt = self.limits, self.period
+        lim, dt, last, velocity = self.limits, self.period, self._last, self._velocity
         wanted = np.asarray(target, float)
         clipped: list[str] = []
-        q = np.clip(wanted, lim.q_low, lim.q_high)
-        if not np.allclose(q, wanted):
+        within = np.clip(wanted, lim.q_low, lim.q_high)
+        if not np.allclose(within, wanted):
             clipped.append("joint limits")
-        velocity = (q - self._last) / dt
-        slow = np.clip(velocity, -lim.max_speed, lim.max_speed)
-        change = np.clip(
-            slow - self._velocity, -lim.max_acceleration * dt, lim.max_acceleration * dt
-        )
-        bounded = self._velocity + change
-        if not np.allclose(bounded, velocity):
-            clipped.append("joint speed" if not np.allclose(slow, velocity) else "acceleration")
-        q = np.clip(self._last + bounded * dt, lim.q_low, lim.q_high)
-        problem = self.violation(q)
+        asked = (within - last) / dt
+        slow = np.clip(asked, -lim.max_speed, lim.max_speed)
+        step = lim.max_acceleration * dt
+        chosen = velocity + np.clip(slow - velocity, -step, step)
+        if not np.allclose(slow, asked):
+            clipped.append("joint speed")
+        elif not np.allclose(chosen, slow):
+            clipped.append("acceleration")
+        problem = self._unsafe(chosen)
         if problem:
-            q = self._farthest_safe(self._last, q)
+            braking = velocity - np.clip(velocity, -step, step)
+            low, high = 0.0, 1.0
+            for _ in range(BISECTIONS):
+                middle = 0.5 * (low + high)
+                if self._unsafe(braking + (chosen - braking) * middle):
+                    high = middle
+                else:
+                    low = middle
+            chosen = braking + (chosen - braking) * low
             clipped.append(problem.split(" (")[0])
-        self._velocity = (q - self._last) / dt
+        q = np.clip(last + chosen * dt, lim.q_low, lim.q_high)
+        self._velocity = (q - last) / dt
         self._last = q
         return Guarded(q=q, clipped=tuple(clipped))
 
-    def _farthest_safe(self, safe: np.ndarray, unsafe: np.ndarray) -> np.ndarray:
-        low, high = 0.0, 1.0
-        for _ in range(BISECTIONS):
-            middle = 0.5 * (low + high)
-            if self.violation(safe + (unsafe - safe) * middle):
-                high = middle
-            else:
-                low = middle
-        return safe + (unsafe - safe) * low
+    def _unsafe(self, velocity: np.ndarray) -> str:
+        """What moving at ``velocity`` for one period, then braking, would break."""
+        assert self._last is not None
+        q = self._last + velocity * self.period
+        stop = q + velocity * np.abs(velocity) / (2.0 * self.limits.max_acceleration)
+        for point in (q, 0.5 * (q + stop), stop):
+            problem = self.violation(point)
+            if problem:
+                return problem
+        return ""
 
 
 def tool_tilt_deg(quat: np.ndarray) -> float:

@@ -131,9 +131,9 @@ def run_episode(
             observation = robot.observe()
             if success:
                 break
-    except BaseException:
-        if recorder is not None and recorder.recording:
-            recorder.save_episode(success=False)  # keep what was recorded
+    except BaseException as err:
+        if recorder is not None and recorder.recording:  # keep what was recorded, and why
+            recorder.save_episode(success=False, aborted=str(err) or type(err).__name__)
         raise
     path = recorder.save_episode(success=success) if recorder is not None else None
     return EpisodeResult(

@@ -14,6 +14,7 @@ from twinrl_data.atomic import write_text_atomic
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
 from twinrl_robot.backends import open_robot
+from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import privileged_success, run_episode
 from twinrl_sim.spec import SceneSpec
@@ -102,6 +103,8 @@ def run_scripted_expert(
     action_noise: float = 0.0,
     on_episode: Callable[[ExpertEpisode], None] | None = None,
     scene: SceneSpec | None = None,
+    cell: CellFile | str | Path | None = None,
+    emulated: bool = False,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
 
@@ -111,7 +114,9 @@ def run_scripted_expert(
     the human operator). ``action_noise`` (m) adds human-like jitter to the expert's
     translations (and five times as much, in rad, to its rotations), which the expert
     then corrects like an operator watching the arm. ``scene`` replaces the task's
-    built-in cell (e.g. one built by ``twinrl twin build``) in both worlds.
+    built-in cell (e.g. one built by ``twinrl twin build``) in both worlds. ``real`` is
+    the arm of ``cell`` (a cell file); the expert reads object poses, which only an
+    ``emulated`` cell lends (a real cell refuses it: a person demonstrates there).
     """
     if episodes < 1:
         raise RobotError(f"episodes must be at least 1, got {episodes}")
@@ -127,10 +132,12 @@ def run_scripted_expert(
         effects=effects,
         seed=seed,
         cameras=("front", "wrist") if recording else (),
-        effort=world == "plant",
+        effort=world != "twin",
+        cell=cell,
+        emulated=emulated,
     )
     recorder = Recorder(session) if session is not None else None
-    source_name = "teleop" if world == "plant" else "twin_demo"
+    source_name = "twin_demo" if world == "twin" else "teleop"
     rng = np.random.default_rng(seed)
     results = []
     try:
@@ -151,7 +158,7 @@ def run_scripted_expert(
                         config=config,
                         region=region,
                         policy="scripted_expert",
-                        operator="scripted_expert" if world == "plant" else None,
+                        operator=None if world == "twin" else "scripted_expert",
                     )
                 outcome = run_episode(
                     robot,

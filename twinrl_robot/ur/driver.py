@@ -191,6 +191,9 @@ class URArm:
             self._receive.disconnect()
             self.gripper.close()
             self.cameras.close()
+            close_truth = getattr(self.privileged, "close", None)
+            if close_truth is not None:
+                close_truth()
 
     # ------------------------------------------------------------------ faults
     def acknowledge(self) -> None:

@@ -97,6 +97,9 @@ class EmulatedTruth:
     def environment_state(self) -> np.ndarray:
         return np.array(self.harness.request("truth")["environment_state"], np.float32)
 
+    def close(self) -> None:
+        self.harness.close()
+
 
 class EmulatorProcess:
     """``twinrl robot emulate CELL`` in a process of its own, for as long as the context.

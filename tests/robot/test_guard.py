@@ -1,0 +1,141 @@
+"""The joint guard between every action source and a real arm: whatever the source asks,
+no joint target leaves the joint limits, the speed and acceleration limits, the
+workspace box or the tool cone; an unsafe start is refused."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from twinrl_robot.cell_file import SafetySpec
+from twinrl_robot.guard import BOX_TOLERANCE, GuardLimits, JointGuard, UnsafeStart, tool_tilt_deg
+from twinrl_robot.wrappers.safety import SafetyLimits
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.control import EndEffectorController, IKSettings
+from twinrl_sim.tasks import make_task
+
+CONTROL_HZ = 10.0
+SAFETY = SafetySpec(tool_cone_deg=30.0, max_joint_speed=1.0, max_joint_acceleration=4.0)
+
+
+@pytest.fixture(scope="module")
+def twin() -> Cell:
+    return Cell(compile_scene(make_task("pick_place").scene))
+
+
+def _guard(twin: Cell) -> tuple[JointGuard, EndEffectorController]:
+    ws = SAFETY.workspace
+    box = (np.array(ws.low), np.array(ws.high))
+    ik = EndEffectorController(
+        twin.model,
+        twin.layout,
+        box,
+        1.0 / CONTROL_HZ,
+        IKSettings(joint_margin=SAFETY.joint_margin, max_joint_speed=SAFETY.max_joint_speed),
+    )
+    limits = GuardLimits(
+        q_low=ik.q_low,
+        q_high=ik.q_high,
+        max_speed=SAFETY.max_joint_speed,
+        max_acceleration=SAFETY.max_joint_acceleration,
+        box_low=box[0],
+        box_high=box[1],
+        cone_deg=SAFETY.tool_cone_deg,
+    )
+    return JointGuard(limits, ik.forward, 1.0 / CONTROL_HZ), ik
+
+
+def _assert_safe(guard: JointGuard, targets: list[np.ndarray]) -> None:
+    lim, dt = guard.limits, guard.period
+    q = np.array(targets)
+    assert (q >= lim.q_low - 1e-9).all() and (q <= lim.q_high + 1e-9).all()
+    velocity = np.diff(q, axis=0) / dt
+    assert np.abs(velocity).max(initial=0.0) <= lim.max_speed + 1e-6
+    assert np.abs(np.diff(velocity, axis=0) / dt).max(initial=0.0) <= lim.max_acceleration + 1e-6
+    for target in q:
+        position, quat = guard.kinematics(target)
+        assert (position >= lim.box_low - BOX_TOLERANCE).all()
+        assert (position <= lim.box_high + BOX_TOLERANCE).all()
+        assert tool_tilt_deg(quat) <= lim.cone_deg + 1e-6
+
+
+actions = st.lists(st.lists(st.floats(-1.0, 1.0), min_size=7, max_size=7), min_size=1, max_size=40)
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(sequence=actions)
+def test_no_action_sequence_leaves_the_limits(twin: Cell, sequence: list[list[float]]) -> None:
+    """Random actions (far beyond the per-step limits) through the action clipping, the
+    twin's IK and the guard: every target the arm would get keeps every limit."""
+    guard, ik = _guard(twin)
+    home = np.array(twin.layout.home_qpos)
+    guard.reset(home)
+    ik.reset(home)
+    clip = SafetyLimits(_NullRobot(), SAFETY.max_step_translation, SAFETY.max_step_rotation)
+    measured, sent = home, [home]
+    for raw in sequence:
+        action = clip.action(np.array(raw, np.float32) * 0.3)
+        assert np.linalg.norm(action[:3]) <= SAFETY.max_step_translation + 1e-6
+        assert np.linalg.norm(action[3:6]) <= SAFETY.max_step_rotation + 1e-6
+        guarded = guard(ik.joint_targets(action, measured))
+        ik.q_target = guarded.q.copy()
+        measured = guarded.q  # an arm that tracks perfectly: the hardest case for the box
+        sent.append(guarded.q)
+    _assert_safe(guard, sent)
+
+
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    steps=st.lists(st.lists(st.floats(-0.6, 0.6), min_size=6, max_size=6), min_size=1, max_size=30)
+)
+def test_no_joint_target_sequence_leaves_the_limits(twin: Cell, steps: list[list[float]]) -> None:
+    """Replay and excitation send joint targets directly: random jumps of up to 0.6 rad
+    per joint per step are clipped to every limit too."""
+    guard, _ = _guard(twin)
+    q = np.array(twin.layout.home_qpos)
+    guard.reset(q)
+    sent = [q]
+    for jump in steps:
+        q = q + np.array(jump)
+        sent.append(guard(q).q)
+    _assert_safe(guard, sent)
+
+
+def test_a_start_outside_the_limits_is_refused_and_says_why(twin: Cell) -> None:
+    guard, ik = _guard(twin)
+    home = np.array(twin.layout.home_qpos)
+    guard.check_start(home)  # the twin's home stands inside
+    position, quat = ik.forward(home)
+    low = ik.solve_pose(position + np.array([0, 0, -0.31]), quat, home)  # below the table
+    with pytest.raises(UnsafeStart, match="outside the box in z"):
+        guard.check_start(low)
+    with pytest.raises(UnsafeStart, match="joint 3 beyond its limit"):
+        guard.check_start(home + np.array([0, 0, 10.0, 0, 0, 0]))
+
+
+def test_clipping_reports_what_it_clipped(twin: Cell) -> None:
+    guard, _ = _guard(twin)
+    home = np.array(twin.layout.home_qpos)
+    guard.reset(home)
+    assert guard(home).clipped == ()
+    fast = guard(home + 0.5)
+    assert "joint speed" in fast.clipped
+    assert np.abs(fast.q - home).max() <= SAFETY.max_joint_acceleration * 0.01 + 1e-9
+
+
+class _NullRobot:
+    """Stands under an action wrapper whose clipping alone is tested."""
+
+    control_hz = CONTROL_HZ
+    world = "twin"
+    names: ClassVar[dict] = {}
+    privileged = None
