@@ -47,6 +47,8 @@ RTDE_PORT = 30004
 CONNECT_TIMEOUT = 3.0  # s to reach the controller before saying it is unreachable
 RESET_SPEED, RESET_ACCELERATION = 0.6, 1.2  # rad/s, rad/s^2 of the move to a start pose
 SERVO_STOP_DECELERATION = 10.0  # rad/s^2
+ARRIVED = 2e-3  # rad from a move's goal that counts as there
+RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
 Arrange = Callable[[TaskConfig], None]
 """Sets a configuration's objects up in the cell (a person guided by the twin; the
 emulator's harness in tests); the arm is already at its start pose."""
@@ -136,8 +138,7 @@ class URArm:
         config = TaskConfig.from_dict(config)
         self.stream.stop()
         self.guard.check_start(self.start_q, "the task's start pose")
-        if not self._control.moveJ(self.start_q.tolist(), RESET_SPEED, RESET_ACCELERATION):
-            self._check(refused="the controller did not finish the move to the start pose")
+        self._move_to(self.start_q)
         self.gripper.command(0.0)
         if self.arrange is not None:
             self.arrange(config)
@@ -147,6 +148,26 @@ class URArm:
         self.stream.start(q)
         self._next_step = time.monotonic() + 1.0 / self.control_hz
         return self.observe()
+
+    def _move_to(self, q: np.ndarray) -> None:
+        """moveJ to ``q``, asynchronously so the watchdog is kept alive while it moves."""
+        if not self._control.moveJ(q.tolist(), RESET_SPEED, RESET_ACCELERATION, True):
+            self._check(refused="the controller refused the move to the start pose")
+        distance = float(np.abs(q - self.measured_q()).max())
+        deadline = time.monotonic() + 3.0 + 2.0 * distance / RESET_SPEED
+        while True:
+            self._control.kickWatchdog()
+            self._check()
+            arrived = np.abs(self.measured_q() - q).max() < ARRIVED
+            if arrived and np.abs(self._receive.getActualQd()).max() < 1e-2:
+                return
+            if time.monotonic() > deadline:
+                self._control.stopJ(SERVO_STOP_DECELERATION)
+                raise RobotStopped(
+                    "the arm did not reach the start pose in time; check for an "
+                    "obstacle or a speed limit set on the pendant"
+                )
+            time.sleep(0.01)
 
     def act(self, action: np.ndarray) -> Sent:
         self._check()
@@ -199,9 +220,11 @@ class URArm:
     def acknowledge(self) -> None:
         """The person has cleared the stop: check the arm is ready and restart the
         control program; until then every command raises :class:`RobotStopped`."""
-        reason = self._stop_reason()
-        if reason and "program" not in reason:
-            raise RobotStopped(reason)
+        deadline = time.monotonic() + RELEASE_TIMEOUT  # a released stop takes a moment
+        while (reason := self._stop_reason()) and "program" not in reason:
+            if time.monotonic() > deadline:
+                raise RobotStopped(reason)
+            time.sleep(0.02)
         if not self._control.isProgramRunning():
             self._control.reuploadScript()
             deadline = time.monotonic() + 5.0
@@ -212,7 +235,8 @@ class URArm:
                         "pendant for a popup and that it is in Remote Control"
                     )
                 time.sleep(0.01)
-        self.fault = None
+            self._apply_cell_settings()  # a new program has no watchdog, TCP or payload yet
+        self.fault = self.stream.fault = None
 
     def _check(self, refused: str | None = None) -> None:
         if self.fault is None:

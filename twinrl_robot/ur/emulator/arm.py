@@ -118,6 +118,8 @@ class EmulatedArm:
         self.gripper_position = 0.0
         self.ticks = 0
         self._motion = _Motion()
+        kp = model.actuator_gainprm[self.cell.arm_act, 0]
+        self._lead = model.dof_damping[self.cell.arm_dof] / np.maximum(kp, 1e-9)  # s
         self._flange = model.body(self.cell.layout.flange_body).id
         self._base = model.body("robot_mount").id
         self._table = model.geom(self.cell.layout.table_geom).id
@@ -232,7 +234,10 @@ class EmulatedArm:
         with self.lock:
             self._advance_reference()
             cell = self.cell
-            cell.data.ctrl[cell.arm_act] = self._reference
+            # Velocity feed-forward, as a UR's servo does: the plant's position servo lags
+            # its reference by damping/stiffness x speed; leading the reference by as much
+            # lets the arm track servo targets closely at any speed.
+            cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._reference_velocity
             if cell.gripper_act is not None:
                 gripper = self.gripper_position
                 if self.digital_out & 1:

@@ -150,9 +150,7 @@ class ControlProgram:
         self._write_int(0, DONE)
 
     def _finished(self) -> bool:
-        if self.pending == "move":
-            return not self.arm.moving
-        if self.pending == "stop":
+        if self.pending in ("move", "stop"):  # done when the arm has arrived and settled
             return self.arm.resting
         return True
 

@@ -171,6 +171,7 @@ class Harness:
                         "q": reading.q.tolist(),
                         "qd": reading.qd.tolist(),
                         "timestamp": reading.timestamp,
+                        "program_running": reading.runtime_state == 2,
                         "safety_mode": reading.safety_mode,
                     }
                 )

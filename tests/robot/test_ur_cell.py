@@ -1,0 +1,231 @@
+"""The UR driver against the emulator, through the real ur_rtde: it connects and moves,
+the scripted expert solves pick_place through it, a logged episode replays, the watchdog
+stops a frozen host's arm within 100 ms, and stops end an episode saved as aborted."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.recorder import Recorder
+from twinrl_data.session import Session
+from twinrl_robot.backends import open_robot
+from twinrl_robot.loop import privileged_success, run_episode
+from twinrl_robot.replay_source import ReplaySource
+from twinrl_robot.scripted import ExpertSource
+from twinrl_robot.ur.driver import RobotStopped
+from twinrl_robot.ur.emulator import free_loopback_host
+from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
+from twinrl_sim.tasks import make_task
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N")
+
+
+def write_cell(folder: Path, **changes: object) -> Path:
+    """A cell file for an emulator on a free loopback address."""
+    cell = {
+        "name": "emulated",
+        "twin": "pick_place",
+        "arm": {"model": "ur5e", "host": free_loopback_host(), "control_hz": 10},
+        "gripper": {"kind": "robotiq_2f85"},
+        # The scripted expert plans its strides ahead (up to 5 cm per step) and assumes
+        # they are executed; a person would adapt to a tighter per-step limit, it does not.
+        "safety": {"max_step_translation": 0.05},
+        **changes,
+    }
+    path = folder / "cell.yaml"
+    path.write_text(yaml.safe_dump(cell))
+    return path
+
+
+@pytest.fixture
+def emulated(tmp_path: Path) -> Iterator[tuple[Path, EmulatorProcess]]:
+    cell = write_cell(tmp_path)
+    with EmulatorProcess(cell, effects=None) as emulator:
+        yield cell, emulator
+
+
+def test_the_real_ur_rtde_connects_and_drives_the_emulator(emulated) -> None:
+    import rtde_control
+    import rtde_receive
+
+    cell, emulator = emulated
+    host = yaml.safe_load(cell.read_text())["arm"]["host"]
+    receive = rtde_receive.RTDEReceiveInterface(host)
+    control = rtde_control.RTDEControlInterface(host)  # checks remote control off 127.0.0.1
+    try:
+        assert control.isProgramRunning() and receive.getRobotMode() == 7
+        start = np.array(receive.getActualQ())
+        goal = start + np.array([0.1, -0.05, 0.05, 0.0, 0.0, 0.1])
+        assert control.moveJ(goal.tolist(), 1.0, 2.0)
+        assert np.abs(np.array(receive.getActualQ()) - goal).max() < 2e-3
+        for i in range(100):  # 0.2 s of servoJ at 500 Hz
+            began = control.initPeriod()
+            control.servoJ((goal + 0.001 * i).tolist(), 0.0, 0.0, 0.002, 0.1, 300)
+            control.waitPeriod(began)
+        time.sleep(0.1)
+        assert np.abs(np.array(receive.getActualQ()) - (goal + 0.099)).max() < 5e-3
+        assert control.servoStop()
+    finally:
+        control.stopScript()
+        control.disconnect()
+        receive.disconnect()
+    assert "not URSim" in emulator.banner
+
+
+def test_the_expert_solves_pick_place_through_the_driver_and_its_episode_replays(
+    emulated, tmp_path: Path
+) -> None:
+    cell, _ = emulated
+    task = make_task("pick_place")
+    robot = open_robot("real", task, cell=cell, emulated=True, effort=True)
+    session = Session.create(tmp_path / "session")
+    recorder = Recorder(session)
+    config = task.sample_config(np.random.default_rng(3), "ID")
+    try:
+        source = ExpertSource(np.random.default_rng(0), np.random.default_rng(1), 0.0)
+        meta = task.episode_meta(
+            source="teleop", world="real", names=robot.names, config=config, region="ID"
+        )
+        first = run_episode(
+            robot,
+            source,
+            task,
+            config,
+            judge=privileged_success(robot),
+            recorder=recorder,
+            meta=meta,
+        )
+        assert first.success, f"the expert failed through the driver after {first.steps} steps"
+        logged = read_episode(first.path, images=False)
+        replay_meta = task.episode_meta(
+            source="replay", world="real", names=robot.names, config=config, region="ID"
+        )
+        second = run_episode(
+            robot,
+            ReplaySource(logged),
+            task,
+            config,
+            judge=None,
+            max_steps=len(logged.data["action"]),
+            recorder=recorder,
+            meta=replay_meta,
+        )
+    finally:
+        robot.close()
+    replayed = read_episode(second.path, images=False)
+    q_logged = logged.data["observation.state"][:, :6]
+    q_replayed = replayed.data["observation.state"][:, :6]
+    rms = float(np.sqrt(np.mean((q_logged - q_replayed) ** 2)))
+    assert rms < 1e-3, f"the replay retraced the joint path within {rms * 1000:.2f} mrad RMS"
+    assert logged.meta.world == "real" and "observation.effort" in logged.data
+
+
+def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) -> None:
+    cell, _ = emulated
+    host = yaml.safe_load(cell.read_text())["arm"]["host"]
+    driver = subprocess.Popen(
+        [sys.executable, "-c", _STREAMING_HOST, str(cell)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    harness = HarnessClient(host)
+    try:
+        assert driver.stdout is not None
+        assert driver.stdout.readline().strip() == "moving", "the host never started moving"
+        time.sleep(0.5)
+        moving = harness.reading()
+        assert np.abs(moving["qd"]).max() > 0.05, "the arm should move while the host streams"
+        driver.send_signal(signal.SIGSTOP)  # the host process hangs
+        frozen_at = harness.reading()["timestamp"]
+        while True:
+            reading = harness.reading()
+            if np.abs(reading["qd"]).max() < 1e-2:
+                break
+            assert reading["timestamp"] - frozen_at < 1.0, "the arm never stopped"
+        stopped_after = reading["timestamp"] - frozen_at
+        assert stopped_after <= 0.1, f"the arm took {stopped_after * 1000:.0f} ms to stop"
+        time.sleep(0.2)
+        assert not harness.reading()["program_running"], "the watchdog should end the program"
+    finally:
+        driver.send_signal(signal.SIGKILL)
+        driver.wait()
+        harness.close()
+
+
+_STREAMING_HOST = """
+import sys, numpy as np
+from twinrl_robot.backends import open_robot
+from twinrl_sim.tasks import make_task
+task = make_task("pick_place")
+robot = open_robot("real", task, cell=sys.argv[1], emulated=True)
+robot.reset(task.sample_config(np.random.default_rng(0)))
+print("moving", flush=True)
+while True:
+    for sign in (1, -1):
+        for _ in range(10):
+            robot.act(np.array([0, sign * 0.03, 0, 0, 0, 0, 0], np.float32))
+"""
+
+
+def test_a_protective_stop_aborts_the_episode_keeps_its_data_and_blocks_until_acknowledged(
+    emulated, tmp_path: Path
+) -> None:
+    cell, _ = emulated
+    host = yaml.safe_load(cell.read_text())["arm"]["host"]
+    harness = HarnessClient(host)
+    task = make_task("pick_place")
+    robot = open_robot("real", task, cell=cell, emulated=True)
+    recorder = Recorder(Session.create(tmp_path / "session"))
+    config = task.sample_config(np.random.default_rng(0), "ID")
+    meta = task.episode_meta(source="teleop", world="real", names=robot.names, config=config)
+
+    class StoppedMidway(ExpertSource):
+        steps = 0
+
+        def act(self, observation):
+            StoppedMidway.steps += 1
+            if StoppedMidway.steps == 6:
+                harness.fault("protective_stop")  # the arm hits something
+            return super().act(observation)
+
+    source = StoppedMidway(np.random.default_rng(0), np.random.default_rng(1), 0.0)
+    try:
+        with pytest.raises(RobotStopped, match="protective stop") as stopped:
+            run_episode(robot, source, task, config, judge=None, recorder=recorder, meta=meta)
+        assert "\n" not in str(stopped.value)
+        assert StoppedMidway.steps == 6, "the stop must be seen within one control step"
+        saved = read_episode(session_file(tmp_path), images=False)
+        assert saved.meta.aborted and "protective stop" in saved.meta.aborted
+        # The five steps completed before the stop are kept; the sixth was cut short by it.
+        assert len(saved.data["action"]) == 5 and saved.meta.success is False
+        with pytest.raises(RobotStopped, match="protective stop"):
+            robot.act(np.zeros(7, np.float32))  # nothing is sent until acknowledged
+        import dashboard_client
+
+        dashboard = dashboard_client.DashboardClient(host)
+        dashboard.connect()
+        dashboard.unlockProtectiveStop()
+        dashboard.disconnect()
+        robot.unwrapped.acknowledge()
+        robot.reset(config)
+        robot.act(np.array([0.01, 0, 0, 0, 0, 0, 0], np.float32))
+    finally:
+        robot.close()
+        harness.close()
+
+
+def session_file(folder: Path) -> Path:
+    (episode,) = sorted((folder / "session").rglob("*.mcap"))
+    return episode
