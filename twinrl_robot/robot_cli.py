@@ -62,7 +62,7 @@ def check(
     cell, spec_task = _cell_and_task(cell_file, task)
     report = check_cell(cell, spec_task, seconds=seconds, rerun=rerun)
     table = Table(title=f"cell {cell.name} at {cell.arm.host}", show_header=False)
-    table.add_row("controller", report.controller)
+    table.add_row("controller", f"PolyScope {report.controller}")
     table.add_row("modes", f"robot {report.robot_mode}, safety {report.safety_mode}")
     table.add_row("remote control", "yes" if report.remote_control else "[red]no[/red]")
     p50, p99, worst = report.period_ms

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_robot.cell_file import CellFile
-from twinrl_robot.ur.driver import URArm
+from twinrl_robot.ur.driver import RobotConnectionError, URArm, require_reachable
 from twinrl_robot.ur.hardware import open_arm
 from twinrl_sim.tasks import Task
 
@@ -52,8 +52,15 @@ def check_cell(
     """Connect to ``cell`` and measure it for ``seconds`` (see the module docstring)."""
     import dashboard_client
 
+    require_reachable(cell.arm.host)
     dashboard = dashboard_client.DashboardClient(cell.arm.host)
-    dashboard.connect()
+    try:
+        dashboard.connect()
+    except RuntimeError as err:
+        raise RobotConnectionError(
+            f"the UR controller's dashboard at {cell.arm.host}:29999 does not answer ({err}); "
+            "check that the controller has finished booting"
+        ) from None
     try:
         controller = dashboard.polyscopeVersion()
         robot_mode, safety_mode = dashboard.robotmode(), dashboard.safetystatus()

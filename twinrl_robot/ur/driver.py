@@ -312,8 +312,8 @@ class URArm:
         return f"URArm({self.cell.arm.model} at {self.host})"
 
 
-def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
-    """ur_rtde's receive and control interfaces, or one line on why not."""
+def require_reachable(host: str) -> None:
+    """Refuse, in one line, a controller whose RTDE port does not answer."""
     try:
         with socket.create_connection((host, RTDE_PORT), timeout=CONNECT_TIMEOUT):
             pass
@@ -322,6 +322,11 @@ def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
             f"cannot reach the UR controller at {host}:{RTDE_PORT} ({err.strerror or err}); "
             "check that the arm is powered, the cell file's `host`, and the network"
         ) from None
+
+
+def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
+    """ur_rtde's receive and control interfaces, or one line on why not."""
+    require_reachable(host)
     import rtde_control
     import rtde_receive
 

@@ -91,6 +91,8 @@ class EmulatedArm:
         servo_hz: the controller's servo rate (a whole number of physics steps).
         tcp_offset: the TCP configured on the controller (m, axis-angle rad, flange frame).
         torque_constant: N m per A, to report currents as a UR does.
+        gripper_output: the digital output that closes a switched gripper (``None``: the
+            gripper follows the Robotiq socket's position).
     """
 
     def __init__(
@@ -101,6 +103,7 @@ class EmulatedArm:
         servo_hz: float = 500.0,
         tcp_offset: tuple[float, ...] = (0.0,) * 6,
         torque_constant: float = 10.0,
+        gripper_output: int | None = None,
     ) -> None:
         self.task = task
         self.cell = Cell(compile_scene(task.scene, extra_effects=effects or None))
@@ -111,6 +114,7 @@ class EmulatedArm:
         self.lock = threading.RLock()
         self.tcp_offset = np.asarray(tcp_offset, float)
         self.torque_constant = torque_constant
+        self.gripper_output = gripper_output
         self.robot_mode = RobotMode.RUNNING
         self.safety_mode = SafetyMode.NORMAL
         self.program_running = False
@@ -167,6 +171,11 @@ class EmulatedArm:
         """Whether nothing is commanded and the joints have come to rest."""
         speed = float(np.abs(self.cell.data.qvel[self.cell.arm_dof]).max())
         return self._motion.kind == "idle" and speed < 1e-2
+
+    def set_digital_outputs(self, mask: int, bits: int) -> None:
+        """The standard digital outputs under ``mask`` take ``bits`` (RTDE's I/O recipe)."""
+        with self.lock:
+            self.digital_out = (self.digital_out & ~mask) | (bits & mask)
 
     def _may_move(self) -> bool:
         return self.safety_mode == SafetyMode.NORMAL and self.robot_mode == RobotMode.RUNNING
@@ -240,8 +249,8 @@ class EmulatedArm:
             cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._reference_velocity
             if cell.gripper_act is not None:
                 gripper = self.gripper_position
-                if self.digital_out & 1:
-                    gripper = 1.0
+                if self.gripper_output is not None:
+                    gripper = float(bool(self.digital_out >> self.gripper_output & 1))
                 cell.data.ctrl[cell.gripper_act] = gripper
             mujoco.mj_step(cell.model, cell.data, nstep=self.physics_per_tick)
             mujoco.mj_forward(cell.model, cell.data)

@@ -74,6 +74,7 @@ class Emulator:
             effects=effects,
             servo_hz=cell.arm.servo_rate,
             tcp_offset=cell.arm.tcp_offset,
+            gripper_output=cell.gripper.output if cell.gripper.kind == "digital" else None,
         )
         self.registers = Registers()
         self.program = ControlProgram(self.arm, self.registers)
@@ -89,7 +90,13 @@ class Emulator:
         ports, host = self.ports, self.host
         stroke = STROKES.get(self.cell.gripper.kind, 0.085)
         makers = [
-            ("RTDE", ports.rtde, lambda a: RTDEServer(a, self.arm.read, self.registers)),
+            (
+                "RTDE",
+                ports.rtde,
+                lambda a: RTDEServer(
+                    a, self.arm.read, self.registers, self.arm.set_digital_outputs
+                ),
+            ),
             ("script", ports.script, lambda a: _ScriptServer(a, self.program)),
             (
                 "dashboard",

@@ -114,14 +114,7 @@ class EmulatorProcess:
     def __init__(
         self, cell_file: str | Path, *, task: str | None = None, effects: str | Path | None = None
     ) -> None:
-        self.command = [
-            sys.executable,
-            "-m",
-            "twinrl_learn.cli",
-            "robot",
-            "emulate",
-            str(cell_file),
-        ]
+        self.command = [sys.executable, "-m", "twinrl_learn", "robot", "emulate", str(cell_file)]
         if task:
             self.command += ["--task", task]
         if effects is not None:

@@ -185,9 +185,14 @@ class RTDEServer(socketserver.ThreadingTCPServer):
     daemon_threads = True
 
     def __init__(
-        self, address: tuple[str, int], reading: Callable[[], ArmReading], registers: Registers
+        self,
+        address: tuple[str, int],
+        reading: Callable[[], ArmReading],
+        registers: Registers,
+        digital_output: Callable[[int, int], None] | None = None,
     ) -> None:
         self.reading, self.registers = reading, registers
+        self.digital_output = digital_output  # (mask, bits) of the standard digital outputs
         self.running = True
         self._clients = 0
         self._clients_lock = threading.Lock()
@@ -312,6 +317,11 @@ class _RTDEHandler(socketserver.BaseRequestHandler):
         with registers.lock:
             registers.values.update(zip(names, values, strict=True))
             registers.updated.update(dict.fromkeys(names, now))
+        if "standard_digital_output_mask" in names and self.server.digital_output is not None:
+            update = dict(zip(names, values, strict=True))
+            self.server.digital_output(
+                int(update["standard_digital_output_mask"]), int(update["standard_digital_output"])
+            )
 
     def stream(self) -> None:
         assert self.output is not None

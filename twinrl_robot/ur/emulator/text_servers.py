@@ -125,7 +125,8 @@ class RobotiqSocket:
         if len(words) >= 2 and words[0] == "GET":
             name = words[1]
             if name == "POS":
-                return f"POS {round(255 * (1.0 - self.arm.read().gripper_opening / self.stroke))}"
+                closed = 1.0 - self.arm.read().gripper_opening / self.stroke
+                return f"POS {round(255 * min(max(closed, 0.0), 1.0))}"
             if name == "PRE":
                 return f"PRE {round(255 * self.arm.gripper_position)}"
             if name == "OBJ":
@@ -172,6 +173,7 @@ class Harness:
                         "qd": reading.qd.tolist(),
                         "timestamp": reading.timestamp,
                         "program_running": reading.runtime_state == 2,
+                        "gripper_opening": reading.gripper_opening,
                         "safety_mode": reading.safety_mode,
                     }
                 )

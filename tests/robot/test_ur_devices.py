@@ -1,0 +1,175 @@
+"""A real cell's devices against the emulator (the Robotiq socket, a digital-output
+gripper through ur_rtde's I/O interface, MJPEG cameras through OpenCV), the stops the
+driver names in one line, and the one-line errors of a cell that cannot be reached."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.robot.test_ur_cell import write_cell
+from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import RobotError
+from twinrl_robot.ur.cameras import CameraError, CameraRig, CameraStats, Frame, OpenCVCamera
+from twinrl_robot.ur.driver import RobotConnectionError, RobotStopped
+from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
+from twinrl_robot.ur.gripper import DigitalGripper, RobotiqGripper
+from twinrl_sim.tasks import make_task
+
+
+def host_of(cell: Path) -> str:
+    return yaml.safe_load(cell.read_text())["arm"]["host"]
+
+
+def twinrl(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", *args], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_the_robotiq_socket_and_the_cameras_of_an_emulated_cell(tmp_path: Path) -> None:
+    cell = write_cell(
+        tmp_path,
+        cameras=[{"name": "front", "kind": "opencv", "width": 96, "height": 64, "fps": 15}],
+    )
+    data = yaml.safe_load(cell.read_text())
+    data["cameras"][0]["source"] = f"http://{host_of(cell)}:8080/front"
+    cell.write_text(yaml.safe_dump(data))
+    with EmulatorProcess(cell):
+        gripper = RobotiqGripper(host_of(cell))
+        try:
+            open_width = gripper.opening()
+            gripper.command(1.0)
+            time.sleep(1.0)
+            assert gripper.opening() < 0.5 * open_width, "the gripper should close on command"
+        finally:
+            gripper.close()
+        camera = OpenCVCamera("front", data["cameras"][0]["source"], 96, 64, 15)
+        try:
+            rig = CameraRig([camera])
+            time.sleep(1.0)
+            image = rig.images()["observation.images.front"]
+            assert image.shape == (64, 96, 3) and image.std() > 5, "a rendered scene, not blank"
+            assert 8 < camera.stats.fps < 25 and camera.stats.dropped == 0
+        finally:
+            camera.close()
+
+
+def test_a_digital_output_gripper_through_ur_rtdes_io_interface(tmp_path: Path) -> None:
+    import rtde_io
+
+    cell = write_cell(tmp_path, gripper={"kind": "digital", "output": 2})
+    with EmulatorProcess(cell):
+        harness = HarnessClient(host_of(cell))
+        io = rtde_io.RTDEIOInterface(host_of(cell))
+        try:
+            gripper = DigitalGripper(io, 2)
+            opened = harness.reading()["gripper_opening"]
+            gripper.command(1.0)
+            time.sleep(0.8)
+            assert harness.reading()["gripper_opening"] < 0.5 * opened
+        finally:
+            io.disconnect()
+            harness.close()
+
+
+@pytest.mark.parametrize(
+    ("fault", "said"),
+    [
+        ("emergency_stop", "emergency stop is pressed"),
+        ("local_mode", "left remote control"),
+        ("drop_connection", "lost the connection"),
+    ],
+)
+def test_each_stop_is_named_in_one_line_within_a_step(tmp_path: Path, fault: str, said: str):
+    cell = write_cell(tmp_path)
+    task = make_task("pick_place")
+    with EmulatorProcess(cell):
+        harness = HarnessClient(host_of(cell))
+        robot = open_robot("real", task, cell=cell, emulated=True)
+        try:
+            robot.reset(task.sample_config(np.random.default_rng(0)))
+            robot.act(np.zeros(7, np.float32))
+            harness.fault(fault)
+            with pytest.raises(RobotStopped, match=said) as stopped:
+                for _ in range(2):  # the stop shows at the step it happens in, or the next
+                    robot.act(np.zeros(7, np.float32))
+            assert "\n" not in str(stopped.value)
+        finally:
+            robot.close()
+            harness.close()
+
+
+def test_an_unreachable_controller_is_one_line(tmp_path: Path) -> None:
+    cell = write_cell(tmp_path)  # nothing serves on its address
+    with pytest.raises(RobotConnectionError, match="cannot reach the UR controller") as err:
+        open_robot("real", make_task("pick_place"), cell=cell)
+    assert "\n" not in str(err.value)
+    result = twinrl("robot", "check", str(cell))
+    assert result.returncode == 2
+    assert "cannot reach the UR controller" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_a_taken_port_stops_a_second_emulator_with_one_line(tmp_path: Path) -> None:
+    cell = write_cell(tmp_path)
+    with (
+        EmulatorProcess(cell),
+        pytest.raises(RobotError, match="cannot serve the emulated RTDE port"),
+        EmulatorProcess(cell),
+    ):
+        pass
+
+
+def test_robot_check_reports_the_cell_and_records_the_safety_box(tmp_path: Path) -> None:
+    cell = write_cell(tmp_path)
+    with EmulatorProcess(cell):
+        result = twinrl(
+            "robot", "check", str(cell), "--seconds", "1", "--rerun", str(tmp_path / "c.rrd")
+        )
+    assert result.returncode == 0, result.stderr
+    for line in ("PolyScope 5.15", "RUNNING", "servo loop", "500 Hz", "inside the safety"):
+        assert line in result.stdout
+    assert (tmp_path / "c.rrd").stat().st_size > 0
+
+
+def test_a_camera_that_does_not_open_is_one_line(tmp_path: Path) -> None:
+    with pytest.raises(CameraError, match="cannot be opened from source") as err:
+        OpenCVCamera("front", str(tmp_path / "missing.mp4"), 64, 48, 30)
+    assert "\n" not in str(err.value)
+
+
+class _HeldCamera:
+    """A camera whose frames the test hands over, to count stale ones exactly."""
+
+    name, fps = "held", 10.0
+
+    def __init__(self) -> None:
+        self.stats = CameraStats()
+        self.frame: Frame | None = None
+
+    def deliver(self, index: int) -> None:
+        self.frame = Frame(np.zeros((4, 4, 3), np.uint8), time.monotonic(), index)
+
+    def latest(self) -> Frame | None:
+        return self.frame
+
+    def close(self) -> None:
+        return None
+
+
+def test_a_frame_seen_twice_is_counted_stale_never_silently_repeated() -> None:
+    camera = _HeldCamera()
+    rig = CameraRig([camera])
+    camera.deliver(1)
+    rig.images()
+    rig.images()  # no new frame came: the step reuses frame 1
+    camera.deliver(2)
+    rig.images()
+    assert rig.counts() == {"held": {"frames": 0, "dropped": 0, "stale": 1}}
