@@ -84,6 +84,15 @@ def open_robot(
     return SafetyLimits(robot)
 
 
+def recorded_cameras(world: str, cell: CellFile | str | Path | None) -> tuple[str, ...]:
+    """The cameras an episode of ``world`` records: the simulated cell's two, or every
+    camera of a real cell's file."""
+    if world != "real" or cell is None:
+        return ("front", "wrist")
+    cell = cell if isinstance(cell, CellFile) else load_cell(cell)
+    return tuple(camera.name for camera in cell.cameras)
+
+
 def _open_real(
     task: Task, cell: CellFile, cameras: tuple[str, ...], effort: bool, emulated: bool
 ) -> Robot:

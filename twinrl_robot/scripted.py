@@ -13,7 +13,7 @@ import numpy as np
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
-from twinrl_robot.backends import open_robot
+from twinrl_robot.backends import open_robot, recorded_cameras
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import privileged_success, run_episode
@@ -131,7 +131,7 @@ def run_scripted_expert(
         spec_task,
         effects=effects,
         seed=seed,
-        cameras=("front", "wrist") if recording else (),
+        cameras=recorded_cameras(world, cell) if recording else (),
         effort=world != "twin",
         cell=cell,
         emulated=emulated,

@@ -151,7 +151,7 @@ class OpenCVCamera(ThreadedCamera):
         if not self._capture.isOpened():
             raise CameraError(
                 f"camera '{name}' cannot be opened from source {source!r}; check the device "
-                "index, path or URL in the cell file (v4l2-ctl --list-devices lists devices)"
+                "index, path or URL in the cell file (v4l2-ctl lists the video devices)"
             )
         if isinstance(target, int):
             self._capture.set(cv2.CAP_PROP_FRAME_WIDTH, width)
