@@ -39,3 +39,11 @@ class ReplaySource:
     def interrupted(self) -> None:
         """A person took the controls: the replay cannot resume where the arm now is."""
         raise RobotError("the replay was interrupted by a takeover; start it again")
+
+
+def check_replay_start(robot: object, source: ReplaySource) -> None:
+    """Refuse a replay whose first target lies outside a real arm's safety limits (the
+    guard would otherwise clip its way there from wherever the arm stands)."""
+    guard = getattr(getattr(robot, "unwrapped", robot), "guard", None)
+    if guard is not None:
+        guard.check_start(source.targets[0], "the replay's start pose")

@@ -4,6 +4,7 @@ workspace box or the tool cone; an unsafe start is refused."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
 from typing import ClassVar
 
 import numpy as np
@@ -139,3 +140,25 @@ class _NullRobot:
     world = "twin"
     names: ClassVar[dict] = {}
     privileged = None
+
+
+def test_a_replay_that_starts_outside_the_box_is_refused(twin: Cell) -> None:
+    from twinrl_data.schema import Episode, EpisodeMeta
+    from twinrl_robot.replay_source import ReplaySource, check_replay_start
+
+    guard, ik = _guard(twin)
+    home = np.array(twin.layout.home_qpos)
+    position, quat = ik.forward(home)
+    below = ik.solve_pose(position + np.array([0, 0, -0.31]), quat, home)
+    steps = 3
+    episode = Episode(
+        EpisodeMeta(task="pick_place", source="teleop", world="real"),
+        {
+            "observation.state": np.zeros((steps, 20), np.float32),
+            "action": np.zeros((steps, 7), np.float32),
+            "command.joint_target": np.tile(below, (steps, 1)).astype(np.float32),
+        },
+    )
+    arm = SimpleNamespace(guard=guard)  # what the check reads of a real arm
+    with pytest.raises(UnsafeStart, match="the replay's start pose is outside"):
+        check_replay_start(arm, ReplaySource(episode))

@@ -173,3 +173,26 @@ def test_a_frame_seen_twice_is_counted_stale_never_silently_repeated() -> None:
     camera.deliver(2)
     rig.images()
     assert rig.counts() == {"held": {"frames": 0, "dropped": 0, "stale": 1}}
+
+
+def test_the_emulated_arm_protective_stops_when_a_link_hits_the_table() -> None:
+    from twinrl_robot.ur.emulator.arm import EmulatedArm, SafetyMode
+
+    arm = EmulatedArm(make_task("pick_place"), effects={})
+    arm.program_running = True
+    for _ in range(10):
+        arm.tick()
+    assert arm.safety_mode == SafetyMode.NORMAL, "the arm at home touches nothing"
+    q = arm.cell.arm_q
+    q[1] += 1.2  # the shoulder swings the arm down through the table
+    arm.move(q, speed=2.0, acceleration=8.0)
+    for _ in range(1500):
+        arm.tick()
+        if arm.safety_mode != SafetyMode.NORMAL:
+            break
+    assert arm.safety_mode == SafetyMode.PROTECTIVE_STOP and not arm.program_running
+    held = arm.cell.arm_q
+    arm.servo(held + 0.3)  # commands are refused until the stop is unlocked
+    for _ in range(50):
+        arm.tick()
+    assert np.abs(arm.cell.arm_q - held).max() < 0.05
