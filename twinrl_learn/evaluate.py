@@ -118,13 +118,26 @@ def evaluate(
     seed: int = 0,
     out: str | Path,
     on_episode: Callable[[Cell, bool], None] | None = None,
+    cell_file: str | Path | None = None,
+    emulated: bool = False,
 ) -> EvalReport:
-    """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``."""
+    """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``.
+
+    ``world`` ``real`` is the arm of ``cell_file``; success is judged from the task's
+    ground truth, which only an ``emulated`` cell lends (a real cell refuses it)."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} exists and is not empty; choose another output folder")
     task = make_task(task_name)
-    robot = open_robot(world, task, effects=effects, seed=seed, cameras=runner.cameras)
+    robot = open_robot(
+        world,
+        task,
+        effects=effects,
+        seed=seed,
+        cameras=runner.cameras,
+        cell=cell_file,
+        emulated=emulated,
+    )
     cells = grid_cells(task_name, grid)
     recorder = Recorder(Session.create(out / "session"))
     rng = np.random.default_rng(seed)

@@ -12,6 +12,8 @@ from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
 from twinrl_data.settings_cli import parse_grid
 from twinrl_learn.cli.common import console
+from twinrl_robot.backends import WORLDS
+from twinrl_robot.cli import CellOption, EmulatedOption, check_real
 from twinrl_sim.tasks import TASKS, make_task
 
 
@@ -21,8 +23,10 @@ def eval_command(
     ],
     task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")],
     out: Annotated[Path, typer.Option(help="Folder for episodes, eval.json and heatmap.png.")],
-    world: Annotated[str, typer.Option(help="twin or plant.")] = "twin",
+    world: Annotated[str, typer.Option(help="twin, plant or real (with --cell).")] = "twin",
     effects: Annotated[Path | None, typer.Option(help="Hidden effects YAML for the plant.")] = None,
+    cell: CellOption = None,
+    emulated: EmulatedOption = False,
     grid: Annotated[
         str, typer.Option(help="Grid of target positions over ID and OOD, e.g. 8x8.")
     ] = "8x8",
@@ -49,9 +53,10 @@ def eval_command(
 
     if task not in TASKS:
         make_task(task)  # raises with the nearest task name
-    if world not in ("twin", "plant"):
-        raise UsageError(f"--world must be twin or plant, got '{world}'")
-    if world == "twin" and effects is not None:
+    if world not in WORLDS:
+        raise UsageError(f"--world must be one of {', '.join(WORLDS)}, got '{world}'")
+    check_real([world], cell, emulated)
+    if world != "plant" and effects is not None:
         raise UsageError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
         raise UsageError(f"--effects {effects} does not exist")
@@ -75,6 +80,8 @@ def eval_command(
             seed=seed,
             out=out,
             on_episode=advance,
+            cell_file=cell,
+            emulated=emulated,
         )
     table = Table("region", "success", "episodes", title=f"{task}: {runner.name} in the {world}")
     for region, rate in report.success_rate().items():
