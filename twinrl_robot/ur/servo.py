@@ -3,9 +3,11 @@
 The episode moves at the control rate (10 Hz); a UR controller servos at 125 Hz (CB3)
 or 500 Hz (e-Series) and wants a servoJ target every one of its periods. The stream
 runs in its own thread, paced by ur_rtde's ``initPeriod``/``waitPeriod``, and sends the
-point of the current control step's segment that the clock has reached: each new
-control target starts a segment from where the stream is toward the target, covered in
-one control period, so the arm moves smoothly and never jumps. Every servoJ package
+point of the current control step's segment that the clock has reached: each control
+target's segment runs from the previous target to it over one control period, starting
+when the previous segment ends (or now, if that has passed). So the arm follows the
+same path whatever the host's timing jitter: a step that comes a little early waits for
+the previous one to finish instead of cutting its corner. Every servoJ package
 refreshes the controller's RTDE watchdog; a stream that stops (the host process hangs
 or dies, the network goes) lets the watchdog stop the program on the controller.
 """
@@ -35,7 +37,9 @@ class ServoStream:
         self.fault: str | None = None
         self.periods: list[float] = []  # s between consecutive targets sent (newest last)
         self._lock = threading.Lock()
+        # (start, end, began, duration); the previous segment runs until this one begins.
         self._segment: tuple[np.ndarray, np.ndarray, float, float] | None = None
+        self._previous: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._running = False
         self._thread: threading.Thread | None = None
 
@@ -47,7 +51,7 @@ class ServoStream:
         """Start streaming, holding ``q`` until the first target arrives."""
         self.stop()
         q = np.asarray(q, float)
-        self._segment = (q, q, time.monotonic(), 0.0)
+        self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
         self.fault = None
         self._running = True
         if sys.getswitchinterval() > GIL_SWITCH_INTERVAL:
@@ -56,17 +60,23 @@ class ServoStream:
         self._thread.start()
 
     def push(self, target: np.ndarray, duration: float) -> None:
-        """Move from where the stream is to ``target`` over ``duration`` seconds."""
+        """Move from the previous target to ``target`` over ``duration`` seconds, from the
+        end of the previous segment (or now, when it has ended)."""
         now = time.monotonic()
         with self._lock:
-            start = self._point(now)
-            self._segment = (start, np.asarray(target, float), now, duration)
+            assert self._segment is not None, "start the stream first"
+            _, end, began, length = self._segment
+            if now < began:  # the previous push has not begun: it is replaced
+                self._segment = (self._segment[0], np.asarray(target, float), began, duration)
+                return
+            self._previous = self._segment
+            self._segment = (end, np.asarray(target, float), max(now, began + length), duration)
 
     def hold(self, q: np.ndarray) -> None:
         """Hold ``q`` (the arm stops where it is)."""
         q = np.asarray(q, float)
         with self._lock:
-            self._segment = (q, q, time.monotonic(), 0.0)
+            self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
 
     def stop(self) -> None:
         """Stop streaming (the thread ends; the controller holds the last target)."""
@@ -77,10 +87,13 @@ class ServoStream:
 
     def _point(self, now: float) -> np.ndarray:
         assert self._segment is not None
-        start, end, began, duration = self._segment
+        segment = self._segment
+        if now < segment[2] and self._previous is not None:
+            segment = self._previous
+        start, end, began, duration = segment
         if duration <= 0.0:
             return end.copy()
-        fraction = min(1.0, (now - began) / duration)
+        fraction = min(1.0, max(0.0, (now - began) / duration))
         return start + (end - start) * fraction
 
     def _run(self) -> None:

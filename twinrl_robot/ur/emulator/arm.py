@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import threading
+from collections import deque
 from dataclasses import dataclass
 
 import mujoco
@@ -47,6 +48,8 @@ class RuntimeState(enum.IntEnum):
 
 PROTECTIVE_FORCE = 150.0  # N between the robot and the table: a UR's default force limit
 STOP_DECELERATION = 15.0  # rad/s^2 with which a stopped program brings the joints to rest
+FEED_FORWARD_PERIODS = 5  # servo periods the servo's speed feed-forward averages over
+STALLED_PERIODS = 3  # servo periods without a new target after which the stream has stopped
 
 
 @dataclass(frozen=True)
@@ -132,6 +135,9 @@ class EmulatedArm:
         self._tracker = task.start(self.cell, task.sample_config(np.random.default_rng(0)))
         self._reference = self.cell.arm_q  # the arm powers up at rest at the twin's home
         self._reference_velocity = np.zeros_like(self._reference)
+        self._feed_forward = np.zeros_like(self._reference)
+        self._history: deque[np.ndarray] = deque(maxlen=FEED_FORWARD_PERIODS + 1)
+        self._unchanged = 0
 
     # -------------------------------------------------------------- commands
     def servo(self, q: np.ndarray) -> None:
@@ -211,6 +217,8 @@ class EmulatedArm:
         self._motion = _Motion("idle")
         self._reference = self.cell.arm_q
         self._reference_velocity[:] = 0.0
+        self._feed_forward[:] = 0.0
+        self._history.clear()
 
     # ------------------------------------------------------------------ scene
     def arrange(self, config: TaskConfig) -> None:
@@ -246,7 +254,7 @@ class EmulatedArm:
             # Velocity feed-forward, as a UR's servo does: the plant's position servo lags
             # its reference by damping/stiffness x speed; leading the reference by as much
             # lets the arm track servo targets closely at any speed.
-            cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._reference_velocity
+            cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._feed_forward
             if cell.gripper_act is not None:
                 gripper = self.gripper_position
                 if self.gripper_output is not None:
@@ -280,6 +288,19 @@ class EmulatedArm:
             if slower == 0.0:
                 self._motion = _Motion("idle")
         self._reference_velocity = (self._reference - previous) / dt
+        self._feed_forward = self._servo_feed_forward(previous)
+
+    def _servo_feed_forward(self, previous: np.ndarray) -> np.ndarray:
+        """The reference speed the servo leads by. Servo targets arrive over the network,
+        not in step with the servo period: a period with none and one with two would kick
+        a per-period speed, so it is averaged over FEED_FORWARD_PERIODS; and when no new
+        target came for STALLED_PERIODS the stream has stopped and so does the lead."""
+        self._history.append(self._reference.copy())
+        unchanged = np.array_equal(self._reference, previous)
+        self._unchanged = self._unchanged + 1 if unchanged else 0
+        if self._unchanged >= STALLED_PERIODS or len(self._history) < 2:
+            return np.zeros_like(self._reference)
+        return (self._history[-1] - self._history[0]) / ((len(self._history) - 1) * self.period)
 
     def _move_step(self, motion: _Motion, dt: float) -> np.ndarray:
         """One period of a synchronised trapezoidal joint move toward ``motion.target``."""

@@ -36,6 +36,8 @@ from twinrl_robot.ur.emulator.text_servers import Dashboard, Harness, LineServer
 from twinrl_robot.ur.gripper import STROKES
 from twinrl_sim.tasks import Task
 
+STOP_TIMEOUT = 5.0  # s for the emulator to close its ports when told to stop
+
 
 @dataclass(frozen=True)
 class Ports:
@@ -278,6 +280,10 @@ def serve(emulator: Emulator, on_ready: Callable[[str], None]) -> None:
     stopped = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stopped.set())
-    with emulator:
-        on_ready(banner(emulator))
-        stopped.wait()
+    emulator.start()
+    on_ready(banner(emulator))
+    stopped.wait()
+    # Closing the ports must not keep the process alive (a client that never lets go).
+    closing = threading.Thread(target=emulator.stop, daemon=True)
+    closing.start()
+    closing.join(STOP_TIMEOUT)
