@@ -74,6 +74,7 @@ bench: setup
 	$(BIN)/python bench/bench_reconstruct.py --seconds 60
 	$(BIN)/python bench/bench_reconstruct.py --seconds 60 --tag-points
 	$(BIN)/python bench/bench_pipeline.py --preset smoke --workers 2
+	MUJOCO_GL=egl $(BIN)/python bench/bench_robot.py --seconds 5 --trials 20
 	$(BIN)/python bench/bench_cli_startup.py --runs 5
 	$(BIN)/python bench/bench_rl_update.py --updates 20
 	$(BIN)/python bench/bench_control_loop.py --steps 300

@@ -2,8 +2,9 @@
 rate, measured side by side in one run:
 
 - **command to observation**: the servo stream steps its target by 5 mrad on every joint
-  and the receive interface is polled until the measured joints have moved 1 mrad
-  toward it (one servo period to send, the controller's physics, one RTDE period back);
+  and the receive interface is polled until the controller reports the new target
+  (``target_q``: one servo period to send, one RTDE period back: the command path) and
+  until the measured joints have moved 1 mrad toward it (the arm's response as well);
 - **servo period**: the interval between consecutive servoJ targets while a 10 Hz episode
   of small random actions runs (p50 / p99 / max; the ideal is 1/servo rate);
 - **CPU share**: CPU seconds per wall second of the driver's process during that episode
@@ -44,20 +45,25 @@ def cpu_seconds(pid: int | str = "self") -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def latency(arm: URArm, trials: int) -> list[float]:
-    latencies = []
+def latency(arm: URArm, trials: int) -> tuple[list[float], list[float]]:
+    """Per trial: seconds until the controller echoes the step, and until the arm moves."""
+    echoes, responses = [], []
+    receive = arm._receive
     for _ in range(trials):
-        q = arm.measured_q()
-        arm.stream.hold(q)
+        arm.stream.hold(arm.measured_q())
         time.sleep(0.2)
         start = arm.measured_q()
         began = time.perf_counter()
         arm.stream.hold(start + STEP)
+        echo = None
         while np.abs(arm.measured_q() - start).max() < MOVED:
+            if echo is None and np.abs(np.array(receive.getTargetQ()) - start).max() > STEP / 2:
+                echo = time.perf_counter() - began
             if time.perf_counter() - began > 1.0:
                 raise RuntimeError("the arm did not respond within 1 s")
-        latencies.append(time.perf_counter() - began)
-    return latencies
+        responses.append(time.perf_counter() - began)
+        echoes.append(echo if echo is not None else responses[-1])
+    return echoes, responses
 
 
 def measure(servo_hz: float, seconds: float, trials: int, folder: Path) -> dict:
@@ -77,7 +83,7 @@ def measure(servo_hz: float, seconds: float, trials: int, folder: Path) -> dict:
         arm = URArm(load_cell(cell_file), task, effort=True)
         try:
             arm.reset(task.sample_config(np.random.default_rng(0)))
-            lat = latency(arm, trials)
+            echoes, responses = latency(arm, trials)
             rng = np.random.default_rng(0)
             arm.stream.periods.clear()
             driver_cpu, emulator_cpu = cpu_seconds(), cpu_seconds(emulator.process.pid)
@@ -93,11 +99,13 @@ def measure(servo_hz: float, seconds: float, trials: int, folder: Path) -> dict:
             periods = np.array(arm.stream.periods[1:]) * 1000.0
         finally:
             arm.close()
-    lat_ms = np.array(lat) * 1000.0
+    echo_ms, response_ms = np.array(echoes) * 1000.0, np.array(responses) * 1000.0
     return {
         "servo_hz": servo_hz,
-        "latency_ms_p50": float(np.percentile(lat_ms, 50)),
-        "latency_ms_p99": float(np.percentile(lat_ms, 99)),
+        "echo_ms_p50": float(np.percentile(echo_ms, 50)),
+        "echo_ms_p99": float(np.percentile(echo_ms, 99)),
+        "response_ms_p50": float(np.percentile(response_ms, 50)),
+        "response_ms_p99": float(np.percentile(response_ms, 99)),
         "period_ms_p50": float(np.percentile(periods, 50)),
         "period_ms_p99": float(np.percentile(periods, 99)),
         "period_ms_max": float(periods.max()),
@@ -114,13 +122,14 @@ def main(
     with tempfile.TemporaryDirectory() as folder:
         rows = [measure(hz, seconds, trials, Path(folder)) for hz in (125.0, 500.0)]
     print(
-        "| servo rate | command→observation p50 / p99 | servo period p50 / p99 / max | "
-        "driver CPU | emulator CPU |"
+        "| servo rate | command echoed p50 / p99 | arm moved p50 / p99 | "
+        "servo period p50 / p99 / max | driver CPU | emulator CPU |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for r in rows:
         print(
-            f"| {r['servo_hz']:g} Hz | {r['latency_ms_p50']:.1f} / {r['latency_ms_p99']:.1f} ms "
+            f"| {r['servo_hz']:g} Hz | {r['echo_ms_p50']:.1f} / {r['echo_ms_p99']:.1f} ms "
+            f"| {r['response_ms_p50']:.1f} / {r['response_ms_p99']:.1f} ms "
             f"| {r['period_ms_p50']:.2f} / {r['period_ms_p99']:.2f} / {r['period_ms_max']:.2f} ms "
             f"| {100 * r['driver_cpu_share']:.0f} % | {100 * r['emulator_cpu_share']:.0f} % |"
         )
