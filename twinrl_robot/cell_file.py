@@ -10,6 +10,7 @@ between every action source and the arm, and which twin the cell corresponds to.
       host: 192.168.1.10
       control_hz: 10                  # the episode's control rate
       servo_hz: 500                   # the controller's: 500 (e-Series) or 125 (CB3)
+      servo: servoj                   # servoj (the twin's IK, as the twin does) or servol
       tcp_offset: [0, 0, 0.15, 0, 0, 0]   # the TCP set on the controller: m, axis-angle rad
       payload: {mass: 0.9, cog: [0, 0, 0.05]}
     gripper: {kind: robotiq_2f85, port: 63352}   # robotiq_2f85 robotiq_2f140 digital none
@@ -72,6 +73,7 @@ class ArmSpec(_Strict):
     host: str
     control_hz: Annotated[float, Field(allow_inf_nan=False, ge=1.0, le=100.0)] = 10.0
     servo_hz: Annotated[float, Field(allow_inf_nan=False, ge=100.0, le=1000.0)] | None = None
+    servo: Literal["servoj", "servol"] = "servoj"
     tcp_offset: tuple[Metre, Metre, Metre, Radian, Radian, Radian] = (0, 0, 0, 0, 0, 0)
     payload: PayloadSpec = PayloadSpec()
 

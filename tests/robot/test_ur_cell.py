@@ -248,3 +248,29 @@ def test_a_protective_stop_aborts_the_episode_keeps_its_data_and_blocks_until_ac
 def session_file(folder: Path) -> Path:
     (episode,) = sorted((folder / "session").rglob("*.mcap"))
     return episode
+
+
+def test_servol_streams_the_tcp_pose_and_the_controller_solves_the_ik(tmp_path: Path) -> None:
+    cell = write_cell(
+        tmp_path,
+        arm={
+            "model": "ur5e",
+            "host": free_loopback_host(),
+            "servo": "servol",
+            "tcp_offset": [0, 0, 0.15, 0, 0, 0],
+        },
+    )
+    task = make_task("pick_place")
+    with EmulatorProcess(cell):
+        robot = open_robot("real", task, cell=cell, emulated=True)
+        try:
+            robot.reset(task.sample_config(np.random.default_rng(0)))
+            start = robot.observe()["observation.state"][12:15]
+            for _ in range(10):
+                sent = robot.act(np.array([0.01, 0.0, -0.005, 0, 0, 0, 0], np.float32))
+            time.sleep(0.2)
+            state = robot.observe()["observation.state"]
+            assert np.allclose(state[12:15] - start, [0.1, 0.0, -0.05], atol=5e-3)
+            assert np.abs(state[:6] - sent.joint_target).max() < 5e-3
+        finally:
+            robot.close()

@@ -5,7 +5,9 @@ It talks to the controller through ur_rtde's own ``RTDEControlInterface`` and
 action goes through the twin's IK (the same :class:`~twinrl_sim.control.EndEffectorController`
 the twin and the plant use, so the twin and the arm execute the same joint targets),
 then the :class:`~twinrl_robot.guard.JointGuard`, then the
-:class:`~twinrl_robot.ur.servo.ServoStream` that servoJ's it at the controller's rate.
+:class:`~twinrl_robot.ur.servo.ServoStream` that sends it at the controller's rate: with
+servoJ, or (``servo: servol`` in the cell file) as the pose of the controller's TCP with
+servoL, the controller solving the inverse kinematics.
 ``act`` returns at the end of the control period, so the loop above keeps the rate.
 
 Faults are checked at every step and by the stream at every servo period: a protective
@@ -38,6 +40,7 @@ from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.ur.cameras import CameraRig
 from twinrl_robot.ur.gripper import Gripper, NoGripper
 from twinrl_robot.ur.servo import ServoStream
+from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import EndEffectorController, IKSettings
@@ -128,7 +131,11 @@ class URArm:
         self.clipped_steps = 0  # control steps whose target the guard had to clip
         self._receive, self._control = _connect(self.host, self.servo_hz)
         self._apply_cell_settings()
-        self.stream = ServoStream(self._control, self.servo_hz)
+        tool = ToolFrame(
+            twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
+        )
+        servo_pose = tool.pose if cell.arm.servo == "servol" else None
+        self.stream = ServoStream(self._control, self.servo_hz, servo_pose)
         self._next_step: float | None = None
 
     # ---------------------------------------------------------------- episode

@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -28,12 +29,20 @@ GIL_SWITCH_INTERVAL = 2e-4  # s: how soon the stream thread gets the interpreter
 class ServoStream:
     """Streams servo targets over ``control`` (an ``RTDEControlInterface``) at ``servo_hz``.
 
-    ``fault`` is set, with a reason, when the controller refuses a target (its program
-    stopped); the driver reports it at the next control step.
+    Targets are joint positions; ``servo_pose`` (e.g. the controller TCP's forward
+    kinematics) turns each into a TCP pose sent with servoL instead of servoJ. ``fault``
+    is set, with a reason, when the controller refuses a target (its program stopped);
+    the driver reports it at the next control step.
     """
 
-    def __init__(self, control: object, servo_hz: float) -> None:
+    def __init__(
+        self,
+        control: object,
+        servo_hz: float,
+        servo_pose: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> None:
         self.control, self.servo_period = control, 1.0 / servo_hz
+        self.servo_pose = servo_pose
         self.fault: str | None = None
         self.periods: list[float] = []  # s between consecutive targets sent (newest last)
         self._lock = threading.Lock()
@@ -103,9 +112,14 @@ class ServoStream:
             began = control.initPeriod()  # type: ignore[attr-defined]
             with self._lock:
                 q = self._point(time.monotonic())
-            sent = control.servoJ(  # type: ignore[attr-defined]
-                q.tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN
-            )
+            if self.servo_pose is None:
+                sent = control.servoJ(  # type: ignore[attr-defined]
+                    q.tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN
+                )
+            else:
+                sent = control.servoL(  # type: ignore[attr-defined]
+                    self.servo_pose(q).tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN
+                )
             if not sent:
                 self.fault = "the controller refused a servo target: its program is not running"
                 self._running = False

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
-from twinrl_sim.control import quat_to_rotvec, rotvec_to_quat
 from twinrl_sim.tasks import Task, TaskConfig
 
 
@@ -115,7 +115,9 @@ class EmulatedArm:
         self.physics_per_tick = max(1, round(1.0 / steps))
         self.period = self.physics_per_tick * model.opt.timestep
         self.lock = threading.RLock()
-        self.tcp_offset = np.asarray(tcp_offset, float)
+        self.tool = ToolFrame(
+            model, self.cell.layout.flange_body, self.cell.layout.arm_joints, tcp_offset
+        )
         self.torque_constant = torque_constant
         self.gripper_output = gripper_output
         self.robot_mode = RobotMode.RUNNING
@@ -140,6 +142,12 @@ class EmulatedArm:
         self._unchanged = 0
 
     # -------------------------------------------------------------- commands
+    def servo_pose(self, pose: np.ndarray) -> None:
+        """servoL: track the TCP pose ``pose`` (the controller's inverse kinematics)."""
+        with self.lock:
+            start = self._motion.target if self._motion.kind == "servo" else self._reference
+            self.servo(self.tool.solve(pose, start))
+
     def servo(self, q: np.ndarray) -> None:
         """servoJ: track ``q`` from the next period on (the newest target wins)."""
         with self.lock:
@@ -364,17 +372,7 @@ class EmulatedArm:
 
     def _tcp_pose(self) -> np.ndarray:
         """The configured TCP in the robot base frame, as [x, y, z, rx, ry, rz]."""
-        data = self.cell.data
-        base_rot = data.xmat[self._base].reshape(3, 3)
-        flange_rot = data.xmat[self._flange].reshape(3, 3)
-        offset_rot = np.zeros(9)
-        mujoco.mju_quat2Mat(offset_rot, rotvec_to_quat(self.tcp_offset[3:]))
-        tool_world = data.xpos[self._flange] + flange_rot @ self.tcp_offset[:3]
-        position = base_rot.T @ (tool_world - data.xpos[self._base])
-        rotation = base_rot.T @ flange_rot @ offset_rot.reshape(3, 3)
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, rotation.flatten())
-        return np.concatenate([position, quat_to_rotvec(quat)])
+        return self.tool.pose(self.cell.arm_q)
 
     def _tcp_speed(self) -> np.ndarray:
         model, data = self.cell.model, self.cell.data

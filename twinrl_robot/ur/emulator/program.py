@@ -23,7 +23,7 @@ from twinrl_robot.ur.emulator.arm import EmulatedArm, SafetyMode
 from twinrl_robot.ur.emulator.rtde_server import Registers
 
 REALTIME = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
-MOVEJ, MOVEL_FK, SPEEDJ, SERVOJ = 1, 4, 9, 11
+MOVEJ, MOVEL_FK, SPEEDJ, SERVOJ, SERVOL = 1, 4, 9, 11, 24
 SPEED_STOP, SERVO_STOP, SET_PAYLOAD, SET_TCP = 15, 16, 17, 29
 PROTECTIVE_STOP, STOPL, STOPJ, SET_WATCHDOG = 31, 33, 34, 35
 GET_JOINT_TORQUES, GET_TCP_OFFSET, IS_STEADY, STOP_SCRIPT = 38, 40, 47, 255
@@ -112,6 +112,8 @@ class ControlProgram:
         arm = self.arm
         if cmd == SERVOJ:
             arm.servo(self._doubles(0, 6))
+        elif cmd == SERVOL:
+            arm.servo_pose(self._doubles(0, 6))
         elif cmd == SPEEDJ:
             arm.speed(self._doubles(0, 6), acceleration=max(self._double(6), 1e-3))
         elif cmd == GET_JOINT_TORQUES:
@@ -140,9 +142,9 @@ class ControlProgram:
             self.end("a protective stop was triggered")
             return
         elif cmd == SET_TCP:
-            arm.tcp_offset = self._doubles(0, 6)
+            arm.tool.set_offset(self._doubles(0, 6))
         elif cmd == GET_TCP_OFFSET:
-            self._write_doubles(0, arm.tcp_offset)
+            self._write_doubles(0, arm.tool.offset)
         elif cmd == IS_STEADY:
             self._write_int(1, int(float(np.abs(arm.read().qd).max()) < 1e-3))
         elif cmd == SET_PAYLOAD:
