@@ -279,21 +279,29 @@ class EpisodeWriter:
         return buffer.getvalue()
 
     def close(
-        self, success: bool | None = None, aborted: str | None = None
+        self,
+        success: bool | None = None,
+        aborted: str | None = None,
+        sensors: Mapping[str, Any] | None = None,
     ) -> contract.EpisodeMeta:
         """Finish the file; ``success`` defaults to the last step's ``next.success``;
-        ``aborted`` says why the episode ended early (kept with its data)."""
+        ``aborted`` says why the episode ended early (kept with its data); ``sensors``
+        what the cell's sensors delivered."""
         if self._closed:
             return self.meta
         final_success = self.last_success if success is None else bool(success)
         self.meta = self.meta.replace(
-            success=final_success, num_interventions=self.interventions, aborted=aborted
+            success=final_success,
+            num_interventions=self.interventions,
+            aborted=aborted,
+            sensors=dict(sensors or {}),
         )
         end = {
             "success": final_success,
             "num_interventions": self.interventions,
             "length": self.steps,
             "aborted": aborted,
+            "sensors": dict(sensors or {}),
         }
         self._guarded(lambda: self._finish(end))
         self._closed = True
@@ -424,6 +432,7 @@ def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.Ep
             success=end["success"],
             num_interventions=end["num_interventions"],
             aborted=end.get("aborted"),
+            sensors=end.get("sensors", {}),
         )
     return meta
 

@@ -78,12 +78,19 @@ class Recorder:
         every problem, and nothing of it is written."""
         self._require_open().append(frame)
 
-    def save_episode(self, *, success: bool | None = None, aborted: str | None = None) -> Path:
+    def save_episode(
+        self,
+        *,
+        success: bool | None = None,
+        aborted: str | None = None,
+        sensors: Mapping[str, Any] | None = None,
+    ) -> Path:
         """Close the episode (``success`` defaults to the last frame's ``next.success``;
-        ``aborted``: why it ended early) and return its file."""
+        ``aborted``: why it ended early; ``sensors``: what the cell's sensors delivered)
+        and return its file."""
         writer = self._require_open()
         self._writer = None
-        self.saved = writer.close(success=success, aborted=aborted)
+        self.saved = writer.close(success=success, aborted=aborted, sensors=sensors)
         return writer.path
 
     def _require_open(self) -> EpisodeWriter:

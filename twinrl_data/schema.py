@@ -84,6 +84,8 @@ class EpisodeMeta:
     randomisation a synthesized episode was rendered with. ``success`` and ``num_interventions`` are
     filled in when the episode ends, and ``aborted`` says why it ended early (the arm
     stopped, the connection was lost, the run was interrupted); ``None``: it ran its course.
+    ``sensors`` says what a real cell's sensors delivered during it (per camera: frames,
+    dropped, and stale, the control steps that got no new frame).
     """
 
     task: str
@@ -102,6 +104,7 @@ class EpisodeMeta:
     names: dict[str, list[str]] = field(default_factory=dict)
     randomization: dict[str, Any] = field(default_factory=dict)
     aborted: str | None = None
+    sensors: dict[str, Any] = field(default_factory=dict)
     episode_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
     created_at: str = field(default_factory=now_iso)
 

@@ -21,6 +21,7 @@ from twinrl_data.recorder import Recorder
 from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_robot.errors import RobotError
 from twinrl_robot.robot import Robot, Sent, require_privileged
+from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 
 Judge = Callable[[], bool]
@@ -61,6 +62,13 @@ class EpisodeResult:
     interventions: int
     path: Path | None  # the recorded episode, when a recorder was given
     periods: tuple[float, ...] = ()  # s between consecutive control steps (wall clock)
+
+
+def _sensors(robot: Robot) -> dict:
+    """What the backend's sensors delivered this episode (a real cell's cameras), if it says."""
+    backend = list(layers(robot))[-1]
+    counts = getattr(backend, "sensor_counts", None)
+    return counts() if callable(counts) else {}
 
 
 def privileged_success(robot: Robot) -> Judge:
@@ -133,9 +141,12 @@ def run_episode(
                 break
     except BaseException as err:
         if recorder is not None and recorder.recording:  # keep what was recorded, and why
-            recorder.save_episode(success=False, aborted=str(err) or type(err).__name__)
+            reason = str(err) or type(err).__name__
+            recorder.save_episode(success=False, aborted=reason, sensors=_sensors(robot))
         raise
-    path = recorder.save_episode(success=success) if recorder is not None else None
+    path = None
+    if recorder is not None:
+        path = recorder.save_episode(success=success, sensors=_sensors(robot))
     return EpisodeResult(
         success=success,
         steps=steps,

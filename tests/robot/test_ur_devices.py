@@ -196,3 +196,35 @@ def test_the_emulated_arm_protective_stops_when_a_link_hits_the_table() -> None:
     for _ in range(50):
         arm.tick()
     assert np.abs(arm.cell.arm_q - held).max() < 0.05
+
+
+def test_an_episode_records_what_each_camera_delivered(tmp_path: Path) -> None:
+    from twinrl_data.mcap_log import read_episode
+    from twinrl_data.recorder import Recorder
+    from twinrl_data.session import Session
+    from twinrl_robot.loop import run_episode
+    from twinrl_robot.scripted import ExpertSource
+
+    cell = write_cell(tmp_path)
+    data = yaml.safe_load(cell.read_text())
+    url = f"http://{data['arm']['host']}:8080/front"
+    data["cameras"] = [{"name": "front", "source": url, "width": 64, "height": 48, "fps": 15}]
+    cell.write_text(yaml.safe_dump(data))
+    task = make_task("pick_place")
+    with EmulatorProcess(cell):
+        robot = open_robot("real", task, cell=cell, emulated=True, cameras=("front",))
+        recorder = Recorder(Session.create(tmp_path / "session"))
+        config = task.sample_config(np.random.default_rng(0))
+        meta = task.episode_meta(source="teleop", world="real", names=robot.names, config=config)
+        source = ExpertSource(np.random.default_rng(0), np.random.default_rng(1), 0.0)
+        try:
+            result = run_episode(
+                robot, source, task, config, judge=None, max_steps=8, recorder=recorder, meta=meta
+            )
+        finally:
+            robot.close()
+    saved = read_episode(result.path, images=True)
+    counts = saved.meta.sensors["front"]
+    assert counts["frames"] >= 8 and counts["dropped"] == 0
+    assert counts["stale"] <= 1, "a 15 fps camera gives every 10 Hz step a new frame"
+    assert saved.images["front"].shape == (8, 48, 64, 3)

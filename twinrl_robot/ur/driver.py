@@ -128,6 +128,7 @@ class URArm:
             self.names[EFFORT] = effort_names(twin.layout.arm_joints)
         self.start_q = np.array(twin.layout.home_qpos, float)
         self.fault: str | None = None
+        self._counts_at_reset: dict[str, dict[str, int]] = {}
         self.clipped_steps = 0  # control steps whose target the guard had to clip
         self._receive, self._control = _connect(self.host, self.servo_hz)
         self._apply_cell_settings()
@@ -152,6 +153,7 @@ class URArm:
         q = self.measured_q()
         self.guard.reset(q)
         self.kinematics.reset(q)
+        self._counts_at_reset = self.cameras.counts()
         self.stream.start(q)
         self._next_step = time.monotonic() + 1.0 / self.control_hz
         return self.observe()
@@ -207,6 +209,15 @@ class URArm:
             observation[EFFORT] = np.array(receive.getTargetMoment(), np.float32)
         observation.update(self.cameras.images())
         return observation
+
+    def sensor_counts(self) -> dict[str, dict[str, int]]:
+        """Per camera, frames delivered, dropped and stale since the last reset (what an
+        episode's metadata records, so that no repeated frame goes unnoticed)."""
+        now, before = self.cameras.counts(), self._counts_at_reset
+        return {
+            name: {k: v - before.get(name, {}).get(k, 0) for k, v in counts.items()}
+            for name, counts in now.items()
+        }
 
     def close(self) -> None:
         self.stream.stop()
@@ -312,7 +323,7 @@ class URArm:
         arm = self.cell.arm
         self._control.setTcp(list(arm.tcp_offset))
         self._control.setPayload(arm.payload.mass, list(arm.payload.cog))
-        watchdog_hz = 2000.0 / self.cell.safety.watchdog_ms  # trips at half the budget
+        watchdog_hz = 1000.0 / self.cell.safety.watchdog_ms  # trips after watchdog_ms of silence
         self._control.setWatchdog(watchdog_hz)
 
     def __repr__(self) -> str:
