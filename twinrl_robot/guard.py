@@ -69,6 +69,11 @@ class JointGuard:
     def reset(self, q: np.ndarray) -> None:
         """Start guarding from the arm at rest at ``q`` (which must be a safe start)."""
         self.check_start(q)
+        self.anchor(q)
+
+    def anchor(self, q: np.ndarray) -> None:
+        """Go on from the arm held at ``q`` (an operator took over): the next targets
+        start there at rest. Unchecked: the arm already stands there."""
         self._last = np.asarray(q, float).copy()
         self._velocity = np.zeros_like(self._last)
 

@@ -195,7 +195,7 @@ class URArm:
         q = self.measured_q()
         self.stream.hold(q)
         self.kinematics.reset(q)
-        self.guard.reset(q)
+        self.guard.anchor(q)
 
     def observe(self) -> dict[str, np.ndarray]:
         self._check()

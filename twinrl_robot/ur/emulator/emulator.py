@@ -31,7 +31,7 @@ from twinrl_robot.errors import RobotError
 from twinrl_robot.ur.emulator.arm import EmulatedArm
 from twinrl_robot.ur.emulator.camera_server import CameraServer
 from twinrl_robot.ur.emulator.program import ControlProgram, complete_script
-from twinrl_robot.ur.emulator.rtde_server import Registers, RTDEServer
+from twinrl_robot.ur.emulator.rtde_server import Registers, RTDEServer, received
 from twinrl_robot.ur.emulator.text_servers import Dashboard, Harness, LineServer, RobotiqSocket
 from twinrl_robot.ur.gripper import STROKES
 from twinrl_sim.tasks import Task
@@ -229,13 +229,7 @@ class _ScriptHandler(socketserver.BaseRequestHandler):
 
     def handle(self) -> None:
         text = ""
-        while True:
-            try:
-                chunk = self.request.recv(65536)
-            except OSError:
-                return
-            if not chunk:
-                return
+        for chunk in received(self.request):
             text += chunk.decode(errors="replace")
             offset = complete_script(text)
             if offset is not None:

@@ -20,7 +20,7 @@ import socketserver
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -124,6 +124,18 @@ class Registers:
         with self.lock:
             for name in [n for n, c in self.writers.items() if c == client]:
                 del self.writers[name]
+
+
+def received(connection: socket.socket) -> Iterator[bytes]:
+    """What a client sends, chunk by chunk, until it closes or the connection fails."""
+    while True:
+        try:
+            chunk = connection.recv(65536)
+        except OSError:
+            return
+        if not chunk:
+            return
+        yield chunk
 
 
 def arm_variables(reading: ArmReading) -> dict[str, object]:
@@ -234,13 +246,7 @@ class _RTDEHandler(socketserver.BaseRequestHandler):
 
     def handle(self) -> None:
         buffer = b""
-        while True:
-            try:
-                chunk = self.request.recv(65536)
-            except OSError:
-                return
-            if not chunk:
-                return
+        for chunk in received(self.request):
             buffer += chunk
             while len(buffer) >= 3:
                 size, kind = struct.unpack_from(">HB", buffer)
