@@ -228,3 +228,15 @@ def test_an_episode_records_what_each_camera_delivered(tmp_path: Path) -> None:
     assert counts["frames"] >= 8 and counts["dropped"] == 0
     assert counts["stale"] <= 1, "a 15 fps camera gives every 10 Hz step a new frame"
     assert saved.images["front"].shape == (8, 48, 64, 3)
+
+
+def test_a_realsense_without_its_extra_says_how_to_install_it() -> None:
+    from twinrl_robot.ur.cameras import RealSenseCamera
+
+    try:
+        import pyrealsense2  # noqa: F401
+    except ImportError:
+        with pytest.raises(CameraError, match=r"pip install 'twinrl\[realsense\]'"):
+            RealSenseCamera("wrist", "123456789", 64, 48, 30)
+    else:
+        pytest.skip("pyrealsense2 is installed: the error path does not apply")
