@@ -155,6 +155,8 @@ class ColumnMap:
 
 
 MAX_VALUE = 1e6  # no logged angle, speed, torque or position is larger
+TcpFrame = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""``(positions (n, 3), quaternions wxyz (n, 4)) -> the same in another TCP frame``."""
 
 RTDE_MAP = ColumnMap(
     time="timestamp",
@@ -291,8 +293,12 @@ def import_csv(
     world: str = "real",
     config: dict[str, Any] | None = None,
     forward_kinematics: ForwardKinematics | None = None,
+    tcp_frame: TcpFrame | None = None,
 ) -> contract.Episode:
-    """One CSV log as an episode of source ``imported`` on a uniform ``fps`` clock."""
+    """One CSV log as an episode of source ``imported`` on a uniform ``fps`` clock.
+
+    ``tcp_frame`` maps a logged TCP pose (the controller's configured TCP in its base
+    frame) into the twin's TCP frame, so that the log and the twin compare one point."""
     path = Path(path)
     times, values = _signals(read_table(path), cmap, path)
     for column, column_values in {cmap.time or "time": times, **values}.items():
@@ -336,6 +342,8 @@ def import_csv(
     if cmap.tcp:
         pose = stack(cmap.tcp)
         tcp_pos, tcp_quat = pose[:, :3], _rotvec_to_quat(pose[:, 3:])
+        if tcp_frame is not None:
+            tcp_pos, tcp_quat = tcp_frame(tcp_pos, tcp_quat)
     elif forward_kinematics is not None:
         poses = [forward_kinematics(row) for row in q]
         tcp_pos = np.array([p for p, _ in poses])

@@ -11,6 +11,7 @@ import typer
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.errors import UsageError
+from twinrl_data.settings_cli import parse_numbers
 from twinrl_sim.cli.common import console
 from twinrl_sim.tasks import twin_scene
 
@@ -36,6 +37,14 @@ def import_csv_command(
         typer.Option(help="Built-in cell or scene spec whose robot computes missing TCP poses."),
     ] = "pick_place",
     world: Annotated[str, typer.Option(help="real or plant: where the log was measured.")] = "real",
+    tcp_offset: Annotated[
+        str | None,
+        typer.Option(
+            help="The TCP set on the controller when the log was taken, 'x y z rx ry rz' "
+            "(m, axis-angle rad, flange frame; the cell file's arm.tcp_offset): the logged "
+            "TCP poses are converted to the twin's TCP so both compare one point."
+        ),
+    ] = None,
     task: Annotated[str, typer.Option(help="Task label of the episodes.")] = "arm",
 ) -> None:
     """Import joint logs recorded outside twinrl as episodes (source ``imported``).
@@ -47,18 +56,33 @@ def import_csv_command(
     from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
     from twinrl_data.session import Session
     from twinrl_sim.build import compile_scene
-    from twinrl_sim.kinematics import TcpKinematics
+    from twinrl_sim.kinematics import ControllerTcp, TcpKinematics
 
     if format not in ("rtde", "generic"):
         raise UsageError(f"--format must be rtde or generic, got '{format}'")
     if format == "generic" and column_map is None:
         raise UsageError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
     cmap = ColumnMap.load(column_map) if column_map else RTDE_MAP
-    kinematics = TcpKinematics(compile_scene(twin_scene(twin)))
+    scene = compile_scene(twin_scene(twin))
+    kinematics = TcpKinematics(scene)
+    tcp_frame = None
+    if tcp_offset is not None:
+        offset = parse_numbers(tcp_offset, "--tcp-offset")
+        if len(offset) != 6:
+            raise UsageError(f"--tcp-offset needs 6 numbers (x y z rx ry rz), got {len(offset)}")
+        tcp_frame = ControllerTcp(scene, list(offset))
     if out.exists() and any(out.iterdir()):
         raise UsageError(f"{out} exists and is not empty; choose another --out")
     episodes = [
-        import_csv(f, cmap, fps=fps, task=task, world=world, forward_kinematics=kinematics)
+        import_csv(
+            f,
+            cmap,
+            fps=fps,
+            task=task,
+            world=world,
+            forward_kinematics=kinematics,
+            tcp_frame=tcp_frame,
+        )
         for f in files
     ]  # every file is read before anything is written
     session = Session.create(out)
