@@ -112,3 +112,19 @@ def test_inverse_dynamics_of_a_twin_with_the_load_matches_the_torques(tmp_path):
     untorqued = {k: v for k, v in episode.data.items() if k != schema.EFFORT}
     without_torques = schema.Episode(meta=episode.meta, data=untorqued)
     assert inverse_dynamics_gap([without_torques], SCENE) == {}
+
+
+def test_a_large_gap_nothing_explains_is_reported_as_far_off_and_where() -> None:
+    from twinrl_sim.gap.localize import Disagreement
+    from twinrl_sim.gap.report import verdict
+
+    rows = [
+        Disagreement("tcp.z", "m", 0.09, 0.09, 1.0, 0.0, {"moving": 0.09, "still": 0.08}),
+        Disagreement("q.elbow", "rad", 0.01, 0.0, 0.9, 0.03, {"moving": 0.02}),
+    ]
+    far = verdict(412.0, 412.0, False, rows)
+    assert "far off" in far and "no candidate explains it" in far
+    assert "`tcp.z`" in far and "the TCP frame" in far and "worst when moving" in far
+    assert "far off" in verdict(300.0, 40.0, True, rows)
+    assert "explains the held-out data" in verdict(30.0, 1.1, True, rows)
+    assert "Close, not exact" in verdict(30.0, 1.8, True, rows)
