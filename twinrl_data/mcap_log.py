@@ -55,6 +55,7 @@ TOPICS = {
     contract.STATE: "/observation/state",
     contract.ENVIRONMENT_STATE: "/observation/environment_state",
     contract.EFFORT: "/observation/effort",
+    contract.WRENCH: "/observation/wrench",
     contract.ACTION: "/action",
     contract.ACTION_POLICY: "/action/policy",
     contract.JOINT_TARGET: "/command/joint_target",

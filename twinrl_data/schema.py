@@ -11,6 +11,7 @@ field                          type            meaning
 observation.state              float32[n]      proprio (names recorded)
 observation.environment_state  float32[m]      object poses (privileged; optional)
 observation.effort             float32[n]      joint torques, N m (optional)
+observation.wrench             float32[6]      TCP force (N) and torque (N m), base frame (optional)
 observation.images.<camera>    uint8 HxWx3     camera frames (optional)
 action                         float32[7]      executed end-effector delta
 action.policy                  float32[7]      what the policy proposed
@@ -37,6 +38,7 @@ from twinrl_data.errors import DataError
 STATE = "observation.state"
 ENVIRONMENT_STATE = "observation.environment_state"
 EFFORT = "observation.effort"
+WRENCH = "observation.wrench"
 IMAGES_PREFIX = "observation.images."
 ACTION = "action"
 ACTION_POLICY = "action.policy"
@@ -46,7 +48,9 @@ REWARD = "next.reward"
 DONE = "next.done"
 SUCCESS = "next.success"
 
-VECTOR_FIELDS = (STATE, ENVIRONMENT_STATE, EFFORT, ACTION, ACTION_POLICY, JOINT_TARGET)
+VECTOR_FIELDS = (STATE, ENVIRONMENT_STATE, EFFORT, WRENCH, ACTION, ACTION_POLICY, JOINT_TARGET)
+WRENCH_NAMES = ["force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z"]
+"""Names of ``observation.wrench``'s entries."""
 SCALAR_FIELDS = (INTERVENTION, REWARD, DONE, SUCCESS)
 # Every recorder of twinrl writes all fields; data imported from elsewhere may lack
 # all but these two, and a missing field stays missing (it is never invented).

@@ -130,6 +130,7 @@ def test_the_expert_solves_pick_place_through_the_driver_and_its_episode_replays
     rms = path_distance_rms(q_logged, q_replayed)
     assert rms < 1e-3, f"the replay retraced the joint path within {rms * 1000:.2f} mrad RMS"
     assert logged.meta.world == "real" and "observation.effort" in logged.data
+    assert logged.data["observation.wrench"].shape == (len(q_logged), 6)
 
 
 def path_distance_rms(path: np.ndarray, other: np.ndarray, reach: int = 3) -> float:

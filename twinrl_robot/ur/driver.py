@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, effort_names
+from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, WRENCH, WRENCH_NAMES, effort_names
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.guard import GuardLimits, JointGuard
@@ -75,7 +75,8 @@ class URArm:
         cameras: the cell's cameras, matched to control steps.
         arrange: sets a configuration's objects up at each reset (``None``: the person
             does it before the episode starts; the arm only goes to its start pose).
-        effort: report joint torques (``observation.effort``).
+        effort: report joint torques (``observation.effort``) and the TCP's force and
+            torque (``observation.wrench``), as the controller measures them.
         privileged: the ground truth of an emulated cell (never of a real one).
     """
 
@@ -124,8 +125,9 @@ class URArm:
         )
         self.names = twin.contract_names()
         self.names.pop(ENVIRONMENT_STATE, None)
-        if effort:
+        if effort:  # what the controller reports of forces: joint torques, the TCP wrench
             self.names[EFFORT] = effort_names(twin.layout.arm_joints)
+            self.names[WRENCH] = list(WRENCH_NAMES)
         self.start_q = np.array(twin.layout.home_qpos, float)
         self.fault: str | None = None
         self._counts_at_reset: dict[str, dict[str, int]] = {}
@@ -207,6 +209,7 @@ class URArm:
         observation = {"observation.state": state.astype(np.float32)}
         if self.effort:  # the torques the controller applies (RTDE target_moment)
             observation[EFFORT] = np.array(receive.getTargetMoment(), np.float32)
+            observation[WRENCH] = np.array(receive.getActualTCPForce(), np.float32)
         observation.update(self.cameras.images())
         return observation
 
