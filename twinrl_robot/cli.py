@@ -214,7 +214,7 @@ def cell_check(
     arm, safety = cell.arm, cell.safety
     table = Table(title=f"cell {cell.name}", show_header=False)
     table.add_row("arm", f"{arm.model} at {arm.host}")
-    table.add_row("rates", f"control {arm.control_hz:g} Hz, servo {arm.servo_rate:g} Hz")
+    table.add_row("rates", f"control {arm.control_hz:g} Hz, {arm.servo} at {arm.servo_rate:g} Hz")
     table.add_row("tcp offset", " ".join(f"{v:g}" for v in arm.tcp_offset))
     table.add_row("payload", f"{arm.payload.mass:g} kg")
     table.add_row("gripper", cell.gripper.kind)

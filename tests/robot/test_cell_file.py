@@ -19,7 +19,7 @@ def test_the_documented_example_loads_and_checks():
     assert [c.name for c in cell.cameras] == ["front", "wrist"]
     result = twinrl("cell", "check", str(EXAMPLE))
     assert result.returncode == 0, result.stderr
-    assert "ur5e at 192.168.1.10" in result.stdout and "servo 500 Hz" in result.stdout
+    assert "ur5e at 192.168.1.10" in result.stdout and "servoj at 500 Hz" in result.stdout
 
 
 def test_problems_are_named_with_the_nearest_key_in_one_line(tmp_path):
