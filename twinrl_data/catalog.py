@@ -3,10 +3,11 @@
 Rows come from MCAP sessions (or single episode files) and LeRobot datasets. Columns:
 the episode metadata (``task``, ``source``, ``world``, ``region``, ``twin``, ``policy``,
 ``success``, ``num_interventions``, ``fps``, ``robot``, ``created_at``, ``operator``,
-``episode_id``, ``instruction``), where it lives (``kind`` = ``mcap`` | ``lerobot``,
-``path``, ``dataset_index``, ``episode_key``), derived columns (``length`` in steps,
-``duration_s``, ``return``, ``cameras``) and the configuration, as JSON (``config``)
-and flattened (``config_object_0``, ``config_object_1``, ... for list values).
+``episode_id``, ``instruction``, ``aborted``: why it ended early, or null), where it
+lives (``kind`` = ``mcap`` | ``lerobot``, ``path``, ``dataset_index``, ``episode_key``),
+derived columns (``length`` in steps, ``duration_s``, ``return``, ``cameras``) and the
+configuration, as JSON (``config``) and flattened (``config_object_0``,
+``config_object_1``, ... for list values).
 
 Curation is a query: select rows, then export exactly those episodes as a dataset.
 """
@@ -55,6 +56,7 @@ META_COLUMNS = (
     "robot",
     "created_at",
     "operator",
+    "aborted",
 )
 FILTERS = ("task", "source", "world", "region")
 
@@ -270,13 +272,16 @@ def query(
     sql: str | None = None,
     columns: Iterable[str] | None = None,
     limit: int | None = None,
+    aborted: bool | None = None,
 ) -> pa.Table:
     """Rows of the catalog matching every given filter (or the result of free ``sql``
-    over the view ``episodes``). Unknown columns get an error naming the nearest one."""
+    over the view ``episodes``); ``aborted`` keeps only episodes that ended early (True)
+    or only those that ran their course (False). Unknown columns get an error naming the
+    nearest one."""
     con = open_catalog(catalog)
     available = [row[0] for row in con.execute("DESCRIBE episodes").fetchall()]
     if sql is not None:
-        if any(v is not None for v in (task, source, world, region, success, where)):
+        if any(v is not None for v in (task, source, world, region, success, where, aborted)):
             raise SettingError("sql", "is a whole query; combine it with no other filter")
         return _run(con, sql, [], available)
     clauses, params = [], []
@@ -287,6 +292,8 @@ def query(
     if success is not None:
         clauses.append("success = ?")
         params.append(success)
+    if aborted is not None and "aborted" in available:  # catalogs older than the column
+        clauses.append("aborted IS NOT NULL" if aborted else "aborted IS NULL")
     if where:
         clauses.append(f"({where})")
     selected = "*"

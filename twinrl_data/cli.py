@@ -281,11 +281,25 @@ def curate_command(
     where: Annotated[str | None, typer.Option(help="Extra SQL condition.")] = None,
     repo_id: Annotated[str | None, typer.Option(help="Dataset repo id.")] = None,
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
+    keep_aborted: Annotated[
+        bool,
+        typer.Option(
+            help="Also export episodes that ended early (a stop, a lost connection): they "
+            "are partial, so they are left out unless asked for."
+        ),
+    ] = False,
 ) -> None:
     """Export exactly the selected catalog episodes as a new LeRobotDataset."""
+    filters = dict(task=task, source=source, world=world, region=region, success=success)
     table = catalog_lib.query(
-        catalog, task=task, source=source, world=world, region=region, success=success, where=where
+        catalog, **filters, where=where, aborted=None if keep_aborted else False
     )
+    if not keep_aborted:
+        partial = catalog_lib.query(catalog, **filters, where=where, aborted=True).num_rows
+        if partial:
+            console.print(
+                f"left out {partial} episode(s) that ended early; --keep-aborted exports them"
+            )
     if table.num_rows == 0:
         raise DataError(
             "the selection is empty; loosen the filters (try `twinrl data query` first)"

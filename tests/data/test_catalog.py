@@ -99,3 +99,23 @@ def test_flatten_config():
         "config_object_2": 3.0,
         "config_speed": 0.5,
     }
+
+
+def test_an_episode_that_ended_early_is_marked_in_the_catalog(tmp_path):
+    import numpy as np
+
+    from twinrl_data.recorder import Recorder
+
+    session = Session.create(tmp_path / "session")
+    recorder = Recorder(session)
+    rng = np.random.default_rng(0)
+    for reason in (None, "the arm is in a protective stop"):
+        recorder.start_episode(make_meta(source="teleop", world="real", region="ID"))
+        for t in range(4):
+            recorder.add_frame(make_step(t, 4, rng, cameras=()))
+        recorder.save_episode(success=False, aborted=reason)
+    catalog = tmp_path / "catalog.parquet"
+    build_index([session.path], catalog)
+    assert query(catalog, where="aborted IS NULL").num_rows == 1
+    (row,) = query(catalog, where="aborted IS NOT NULL").to_pylist()
+    assert row["aborted"] == "the arm is in a protective stop" and row["length"] == 4
