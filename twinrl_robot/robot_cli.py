@@ -9,10 +9,13 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from twinrl_robot.cli import PlantEffects
+from twinrl_data.errors import UsageError
+from twinrl_robot.cli import CellOption, EmulatedOption, PlantEffects
 
 console = Console(soft_wrap=True)
-robot_app = typer.Typer(help="A real cell's arm (UR over ur_rtde): check it, emulate it.")
+robot_app = typer.Typer(
+    help="A real cell's arm (UR over ur_rtde): check it, emulate it, replay an episode on it."
+)
 CellArgument = Annotated[Path, typer.Argument(help="Cell file (YAML).", show_default=False)]
 TaskOption = Annotated[
     str | None,
@@ -83,3 +86,63 @@ def check(
     console.print(table)
     if report.pose_problem:
         raise typer.Exit(1)
+
+
+@robot_app.command("replay")
+def replay(
+    episode: Annotated[
+        str, typer.Argument(help="Episode to replay: .mcap, session or dataset, each as PATH#N.")
+    ],
+    out: Annotated[
+        Path, typer.Option(help="Session to record the replay into (created or added to).")
+    ],
+    world: Annotated[str, typer.Option(help="twin, plant or real (with --cell).")] = "real",
+    cell: CellOption = None,
+    emulated: EmulatedOption = False,
+    effects: PlantEffects = None,
+    yes: Annotated[bool, typer.Option("--yes", help="Start without asking to confirm.")] = False,
+    rerun: Annotated[
+        Path | None, typer.Option(help="Write the logged and the replayed episode, overlaid, here.")
+    ] = None,
+) -> None:
+    """Re-send a logged episode's joint targets through the safety layer, after showing
+    its start pose and asking to confirm; record the replay (source ``replay``)."""
+    from twinrl_data.recorder import Recorder
+    from twinrl_data.session import Session
+    from twinrl_data.sources import open_episode
+    from twinrl_robot.backends import WORLDS, open_robot
+    from twinrl_robot.cli import check_real
+    from twinrl_robot.replay_source import replay_episode
+    from twinrl_sim.tasks import make_task
+
+    if world not in WORLDS:
+        raise UsageError(f"--world must be one of {', '.join(WORLDS)}, got '{world}'")
+    check_real([world], cell, emulated)
+    logged = open_episode(episode)
+    task = make_task(logged.meta.task)
+    robot = open_robot(
+        world,
+        task,
+        effects=effects if world == "plant" else None,
+        effort=world != "twin",
+        object_poses=world != "real" or emulated,
+        cell=cell,
+        emulated=emulated,
+    )
+    recorder = Recorder(Session.create(out, exist_ok=True))
+    confirm = None if yes else lambda start: typer.confirm(f"Move the arm to {start}?")
+    try:
+        result = replay_episode(robot, logged, task, recorder, confirm)
+    finally:
+        robot.close()
+    console.print(
+        f"{result.path}: {result.steps} steps replayed; the joints ran "
+        f"{result.joint_rms * 1000:.2f} mrad RMS from the log"
+    )
+    if rerun is not None:
+        from twinrl_data.view import save_rrd
+        from twinrl_sim.cli.view import twin_link_frames
+
+        replayed = open_episode(result.path)
+        save_rrd([logged, replayed], rerun, link_frames=twin_link_frames(logged), force=True)
+        console.print(f"{rerun}: the logged and the replayed episode, overlaid")

@@ -1,0 +1,64 @@
+"""``twinrl robot replay``: a logged episode re-sent through the safety layer, after the
+start pose is shown and confirmed, recorded as a new episode and overlaid in Rerun."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from twinrl_data.session import Session
+from twinrl_robot.scripted import run_scripted_expert
+
+
+def twinrl(*args: str, stdin: str = "") -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        input=stdin,
+    )
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("logged") / "session"
+    run_scripted_expert(
+        "pick_place", world="plant", episodes=1, regions=("ID",), session=Session.create(folder)
+    )
+    return folder
+
+
+def test_a_replay_in_the_plant_retraces_the_log_and_is_recorded(logged, tmp_path) -> None:
+    out, overlay = tmp_path / "replays", tmp_path / "overlay.rrd"
+    result = twinrl(
+        "robot",
+        "replay",
+        f"{logged}#0",
+        "--world",
+        "plant",
+        "--out",
+        str(out),
+        "--yes",
+        "--rerun",
+        str(overlay),
+    )
+    assert result.returncode == 0, result.stderr
+    assert "steps replayed" in result.stdout and overlay.stat().st_size > 0
+    (path,) = out.rglob("*.mcap")
+    from twinrl_data.mcap_log import read_episode
+
+    replay = read_episode(path, images=False)
+    assert replay.meta.source == "replay" and replay.meta.policy.startswith("replay:")
+
+
+def test_an_unconfirmed_replay_moves_nothing(logged, tmp_path) -> None:
+    out = tmp_path / "replays"
+    result = twinrl(
+        "robot", "replay", f"{logged}#0", "--world", "plant", "--out", str(out), stdin="n\n"
+    )
+    assert result.returncode == 2 and "not confirmed" in result.stderr
+    assert not list(out.rglob("*.mcap"))
