@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.build import CompiledScene
+from twinrl_sim.control import quat_conj, quat_mul
 from twinrl_sim.errors import TwinError
 
 
@@ -88,14 +89,14 @@ class ControllerTcp:
         # The twin's TCP in the flange frame, and the configured tool's inverse.
         self._flange_to_site = (
             flange_rot.T @ (data.site_xpos[site] - data.xpos[flange]),
-            _mul(_conj(data.xquat[flange]), site_quat),
+            quat_mul(quat_conj(data.xquat[flange]), site_quat),
         )
         tool_quat = np.zeros(4)
         angle = float(np.linalg.norm(offset[3:]))
         tool_quat[0] = 1.0
         if angle > 1e-12:
             mujoco.mju_axisAngle2Quat(tool_quat, offset[3:] / angle, angle)
-        tool_inverse_quat = _conj(tool_quat)
+        tool_inverse_quat = quat_conj(tool_quat)
         self._tool_to_flange = (-_rotate(tool_inverse_quat, offset[:3]), tool_inverse_quat)
 
     def __call__(self, positions: np.ndarray, quats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -116,18 +117,8 @@ def _compose(
     first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """The pose ``second`` (given in ``first``'s frame) in ``first``'s parent frame."""
-    quat = _mul(first[1], second[1])
+    quat = quat_mul(first[1], second[1])
     return first[0] + _rotate(first[1], second[0]), quat / np.linalg.norm(quat)
-
-
-def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = np.zeros(4)
-    mujoco.mju_mulQuat(out, np.asarray(a, float), np.asarray(b, float))
-    return out
-
-
-def _conj(q: np.ndarray) -> np.ndarray:
-    return np.array([q[0], -q[1], -q[2], -q[3]])
 
 
 def _rotate(quat: np.ndarray, vector: np.ndarray) -> np.ndarray:

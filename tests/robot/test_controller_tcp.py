@@ -27,6 +27,16 @@ def scene():
     return compile_scene(make_task("pick_place").scene)
 
 
+def import_log(log: Path, out: Path, *extra: str) -> subprocess.CompletedProcess:
+    command = ["data", "import-csv", str(log), "--out", str(out), *extra]
+    return subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", *command],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
 def joint_paths(scene, rows: int, seed: int = 0) -> np.ndarray:
     home = np.array(scene.layout.home_qpos)
     rng = np.random.default_rng(seed)
@@ -65,22 +75,7 @@ def test_an_rtde_log_with_a_tool_imports_into_the_twins_frame(scene, tmp_path: P
     log.write_text("\n".join([" ".join(header), *(" ".join(f"{v:.12g}" for v in r) for r in rows)]))
     offset = " ".join(str(v) for v in OFFSET)
     for folder, extra in (("plain", []), ("converted", ["--tcp-offset", offset])):
-        result = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "twinrl_learn",
-                "data",
-                "import-csv",
-                str(log),
-                "--out",
-                str(tmp_path / folder),
-                *extra,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        result = import_log(log, tmp_path / folder, *extra)
         assert result.returncode == 0, result.stderr
     twin = np.array([TcpKinematics(scene)(row)[0] for row in q])
 
@@ -91,22 +86,6 @@ def test_an_rtde_log_with_a_tool_imports_into_the_twins_frame(scene, tmp_path: P
 
     assert tcp_gap("plain") > 0.02, "a tool the twin lacks leaves a constant offset"
     assert tcp_gap("converted") < 1e-4, "with the tool offset, log and twin compare one point"
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "twinrl_learn",
-            "data",
-            "import-csv",
-            str(log),
-            "--out",
-            str(tmp_path / "bad"),
-            "--tcp-offset",
-            "0 0 0.1",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    bad = import_log(log, tmp_path / "bad", "--tcp-offset", "0 0 0.1")
     assert bad.returncode == 2 and "--tcp-offset needs 6 numbers" in bad.stderr
     assert not (tmp_path / "bad").exists()

@@ -11,7 +11,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from twinrl_sim.control import quat_mul, quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
 
 IK_ITERATIONS = 20
 IK_DAMPING = 1e-3
@@ -62,7 +62,7 @@ class ToolFrame:
         for _ in range(IK_ITERATIONS):
             position, quat = self._pose(q)
             error = np.concatenate(
-                [goal_position - position, quat_to_rotvec(quat_mul(goal_quat, _conj(quat)))]
+                [goal_position - position, quat_to_rotvec(quat_mul(goal_quat, quat_conj(quat)))]
             )
             if error @ error < IK_TOLERANCE**2:
                 break
@@ -82,7 +82,7 @@ class ToolFrame:
         world = self._world_point()
         position = base.T @ (world - data.xpos[self._base])
         flange_quat, base_quat = data.xquat[self._flange], data.xquat[self._base]
-        quat = quat_mul(_conj(base_quat), quat_mul(flange_quat, self._offset_quat))
+        quat = quat_mul(quat_conj(base_quat), quat_mul(flange_quat, self._offset_quat))
         return position, quat / np.linalg.norm(quat)
 
     def _world_point(self) -> np.ndarray:
@@ -91,7 +91,3 @@ class ToolFrame:
 
     def _base_rotation(self) -> np.ndarray:
         return self._data.xmat[self._base].reshape(3, 3)
-
-
-def _conj(quat: np.ndarray) -> np.ndarray:
-    return np.array([quat[0], -quat[1], -quat[2], -quat[3]])
