@@ -240,3 +240,31 @@ def test_a_realsense_without_its_extra_says_how_to_install_it() -> None:
             RealSenseCamera("wrist", "123456789", 64, 48, 30)
     else:
         pytest.skip("pyrealsense2 is installed: the error path does not apply")
+
+
+def test_a_command_the_emulator_does_not_run_is_said_not_silently_done(tmp_path: Path) -> None:
+    import rtde_control
+    import rtde_receive
+
+    data = yaml.safe_load(write_cell(tmp_path).read_text())
+    data["arm"]["tcp_offset"] = [0, 0, 0.1, 0, 0, 0]
+    cell = tmp_path / "cell.yaml"
+    cell.write_text(yaml.safe_dump(data))
+    host = host_of(cell)
+    with EmulatorProcess(cell) as emulator:
+        receive = rtde_receive.RTDEReceiveInterface(host)
+        control = rtde_control.RTDEControlInterface(host)
+        try:
+            control.setTcp([0, 0, 0.1, 0, 0, 0])
+            tcp = np.array(receive.getActualTCPPose())
+            control.getActualToolFlangePose()  # ur_rtde reads the answer a cycle late
+            time.sleep(0.02)
+            flange = np.array(control.getActualToolFlangePose())
+            assert 0.099 < np.linalg.norm(tcp[:3] - flange[:3]) < 0.101
+            control.moveL(list(tcp + [0, 0, 0.01, 0, 0, 0]), 0.1, 0.5)
+        finally:
+            control.stopScript()
+            control.disconnect()
+            receive.disconnect()
+        time.sleep(0.2)
+        assert "ur_rtde command 3 is not emulated" in emulator.errors()

@@ -48,9 +48,9 @@ class ToolFrame:
         self.offset = np.asarray(tcp_offset, float)
         self._offset_quat = rotvec_to_quat(self.offset[3:])
 
-    def pose(self, q: np.ndarray) -> np.ndarray:
-        """The TCP pose for joint positions ``q``."""
-        position, quat = self._pose(np.asarray(q, float))
+    def pose(self, q: np.ndarray, tool: bool = True) -> np.ndarray:
+        """The TCP pose for joint positions ``q`` (the flange's with ``tool=False``)."""
+        position, quat = self._pose(np.asarray(q, float), tool)
         return np.concatenate([position, quat_to_rotvec(quat)])
 
     def solve(self, pose: np.ndarray, q_start: np.ndarray) -> np.ndarray:
@@ -74,15 +74,17 @@ class ToolFrame:
             q = q + jac.T @ np.linalg.solve(jac @ jac.T + IK_DAMPING * np.eye(6), error)
         return q
 
-    def _pose(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _pose(self, q: np.ndarray, tool: bool = True) -> tuple[np.ndarray, np.ndarray]:
         data = self._data
         data.qpos[self._qpos] = q
         mujoco.mj_kinematics(self.model, data)
         base = self._base_rotation()
-        world = self._world_point()
+        world = self._world_point() if tool else data.xpos[self._flange]
         position = base.T @ (world - data.xpos[self._base])
         flange_quat, base_quat = data.xquat[self._flange], data.xquat[self._base]
-        quat = quat_mul(quat_conj(base_quat), quat_mul(flange_quat, self._offset_quat))
+        if tool:
+            flange_quat = quat_mul(flange_quat, self._offset_quat)
+        quat = quat_mul(quat_conj(base_quat), flange_quat)
         return position, quat / np.linalg.norm(quat)
 
     def _world_point(self) -> np.ndarray:

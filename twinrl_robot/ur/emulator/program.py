@@ -8,13 +8,15 @@ commands run once, to completion (a synchronous moveJ runs over many cycles), an
 done, and wait for the client to clear the command (0). Command 255 ends the program;
 so do the RTDE watchdog, a protective or emergency stop, and the dashboard's ``stop``.
 
-Only the commands the driver and common ur_rtde use need an effect here; the rest
-answer as the script does (done) so that a client never hangs on them.
+The commands with an effect here are those the driver and common ur_rtde use; any
+other answers as the script does (ready or done) so that a client never
+hangs, and the emulator says once, on its error stream, that it did nothing for it.
 """
 
 from __future__ import annotations
 
 import re
+import sys
 import time
 
 import numpy as np
@@ -23,10 +25,11 @@ from twinrl_robot.ur.emulator.arm import EmulatedArm, SafetyMode
 from twinrl_robot.ur.emulator.rtde_server import Registers
 
 REALTIME = {24, 11, 9, 10, 6, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
-MOVEJ, MOVEL_FK, SPEEDJ, SERVOJ, SERVOL = 1, 4, 9, 11, 24
+MOVEJ, SPEEDJ, SERVOJ, SERVOL = 1, 9, 11, 24
 SPEED_STOP, SERVO_STOP, SET_PAYLOAD, SET_TCP = 15, 16, 17, 29
 PROTECTIVE_STOP, STOPL, STOPJ, SET_WATCHDOG = 31, 33, 34, 35
 GET_JOINT_TORQUES, GET_TCP_OFFSET, IS_STEADY, STOP_SCRIPT = 38, 40, 47, 255
+GET_ACTUAL_TOOL_FLANGE_POSE = 58
 READY, DONE = 1, 2
 SCRIPT_END = "# NODE_CONTROL_LOOP_ENDS\nend\n"
 _OFFSET = re.compile(r"reg_offset_int = # int register offset\n(\d+)")
@@ -52,6 +55,7 @@ class ControlProgram:
         self.watchdog_period: float | None = None
         self.started_at = 0.0
         self.messages: list[str] = []  # what the program stopped for, newest last
+        self._warned: set[int] = set()  # commands reported as not emulated
 
     @property
     def running(self) -> bool:
@@ -118,13 +122,16 @@ class ControlProgram:
             arm.speed(self._doubles(0, 6), acceleration=max(self._double(6), 1e-3))
         elif cmd == GET_JOINT_TORQUES:
             self._write_doubles(0, arm.read().torque)
-        elif cmd == 58:  # GET_ACTUAL_TOOL_FLANGE_POSE
-            self._write_doubles(0, arm.read().tcp_pose)
+        elif cmd == GET_ACTUAL_TOOL_FLANGE_POSE:
+            with arm.lock:  # the tool frame's scratch state is shared with the readers
+                self._write_doubles(0, arm.tool.pose(arm.cell.arm_q, tool=False))
+        else:
+            self._not_emulated(cmd)
 
     def _begin(self, cmd: int) -> None:
         """Start a non-realtime command; it answers done now or when :meth:`_finished`."""
         arm = self.arm
-        if cmd in (MOVEJ, MOVEL_FK):
+        if cmd == MOVEJ:
             arm.move(self._doubles(0, 6), speed=self._double(6), acceleration=self._double(7))
             if self._read_int(1) == 0:  # synchronous: done when the arm arrives
                 self.pending = "move"
@@ -147,9 +154,19 @@ class ControlProgram:
             self._write_doubles(0, arm.tool.offset)
         elif cmd == IS_STEADY:
             self._write_int(1, int(float(np.abs(arm.read().qd).max()) < 1e-3))
-        elif cmd == SET_PAYLOAD:
-            pass  # the plant's payload is a hidden effect; the controller just accepts it
+        elif cmd != SET_PAYLOAD:  # the plant's payload is a hidden effect: just accepted
+            self._not_emulated(cmd)
         self._write_int(0, DONE)
+
+    def _not_emulated(self, cmd: int) -> None:
+        if cmd not in self._warned:
+            self._warned.add(cmd)
+            print(
+                f"emulator: ur_rtde command {cmd} is not emulated; it is answered without "
+                "moving or measuring anything",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def _finished(self) -> bool:
         if self.pending in ("move", "stop"):  # done when the arm has arrived and settled
