@@ -97,12 +97,12 @@ def replay_episode(
     )
     assert result.path is not None
     logged = np.asarray(episode.data[STATE])[: result.steps, :6]
-    measured = np.asarray(recorder_states(result.path))[: len(logged), :6]
+    measured = np.asarray(_recorded_states(result.path))[: len(logged), :6]
     rows = min(len(logged), len(measured))
     rms = float(np.sqrt(np.mean((logged[:rows] - measured[:rows]) ** 2))) if rows else 0.0
     return Replayed(result.path, result.steps, rms)
 
 
-def recorder_states(path: Path) -> np.ndarray:
+def _recorded_states(path: Path) -> np.ndarray:
     """The ``observation.state`` rows of a recorded episode file."""
     return read_episode(path, images=False).data[STATE]

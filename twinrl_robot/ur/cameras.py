@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -70,7 +71,7 @@ class Camera(Protocol):
     def close(self) -> None: ...
 
 
-class ThreadedCamera:
+class ThreadedCamera(ABC):
     """A camera read by its own thread; subclasses define :meth:`_grab`."""
 
     def __init__(self, name: str, width: int, height: int, fps: float) -> None:
@@ -95,9 +96,9 @@ class ThreadedCamera:
                 )
             time.sleep(0.01)
 
+    @abstractmethod
     def _grab(self) -> tuple[np.ndarray, float] | None:
         """The next RGB frame and its capture time, or ``None`` on a failed read."""
-        raise NotImplementedError
 
     def _run(self) -> None:
         failures = 0

@@ -131,7 +131,6 @@ class URArm:
         self.start_q = np.array(twin.layout.home_qpos, float)
         self.fault: str | None = None
         self._counts_at_reset: dict[str, dict[str, int]] = {}
-        self.clipped_steps = 0  # control steps whose target the guard had to clip
         self._receive, self._control = _connect(self.host, self.servo_hz)
         self._apply_cell_settings()
         tool = ToolFrame(
@@ -301,8 +300,6 @@ class URArm:
     # ------------------------------------------------------------------ inside
     def _send(self, target: np.ndarray, gripper: float, action: np.ndarray) -> Sent:
         guarded = self.guard(target)
-        if guarded.clipped:
-            self.clipped_steps += 1
         self.gripper.command(float(np.clip(gripper, 0.0, 1.0)))
         period = 1.0 / self.control_hz
         self.stream.push(guarded.q, period)

@@ -52,10 +52,6 @@ class ServoStream:
         self._running = False
         self._thread: threading.Thread | None = None
 
-    @property
-    def running(self) -> bool:
-        return self._running
-
     def start(self, q: np.ndarray) -> None:
         """Start streaming, holding ``q`` until the first target arrives."""
         self.stop()

@@ -176,11 +176,6 @@ class EmulatedArm:
             self._motion = _Motion("stop", acceleration=max(deceleration, 1e-3))
 
     @property
-    def moving(self) -> bool:
-        """Whether a move (moveJ) is still under way."""
-        return self._motion.kind == "move"
-
-    @property
     def resting(self) -> bool:
         """Whether nothing is commanded and the joints have come to rest."""
         speed = float(np.abs(self.cell.data.qvel[self.cell.arm_dof]).max())

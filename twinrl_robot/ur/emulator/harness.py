@@ -144,19 +144,9 @@ class EmulatorProcess:
         last = error.splitlines()[-1] if error else "no output"
         raise RobotError(f"the emulator did not start: {last}")
 
-    def freeze(self) -> None:
-        """Stop the emulator process dead (a controller that hangs)."""
-        assert self.process is not None
-        self.process.send_signal(signal.SIGSTOP)
-
-    def thaw(self) -> None:
-        assert self.process is not None
-        self.process.send_signal(signal.SIGCONT)
-
     def __exit__(self, *exc: object) -> None:
         if self.process is None or self.process.poll() is not None:
             return
-        self.process.send_signal(signal.SIGCONT)
         self.process.send_signal(signal.SIGINT)
         try:
             self.process.wait(timeout=10)
