@@ -4,6 +4,8 @@ photo and the scene spec, against the scene that rendered them; and the clips an
 arguments it must refuse."""
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import cv2
 import mujoco
@@ -24,6 +26,7 @@ from twinrl_sim.reconstruct.synthetic import (
     render_fixed_view,
     render_walkthrough,
 )
+from twinrl_sim.reconstruct.table_extent import TableColour, read_colour
 from twinrl_sim.reconstruct.tag import other_families_seen
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task
@@ -82,7 +85,12 @@ def test_the_tag_gives_metric_scale_and_the_base_frame(built, clip):
     table = built.table
     assert abs(table.height - SCENE.table.top_height) < 0.005 and table.tilt_deg < 2.0
     assert abs(np.degrees(table.yaw)) < 2.0
-    assert np.all(np.abs(table.size - SCENE.table.size) < 0.15)  # the top seen, 1st-99th pct
+    # Size, place and colour come from the frames (every edge was in view), not from the
+    # table's few SfM points, whose patch changes from run to run.
+    assert table.extent_from == "frames" and set(table.sides_seen) == {"-x", "+x", "-y", "+y"}
+    assert np.all(np.abs(table.size - SCENE.table.size) < 0.03)
+    assert np.linalg.norm(table.center - SCENE.table.center) < 0.02
+    assert np.all(np.abs(table.color - np.array(SCENE.table.rgba[:3])) < 0.06)
 
 
 def test_objects_are_found_named_and_measured(built):
@@ -130,6 +138,34 @@ def test_a_round_footprint_has_one_diameter_however_unevenly_its_rim_is_seen():
     # An elongated footprint keeps its two extents.
     bar = describe_cluster(_disc_points(rng, 0.03, 400, stretch=3.0), np.ones(3), table)
     assert 0.85 < bar.size[0] / 0.18 < 1.0 and 0.85 < bar.size[1] / 0.06 < 1.0
+
+
+def _pixels(rgb, n: int, rng, brightness=(1.0, 1.0), noise: float = 3.0) -> np.ndarray:
+    """``n`` pixels of colour ``rgb`` (0-255) lit between ``brightness``, with sensor noise,
+    as :func:`read_colour` values."""
+    lit = np.asarray(rgb, float) * rng.uniform(*brightness, (n, 1)) + rng.normal(0, noise, (n, 3))
+    image = np.clip(lit, 0, 255).astype(np.uint8).reshape(1, n, 3)[:, :, ::-1]
+    path = Path(tempfile.mkdtemp()) / "pixels.png"
+    cv2.imwrite(str(path), image)
+    return read_colour(path).reshape(n, 3)
+
+
+@pytest.mark.parametrize(
+    ("table", "brightness", "floor"),
+    [
+        ((235, 235, 230), (0.95, 1.0), (150, 150, 150)),  # a plain white top, a grey floor
+        ((140, 115, 90), (0.35, 1.0), (77, 77, 82)),  # wood with dark patches, a dark floor
+    ],
+)
+def test_the_tables_colour_is_told_from_the_floor_despite_objects_in_view(table, brightness, floor):
+    rng = np.random.default_rng(0)
+    top = _pixels(table, 3000, rng, brightness)
+    # The core of the top also shows a white plate, a yellow banana and a tag's black.
+    clutter = [_pixels(c, 300, rng) for c in ((250, 250, 250), (220, 200, 40), (20, 20, 20))]
+    colour = TableColour.fit(np.concatenate([top, *clutter]))
+    assert colour.alike(_pixels(table, 1000, rng, brightness)).mean() > 0.95
+    assert colour.alike(_pixels(floor, 1000, rng, (0.9, 1.1))).mean() < 0.02
+    assert colour.alike(clutter[1]).mean() < 0.02
 
 
 def test_the_front_camera_is_placed_from_its_photo(built):

@@ -40,6 +40,7 @@ from twinrl_sim.reconstruct.objects import (
 from twinrl_sim.reconstruct.report import plot_build, write_build_report, write_build_rrd
 from twinrl_sim.reconstruct.result import TwinBuild
 from twinrl_sim.reconstruct.segment import (
+    PLANE_TOLERANCE,
     TablePlane,
     describe_cluster,
     find_objects,
@@ -48,6 +49,7 @@ from twinrl_sim.reconstruct.segment import (
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 from twinrl_sim.reconstruct.silhouette import carve_footprints
+from twinrl_sim.reconstruct.table_extent import measure_table
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
 from twinrl_sim.tasks import make_task
 
@@ -175,6 +177,8 @@ def build_twin(
             alignment.to_base.apply(model.points), model.colors, pivot, settings.seed
         )
         to_cell = alignment.to_base.turned(levelling, pivot)  # SfM -> levelled base frame
+        on_plane = np.abs(levelled[:, 2] - table.height) < PLANE_TOLERANCE
+        table = measure_table(table, levelled[on_plane, :2], model, work / "frames", to_cell.invert)
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)

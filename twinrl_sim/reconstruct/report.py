@@ -13,7 +13,8 @@ import rerun as rr
 from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.gap.report import _pyplot
-from twinrl_sim.reconstruct.segment import planar_axes
+from twinrl_sim.reconstruct.segment import TablePlane, planar_axes
+from twinrl_sim.reconstruct.table_extent import SIDES
 
 if TYPE_CHECKING:
     from twinrl_sim.reconstruct.result import TwinBuild
@@ -109,7 +110,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
         f"scale {alignment.to_base.scale:.4f} m/unit |",
         f"| table | top at {table.height:+.4f} m, {table.size[0]:.3f} x {table.size[1]:.3f} m, "
         f"yaw {np.degrees(table.yaw):+.1f} deg, tilt before levelling "
-        f"{table.tilt_deg:.2f} deg |",
+        f"{table.tilt_deg:.2f} deg; {_table_extent(table)} |",
     ]
     if built.size_ratio is not None:
         lines.append(f"| object sizes / task's | {built.size_ratio:.2f} (median) |")
@@ -226,3 +227,16 @@ def _log_scene(recording: rr.RecordingStream, compiled: CompiledScene) -> None:
                 continue
         recording.log(f"world/scene/{name}", pose, static=True)
         recording.log(f"world/scene/{name}", shape, static=True)
+
+
+def _table_extent(table: TablePlane) -> str:
+    """Where the table's size comes from, and which of its edges were seen."""
+    if table.extent_from != "frames":
+        return "size from its SfM points only (the frames showed no table region): a lower bound"
+    unseen = [side for side in SIDES if side not in table.sides_seen]
+    if not unseen:
+        return "size measured in the frames, every edge seen"
+    return (
+        f"size measured in the frames; edge {', '.join(unseen)} never seen beyond, so the "
+        "table may reach further there"
+    )

@@ -61,6 +61,8 @@ class TablePlane:
     color: np.ndarray  # (3,) median RGB of the top in [0, 1]
     tilt_deg: float  # angle between the fitted normal and the tag's z before levelling
     inliers: int
+    extent_from: str = "points"  # "frames" where measured in the views (table_extent)
+    sides_seen: tuple[str, ...] = ()  # of "-x", "+x", "-y", "+y": edges seen in the frames
 
 
 @dataclass(frozen=True)
