@@ -29,7 +29,10 @@ from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
 from twinrl_sim.tasks import make_task
 
 AT_REST = 0.02  # rad/s
-pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N")
+pytestmark = [
+    pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N"),
+    pytest.mark.realtime,  # the emulator keeps the controller's clock: not beside other tests
+]
 
 
 def write_cell(folder: Path, **changes: object) -> Path:

@@ -22,6 +22,8 @@ from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
 from twinrl_robot.ur.gripper import DigitalGripper, RobotiqGripper
 from twinrl_sim.tasks import make_task
 
+pytestmark = pytest.mark.realtime  # the emulator and the cameras keep real time
+
 
 def host_of(cell: Path) -> str:
     return yaml.safe_load(cell.read_text())["arm"]["host"]
