@@ -26,6 +26,7 @@ from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, JOINT_TARGET, STATE
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import EndEffectorController
 from twinrl_sim.robots.gripper import opening_from_joint
+from twinrl_sim.servo import servo_lead, tracking_setpoints
 
 
 def state_names(arm_joints: tuple[str, ...]) -> list[str]:
@@ -64,6 +65,8 @@ class Cell:
         self.arm_qpos = np.array([model.joint(j).qposadr[0] for j in layout.arm_joints])
         self.arm_dof = np.array([model.joint(j).dofadr[0] for j in layout.arm_joints])
         self.arm_act = np.array([model.actuator(a).id for a in layout.arm_actuators])
+        self.servo_lead = servo_lead(model)  # None: the servos hold each target
+        self._previous_target = np.array(layout.home_qpos, float)
         self.gripper_act = (
             model.actuator(layout.gripper_actuator).id if layout.gripper_actuator else None
         )
@@ -102,6 +105,7 @@ class Cell:
         q = np.asarray(self.layout.home_qpos if qpos is None else qpos, float)
         self.data.qpos[self.arm_qpos] = q
         self.data.ctrl[self.arm_act] = q
+        self._previous_target = q.copy()
         if self.gripper_act is not None:
             self.data.ctrl[self.gripper_act] = gripper
         self.controller.reset(q)
@@ -142,6 +146,7 @@ class Cell:
     def set_state(self, state: np.ndarray) -> None:
         mujoco.mj_setState(self.model, self.data, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
         mujoco.mj_forward(self.model, self.data)
+        self._previous_target = self.arm_q  # tracking servos start from where the arm is
 
     # --------------------------------------------------------------- control
     def step(self, action: np.ndarray) -> StepSignals:
@@ -153,11 +158,26 @@ class Cell:
         return StepSignals(joint_target=targets, gripper_command=gripper)
 
     def send(self, joint_target: np.ndarray, gripper: float) -> None:
-        """Hold ``joint_target`` (rad) and ``gripper`` for one control period."""
-        self.data.ctrl[self.arm_act] = joint_target
+        """Send ``joint_target`` (rad) and ``gripper`` for one control period: the arm's
+        servos hold the target or track it from the previous one (:mod:`twinrl_sim.servo`)."""
+        target = np.asarray(joint_target, float)
         if self.gripper_act is not None:
             self.data.ctrl[self.gripper_act] = gripper
-        mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        if self.servo_lead is None:
+            self.data.ctrl[self.arm_act] = target
+            mujoco.mj_step(self.model, self.data, nstep=self.substeps)
+        else:
+            setpoints = tracking_setpoints(
+                self._previous_target[None],
+                target[None, None],
+                self.substeps,
+                self.control_dt,
+                self.servo_lead,
+            )[0]
+            for setpoint in setpoints:
+                self.data.ctrl[self.arm_act] = setpoint
+                mujoco.mj_step(self.model, self.data)
+        self._previous_target = target.copy()
         # mj_step leaves derived quantities one substep stale; observations read them.
         mujoco.mj_forward(self.model, self.data)
 

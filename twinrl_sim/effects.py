@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from twinrl_sim.errors import TwinError
+from twinrl_sim.servo import set_lead, spec_lead
 
 if TYPE_CHECKING:
     from twinrl_sim.layout import CellLayout
@@ -80,6 +81,15 @@ def apply_actuator_delay(spec: mujoco.MjSpec, layout: CellLayout, seconds: float
         act.delay = seconds
         act.nsample = nsample
         act.interp = 1
+
+
+def apply_servo_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
+    """Velocity feed-forward: the arm's servos move their setpoint smoothly from target to
+    target and lead it by ``seconds`` more of its speed (:mod:`twinrl_sim.servo`); on a
+    twin whose servos hold each target, a non-zero lead makes them track."""
+    if seconds == 0:
+        return
+    set_lead(spec, layout, (spec_lead(spec) or 0.0) + seconds)
 
 
 def apply_joint_friction(spec: mujoco.MjSpec, layout: CellLayout, coulomb: list[float]) -> None:
@@ -251,6 +261,12 @@ EFFECTS: dict[str, EffectDef] = {
             {"seconds": ParamDef("float", "s", 0.0, 0.5, "command-to-motion latency")},
             apply_actuator_delay,
             apply_actuator_delay.__doc__ or "",
+        ),
+        EffectDef(
+            "servo_lead",
+            {"seconds": ParamDef("float", "s", -0.2, 0.5, "servo velocity feed-forward")},
+            apply_servo_lead,
+            apply_servo_lead.__doc__ or "",
         ),
         EffectDef(
             "joint_friction",

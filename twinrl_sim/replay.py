@@ -45,7 +45,8 @@ def replay(
     joint_targets: np.ndarray,
     gripper: np.ndarray | None = None,
 ) -> ReplayResult:
-    """Reset ``cell`` to ``config`` and hold each joint-target row for one control period.
+    """Reset ``cell`` to ``config`` and send each joint-target row for one control period
+    (held or tracked, as the cell's servos do: :mod:`twinrl_sim.servo`).
 
     Args:
         joint_targets: shape (T, n_arm_joints), radians, as logged in ``command.joint_target``.
@@ -68,7 +69,7 @@ def replay(
             engine = WindowedReplay(cell.layout, 1.0 / cell.control_dt, pool)
             ticks, held = engine.rollout([cell.model], start, targets[None], grip[None])
         for row, tick in enumerate(ticks[0, 0]):
-            engine.restore(cell.model, cell.data, tick, held[0, row])
+            engine.restore(cell.model, cell.data, tick, held[0, 0, row])
             states.append(cell.state_vector())
             env_states.append(cell.environment_vector())
             success.append(tracker.update().success)

@@ -220,6 +220,11 @@ class WorkspaceSpec(_Strict):
 class PhysicsSpec(_Strict):
     timestep: Annotated[float, Field(ge=1e-5, le=0.01)] = 0.002
     control_hz: Annotated[float, Field(ge=0.1, le=1000)] = 10.0
+    # How the arm's servos follow targets (twinrl_sim.servo): "hold" each for its period,
+    # or "track" them as a UR's servoJ does, leading by servo_lead seconds of speed
+    # (None: the lead that cancels the servos' lag).
+    servo: Literal["hold", "track"] = "hold"
+    servo_lead: Annotated[float, Field(ge=-0.2, le=0.5)] | None = None
 
     @model_validator(mode="after")
     def _whole_substeps(self) -> PhysicsSpec:

@@ -7,6 +7,9 @@ control period as a robot holds it. All windows of all models (the parameter poi
 a fit) run as one batched ``mujoco.rollout`` call, and the physics state at the end of
 every control period comes back.
 
+The arm's servos hold each target for its period or track the targets (interpolated,
+with velocity feed-forward), as each model says (:mod:`twinrl_sim.servo`).
+
 Its users compare the same prediction: :func:`twinrl_sim.replay.replay` runs one window
 from a task configuration's reset; the gap workflow's localisation
 (:mod:`twinrl_sim.gap.shooting`) and identification (:mod:`twinrl_sim.gap.identify`)
@@ -24,6 +27,7 @@ from mujoco.rollout import Rollout
 
 from twinrl_sim.errors import TwinError
 from twinrl_sim.layout import CellLayout
+from twinrl_sim.servo import servo_lead, tracking_setpoints
 
 STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
 # What a window's rollout sets at every physics step: the servo and gripper commands,
@@ -49,10 +53,14 @@ def control_substeps(model: mujoco.MjModel, fps: float) -> int:
 
 @dataclass(frozen=True)
 class Starts:
-    """Where ``n`` windows begin: physics states (:data:`STATE`) and inputs (:data:`INPUTS`)."""
+    """Where ``n`` windows begin: physics states (:data:`STATE`) and inputs (:data:`INPUTS`).
+
+    Tracking servos (:mod:`twinrl_sim.servo`) move from the targets in force before the
+    start, ``previous``; None: the arm's commands in ``inputs`` (a reset holds the pose)."""
 
     state: np.ndarray  # (n, state size)
     inputs: np.ndarray  # (n, inputs size)
+    previous: np.ndarray | None = None  # (n, n_arm)
 
     @classmethod
     def capture(cls, model: mujoco.MjModel, data: mujoco.MjData) -> Starts:
@@ -96,21 +104,41 @@ class WindowedReplay:
         gripper: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Every window under every model (which share one structure): the physics state
-        at the end of each control period, (len(models), n, W, state size), and what was
-        held during each period (n, W, inputs size; see :meth:`restore`)."""
+        at the end of each control period, (len(models), n, W, state size), and the
+        inputs in force at the end of each period, (len(models), n, W, inputs size; see
+        :meth:`restore`). Each model's servos hold or track the targets as it says
+        (:func:`twinrl_sim.servo.servo_lead`)."""
         targets = np.asarray(targets, float)
         n, rows = targets.shape[:2]
         held = self.period_inputs(models[0], starts, targets, np.asarray(gripper, float))
         substeps = control_substeps(models[0], self.fps)
+        held_steps = np.repeat(held, substeps, axis=1)
+        leads = [servo_lead(model) for model in models]
+        if all(lead is None for lead in leads):
+            controls = np.tile(held_steps, (len(models), 1, 1))
+            ends = np.broadcast_to(held, (len(models), *held.shape))
+        else:
+            arm = [models[0].actuator(a).id for a in self.layout.arm_actuators]
+            previous = starts.inputs[:, arm] if starts.previous is None else starts.previous
+            per_model = []
+            for lead in leads:
+                steps = held_steps.copy()
+                if lead is not None:
+                    steps[:, :, arm] = tracking_setpoints(
+                        previous, targets, substeps, 1.0 / self.fps, lead
+                    )
+                per_model.append(steps)
+            controls = np.concatenate(per_model)
+            ends = controls[:, substeps - 1 :: substeps].reshape(len(models), n, rows, -1)
         state, _ = self.pool.rollout(
             [m for m in models for _ in range(n)],
             [mujoco.MjData(models[0]) for _ in range(max(self.pool.nthread, 1))],
             np.tile(starts.state, (len(models), 1)),
-            np.tile(np.repeat(held, substeps, axis=1), (len(models), 1, 1)),
+            controls,
             control_spec=INPUTS,
         )
         ticks = state[:, substeps - 1 :: substeps]
-        return ticks.reshape(len(models), n, rows, -1), held
+        return ticks.reshape(len(models), n, rows, -1), ends
 
     @staticmethod
     def restore(

@@ -28,6 +28,7 @@ def test_the_library_has_exactly_the_documented_effects_and_parameters():
         "joint_friction": {"coulomb"},
         "joint_damping": {"viscous"},
         "servo_gain": {"scale"},
+        "servo_lead": {"seconds"},
         "payload": {"mass"},
         "object_mass": {"scale"},
         "object_friction": {"sliding"},

@@ -53,6 +53,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("joint_friction", 5.0, 0.2, 0.0, "arm"),
         Candidate("joint_damping", 5.0, 0.2, 0.0, "arm"),
         Candidate("servo_gain", 1.0, 1.0, 1.0, "arm"),
+        Candidate("servo_lead", 0.02, 0.02, 0.0, "arm"),
         Candidate("payload", 1.0, 0.1, 0.0, "arm"),
         Candidate("joint_offset", 0.01, 0.0, 0.0, "arm"),
         Candidate("tool_offset", 0.01, 0.0, 0.0, "arm"),

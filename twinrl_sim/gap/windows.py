@@ -301,7 +301,7 @@ def measured_starts(model: mujoco.MjModel, layout: CellLayout, windows: Windows)
         mujoco.mj_forward(model, data)
         mujoco.mj_getState(model, data, states[i], STATE)
         mujoco.mj_getState(model, data, inputs[i], INPUTS)
-    return Starts(states, inputs)
+    return Starts(states, inputs, previous=w.history[:, -1].copy())
 
 
 def replay_signals(
@@ -328,7 +328,7 @@ def replay_signals(
         ]
         for i in range(len(w)):
             for r in range(w.rows):
-                engine.restore(model, data, ticks[m, i, r], held[i, r])
+                engine.restore(model, data, ticks[m, i, r], held[m, i, r])
                 row = [data.qpos[arm_qpos], data.qvel[arm_dof], data.site_xpos[tcp]]
                 if tau:
                     row.append(data.qfrc_actuator[arm_dof])

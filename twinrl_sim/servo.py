@@ -1,0 +1,95 @@
+"""How the twin's arm servos follow a stream of joint targets.
+
+Two models, chosen by the scene (``physics.servo``) or by the ``servo_lead`` effect:
+
+- **hold** (the default): each target is the servos' setpoint for its whole control
+  period. At 10 Hz this is what the twin's tasks were tuned with.
+- **track**, as a UR's ``servoJ`` does: at every physics step the setpoint moves along
+  the line from the previous target to the new one, and leads it by ``lead`` seconds of
+  its speed (velocity feed-forward). A position servo lags its setpoint by damping /
+  stiffness times the speed; a lead of that size cancels the lag, so the arm follows the
+  targets within a fraction of a milliradian at any speed, as a real arm does. The lead
+  is a property of the compiled model (the custom numeric :data:`LEAD_NUMERIC`), so the
+  gap workflow fits it like any other effect.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from twinrl_sim.layout import CellLayout
+
+LEAD_NUMERIC = "twinrl_servo_lead"  # s; present: the servos track, absent: they hold
+
+
+def full_lead(spec: mujoco.MjSpec, layout: CellLayout) -> float:
+    """The lead that cancels the lag of the arm's (holding) servos: the median over its
+    joints of joint damping / actuator stiffness (s)."""
+    ratios = []
+    for joint, actuator in zip(layout.arm_joints, layout.arm_actuators, strict=True):
+        stiffness = float(spec.actuator(actuator).gainprm[0])
+        damping = float(np.atleast_1d(spec.joint(joint).damping)[0])
+        if stiffness > 0:
+            ratios.append(damping / stiffness)
+    return float(np.median(ratios)) if ratios else 0.0
+
+
+def spec_lead(spec: mujoco.MjSpec) -> float | None:
+    """The lead ``spec``'s servos track with (s), or None where they hold."""
+    numeric = next((n for n in spec.numerics if n.name == LEAD_NUMERIC), None)
+    return None if numeric is None else float(numeric.data[0])
+
+
+def set_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
+    """Make the arm's servos track their targets with ``seconds`` of lead.
+
+    A holding servo's damping is the joint's (passive, so it drags at any speed); a
+    tracking servo damps the speed error instead, so its damping moves into the
+    actuator, where the lead's setpoint speed cancels it: moving fast costs no torque
+    beyond what the arm's inertia and friction take, as on a real arm."""
+    numeric = next((n for n in spec.numerics if n.name == LEAD_NUMERIC), None)
+    if numeric is not None:
+        numeric.data = [float(seconds)]
+        return
+    for joint_name, actuator_name in zip(layout.arm_joints, layout.arm_actuators, strict=True):
+        joint, actuator = spec.joint(joint_name), spec.actuator(actuator_name)
+        damping = float(np.atleast_1d(joint.damping)[0])
+        bias = list(actuator.biasprm)
+        bias[2] -= damping
+        actuator.biasprm = bias
+        joint.damping = [0.0] * len(np.atleast_1d(joint.damping))
+    spec.add_numeric(name=LEAD_NUMERIC, data=[float(seconds)], size=1)
+
+
+def servo_lead(model: mujoco.MjModel) -> float | None:
+    """The tracking servos' lead (s), or None where the servos hold each target."""
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, LEAD_NUMERIC)
+    if index < 0:
+        return None
+    return float(model.numeric_data[model.numeric_adr[index]])
+
+
+def tracking_setpoints(
+    previous: np.ndarray, targets: np.ndarray, substeps: int, period: float, lead: float
+) -> np.ndarray:
+    """The setpoints of tracking servos at every physics step.
+
+    Args:
+        previous: (n, n_arm) the targets in force before the first period.
+        targets: (n, W, n_arm) one target per control period.
+        substeps: physics steps per control period.
+        period: the control period (s).
+        lead: velocity feed-forward (s).
+
+    Returns:
+        (n, W * substeps, n_arm): the setpoint held during each physics step; the last
+        of each period is the period's target (plus the lead).
+    """
+    before = np.concatenate([previous[:, None], targets[:, :-1]], axis=1)
+    change = targets - before
+    fraction = np.arange(1, substeps + 1) / substeps
+    setpoints = before[:, :, None] + change[:, :, None] * fraction[None, None, :, None]
+    setpoints += lead * (change / period)[:, :, None]
+    n, rows, _, joints = setpoints.shape
+    return setpoints.reshape(n, rows * substeps, joints)
