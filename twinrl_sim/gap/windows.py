@@ -23,7 +23,8 @@ from twinrl_data import schema as contract
 from twinrl_sim.errors import TwinError
 from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
-from twinrl_sim.windowed import INPUTS, STATE, Starts, WindowedReplay
+from twinrl_sim.servo import servo_lead, tracking_setpoints
+from twinrl_sim.windowed import INPUTS, STATE, Starts, WindowedReplay, control_substeps
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
 
@@ -272,7 +273,8 @@ def place_measured(
 def measured_starts(model: mujoco.MjModel, layout: CellLayout, windows: Windows) -> Starts:
     """The twin's state and inputs at the start of every window: the measured arm,
     gripper and objects, and the servos' past (the targets held during the periods
-    before the start) for actuators that keep a command history (a delay)."""
+    before the start, or the setpoints tracking servos followed toward them) for
+    actuators that keep a command history (a delay)."""
     w = windows
     data = mujoco.MjData(model)
     joints = [model.joint(j) for j in layout.arm_joints]
@@ -281,6 +283,15 @@ def measured_starts(model: mujoco.MjModel, layout: CellLayout, windows: Windows)
     states = np.empty((len(w), mujoco.mj_stateSize(model, STATE)))
     inputs = np.empty((len(w), mujoco.mj_stateSize(model, INPUTS)))
     control_dt = 1.0 / w.fps
+    lead = servo_lead(model)
+    if lead is not None:  # tracking servos: their past is the setpoints they tracked
+        past = tracking_setpoints(
+            w.history[:, 0],
+            w.history[:, 1:],
+            control_substeps(model, w.fps),
+            control_dt,
+            lead,
+        )
     for i in range(len(w)):
         mujoco.mj_resetData(model, data)
         place_measured(model, data, layout, w.objects, w.objects0[i], w.opening0[i])
@@ -291,12 +302,17 @@ def measured_starts(model: mujoco.MjModel, layout: CellLayout, windows: Windows)
             samples = int(model.actuator_history[act, 0])
             if samples:
                 times = -model.opt.timestep * np.arange(samples, 0, -1)
-                period = np.clip(
-                    np.floor(times / control_dt).astype(int) + w.history.shape[1],
-                    0,
-                    w.history.shape[1] - 1,
-                )
-                values = w.history[i, period, a][:, None].copy()
+                if lead is None:
+                    period = np.clip(
+                        np.floor(times / control_dt).astype(int) + w.history.shape[1],
+                        0,
+                        w.history.shape[1] - 1,
+                    )
+                    values = w.history[i, period, a][:, None].copy()
+                else:
+                    step = np.floor(times / model.opt.timestep + 0.5).astype(int)
+                    step = np.clip(step + past.shape[1], 0, past.shape[1] - 1)
+                    values = past[i, step, a][:, None].copy()
                 mujoco.mj_initCtrlHistory(model, data, act, times[:, None].copy(), values)
         mujoco.mj_forward(model, data)
         mujoco.mj_getState(model, data, states[i], STATE)

@@ -1,0 +1,60 @@
+"""Excitation through the UR driver (ur_rtde against the emulator) gives logs the gap
+workflow diagnoses like the plant's own: the servo model a twin lacks is named, and a
+twin with a UR's tracking servos names the arm's hidden delay."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.robot.test_ur_cell import write_cell
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_robot.excitation import ExcitationSettings, run_excitation
+from twinrl_robot.ur.emulator.harness import EmulatorProcess
+from twinrl_sim.gap.diagnose import diagnose
+from twinrl_sim.tasks import make_task
+
+pytestmark = [
+    pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N"),
+    pytest.mark.realtime,  # the emulator keeps the controller's clock: not beside other tests
+]
+HIDDEN_DELAY = 0.03  # s, the emulated arm's command-to-motion latency
+SCENE = make_task("pick_place").scene
+
+
+def _twin(servo: str):
+    return SCENE.model_copy(update={"physics": SCENE.physics.model_copy(update={"servo": servo})})
+
+
+def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Path) -> None:
+    hidden = tmp_path / "hidden.yaml"
+    hidden.write_text(yaml.safe_dump({"actuator_delay": {"seconds": HIDDEN_DELAY}}))
+    cell = write_cell(tmp_path)
+    session = Session.create(tmp_path / "session")
+    with EmulatorProcess(cell, effects=hidden):
+        run_excitation(
+            "pick_place",
+            world="real",
+            cell=cell,
+            emulated=True,
+            episodes=3,
+            settings=ExcitationSettings(duration=6.0),
+            session=session,
+            seed=1,
+        )
+    episodes = [read_episode(p, images=False) for p in session.episode_paths()]
+    allowed = ["actuator_delay", "servo_lead", "payload", "joint_friction"]
+    # A twin whose servos hold each target lacks what the arm does: it is named first.
+    holding = diagnose(episodes, _twin("hold"), allowed=allowed)
+    assert holding.candidates[0].effect == "servo_lead"
+    # With a UR's tracking servos the twin starts far closer, and the delay is named: the
+    # arm's own plus the link's (RTDE and the host loop, about 10 ms).
+    tracking = diagnose(episodes, _twin("track"), allowed=allowed)
+    assert tracking.gap_before < 0.6 * holding.gap_before
+    assert [s["effect"] for s in tracking.selected] == ["actuator_delay"]
+    assert HIDDEN_DELAY <= tracking.effects["actuator_delay"]["seconds"] <= HIDDEN_DELAY + 0.02
+    assert tracking.heldout_reduction >= 0.5
