@@ -48,7 +48,6 @@ def cpu_seconds(pid: int | str = "self") -> float:
 def latency(arm: URArm, trials: int) -> tuple[list[float], list[float]]:
     """Per trial: seconds until the controller echoes the step, and until the arm moves."""
     echoes, responses = [], []
-    receive = arm._receive
     for _ in range(trials):
         arm.stream.hold(arm.measured_q())
         time.sleep(0.2)
@@ -57,7 +56,7 @@ def latency(arm: URArm, trials: int) -> tuple[list[float], list[float]]:
         arm.stream.hold(start + STEP)
         echo = None
         while np.abs(arm.measured_q() - start).max() < MOVED:
-            if echo is None and np.abs(np.array(receive.getTargetQ()) - start).max() > STEP / 2:
+            if echo is None and np.abs(arm.controller_target_q() - start).max() > STEP / 2:
                 echo = time.perf_counter() - began
             if time.perf_counter() - began > 1.0:
                 raise RuntimeError("the arm did not respond within 1 s")

@@ -332,6 +332,11 @@ class URArm:
         """The arm's joint positions (rad) as the controller measures them."""
         return np.array(self._receive.getActualQ(), float)
 
+    def controller_target_q(self) -> np.ndarray:
+        """The joint targets (rad) the controller is tracking now (its ``target_q``): how
+        far the servo stream's latest target has got."""
+        return np.array(self._receive.getTargetQ(), float)
+
     def _apply_cell_settings(self) -> None:
         arm = self.cell.arm
         self._control.setTcp(list(arm.tcp_offset))
