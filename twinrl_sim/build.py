@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.effects import apply_effects
-from twinrl_sim.layout import CellLayout
+from twinrl_sim.layout import MOUNT_BODY, CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.robots import ur5e
 from twinrl_sim.servo import full_lead, set_lead
@@ -198,7 +198,7 @@ def _add_robot(
     spec: mujoco.MjSpec, scene: SceneSpec
 ) -> tuple[list[str], list[str], str, str, list[float]]:
     robot = scene.robot
-    mount = spec.worldbody.add_body(name="robot_mount", pos=list(robot.base_pos))
+    mount = spec.worldbody.add_body(name=MOUNT_BODY, pos=list(robot.base_pos))
     if robot.is_builtin:
         flange = ur5e.add_ur5e(mount)
         joints = list(ur5e.JOINT_NAMES)

@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from twinrl_sim.errors import TwinError
+from twinrl_sim.layout import MOUNT_BODY
 from twinrl_sim.servo import set_lead, spec_lead
 
 if TYPE_CHECKING:
@@ -154,6 +155,14 @@ def apply_tool_offset(spec: mujoco.MjSpec, layout: CellLayout, xyz: list[float])
     frame of the body that carries it: a tool, or a TCP setting, the twin lacks."""
     site = spec.site(layout.tcp_site)
     site.pos = np.asarray(site.pos) + np.asarray(xyz, float)
+
+
+def apply_base_offset(spec: mujoco.MjSpec, layout: CellLayout, xyz: list[float]) -> None:
+    """The arm's base stands ``xyz`` (m, world frame) from where the twin has it: mounted
+    elsewhere on its stand or table than the scene says. Joint motion is unchanged; the
+    tool, and what it touches, are shifted."""
+    body = spec.body(MOUNT_BODY)
+    body.pos = np.asarray(body.pos) + np.asarray(xyz, float)
 
 
 def apply_joint_offset(spec: mujoco.MjSpec, layout: CellLayout, radians: list[float]) -> None:
@@ -321,6 +330,12 @@ EFFECTS: dict[str, EffectDef] = {
             {"xyz": ParamDef("vec3", "m", -0.3, 0.3, "TCP offset in the tool body's frame")},
             apply_tool_offset,
             apply_tool_offset.__doc__ or "",
+        ),
+        EffectDef(
+            "base_offset",
+            {"xyz": ParamDef("vec3", "m", -0.3, 0.3, "arm base mounting error, world frame")},
+            apply_base_offset,
+            apply_base_offset.__doc__ or "",
         ),
         EffectDef(
             "camera_pose",

@@ -8,6 +8,7 @@ import numpy as np
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import quat_conj, quat_mul
 from twinrl_sim.errors import TwinError
+from twinrl_sim.layout import MOUNT_BODY
 
 
 class LinkFrames:
@@ -80,7 +81,7 @@ class ControllerTcp:
         data = mujoco.MjData(model)
         mujoco.mj_kinematics(model, data)
         flange = model.body(scene.layout.flange_body).id
-        base = model.body("robot_mount").id
+        base = model.body(MOUNT_BODY).id
         site = model.site(scene.layout.tcp_site).id
         self._base = (data.xpos[base].copy(), data.xquat[base].copy())
         flange_rot = data.xmat[flange].reshape(3, 3)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+MOUNT_BODY = "robot_mount"  # the body the arm's base stands on (its pose: the base frame)
+
 
 @dataclass(frozen=True)
 class CellLayout:

@@ -27,6 +27,7 @@ from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec
 from twinrl_sim.grasping import Grasp, sample_antipodal_grasps
+from twinrl_sim.layout import MOUNT_BODY
 from twinrl_sim.planar import yaw_of
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.tasks.base import Task, TaskConfig
@@ -90,7 +91,7 @@ class CollisionChecker:
         self.model = cell.model
         self.data = mujoco.MjData(cell.model)
         mujoco.mj_copyData(self.data, cell.model, cell.data)
-        robot_root = self.model.body("robot_mount").id
+        robot_root = self.model.body(MOUNT_BODY).id
         self.robot_bodies = {
             b for b in range(self.model.nbody) if _descends(self.model, b, robot_root)
         }

@@ -35,6 +35,7 @@ def test_the_library_has_exactly_the_documented_effects_and_parameters():
         "table_height": {"offset"},
         "joint_offset": {"radians"},
         "tool_offset": {"xyz"},
+        "base_offset": {"xyz"},
         "camera_pose": {"camera", "xyz", "rpy"},
         "appearance": {"light_scale", "table_tint"},
         "gripper_force": {"scale"},

@@ -434,6 +434,18 @@ def test_two_modest_effects_at_once_are_both_named(tmp_path):
     assert diagnosis.gap_after < 2.0
 
 
+def test_a_base_mounted_elsewhere_is_named_as_a_base_offset_not_a_tool(tmp_path):
+    """The arm stands 1.5 cm further along y and 1 cm lower than the twin has it: the
+    tool is shifted the same way in every pose, which no tool offset explains."""
+    hidden = {"base_offset": {"xyz": [0.0, 0.015, -0.01]}}
+    episodes = _record(tmp_path / "s", hidden)
+    diagnosis = diagnose(episodes, SCENE, allowed=["base_offset", "tool_offset", "payload"])
+    assert [s["effect"] for s in diagnosis.selected] == ["base_offset"]
+    fitted = np.array(diagnosis.effects["base_offset"]["xyz"])
+    assert np.abs(fitted - [0.0, 0.015, -0.01]).max() < 0.002, fitted
+    assert diagnosis.heldout_reduction > 0.9
+
+
 def test_a_tool_the_twin_lacks_is_named_as_a_tool_offset(tmp_path):
     """The robot reports its TCP at a tool 4 cm further along the flange than the twin's."""
     hidden = {"tool_offset": {"xyz": [0.0, 0.01, 0.04]}}

@@ -18,6 +18,7 @@ import numpy as np
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.ur.driver import RobotConnectionError, URArm, require_reachable
 from twinrl_robot.ur.hardware import open_arm
+from twinrl_sim.layout import MOUNT_BODY
 from twinrl_sim.tasks import Task
 
 
@@ -134,7 +135,7 @@ def _record(path: Path, cell: CellFile, arm: URArm, q: np.ndarray, tool_path: np
     twin = arm.twin
     twin.data.qpos[twin.arm_qpos] = q
     mujoco.mj_kinematics(twin.model, twin.data)
-    chain = [twin.model.body("robot_mount").id]
+    chain = [twin.model.body(MOUNT_BODY).id]
     flange = twin.model.body(twin.layout.flange_body).id
     links = [b for b in range(twin.model.nbody) if _is_ancestor(twin.model, b, flange)]
     chain += sorted(set(links) - set(chain))

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.control import quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
+from twinrl_sim.layout import MOUNT_BODY
 
 IK_ITERATIONS = 20
 IK_DAMPING = 1e-3
@@ -38,7 +39,7 @@ class ToolFrame:
         self.model = model
         self._data = mujoco.MjData(model)
         self._flange = model.body(flange_body).id
-        self._base = model.body("robot_mount").id
+        self._base = model.body(MOUNT_BODY).id
         self._qpos = np.array([model.joint(j).qposadr[0] for j in joints])
         self._dof = np.array([model.joint(j).dofadr[0] for j in joints])
         self.set_offset(tcp_offset)

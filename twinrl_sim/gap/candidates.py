@@ -57,6 +57,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("payload", 1.0, 0.1, 0.0, "arm"),
         Candidate("joint_offset", 0.01, 0.0, 0.0, "arm"),
         Candidate("tool_offset", 0.01, 0.0, 0.0, "arm"),
+        Candidate("base_offset", 0.01, 0.0, 0.0, "arm"),
         Candidate("object_mass", 1.0, 1.0, 1.0, "grasp"),
         Candidate("object_friction", 0.5, None, None, "grasp"),
         Candidate("table_height", 0.01, 0.0, 0.0, "objects"),

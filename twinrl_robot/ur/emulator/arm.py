@@ -20,6 +20,7 @@ import numpy as np
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
+from twinrl_sim.layout import MOUNT_BODY
 from twinrl_sim.tasks import Task, TaskConfig
 
 
@@ -134,7 +135,7 @@ class EmulatedArm:
         self._motion = _Motion()
         self._lead = self.cell.servo_lead or 0.0  # s of velocity feed-forward
         self._flange = model.body(self.cell.layout.flange_body).id
-        self._base = model.body("robot_mount").id
+        self._base = model.body(MOUNT_BODY).id
         self._table = model.geom(self.cell.layout.table_geom).id
         self._robot_bodies = _subtree(model, self._base)
         self._arm_link_bodies = self._robot_bodies - _subtree(model, self._flange)
