@@ -19,7 +19,7 @@ from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
 from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
-from twinrl_sim.reconstruct.segment import TablePlane, describe_cluster
+from twinrl_sim.reconstruct.segment import TablePlane, TagPlane, describe_cluster, level_table
 from twinrl_sim.reconstruct.synthetic import (
     THREE_TAGS,
     WalkthroughSettings,
@@ -166,6 +166,35 @@ def test_the_tables_colour_is_told_from_the_floor_despite_objects_in_view(table,
     assert colour.alike(_pixels(table, 1000, rng, brightness)).mean() > 0.95
     assert colour.alike(_pixels(floor, 1000, rng, (0.9, 1.1))).mean() < 0.02
     assert colour.alike(clutter[1]).mean() < 0.02
+
+
+def _table_and_wall(rng, tilt_deg: float = 0.0) -> np.ndarray:
+    """A sparse table top (400 points, tilted ``tilt_deg`` about x) and a textured wall
+    behind it with four times as many: what a plain office table in front of a poster
+    gives structure from motion."""
+    xy = rng.uniform([0.0, -0.5], [0.9, 0.5], (400, 2))
+    top = np.c_[xy, np.tan(np.radians(tilt_deg)) * xy[:, 1]]
+    wall = np.c_[np.full(1600, 1.3), rng.uniform(-1, 1, 1600), rng.uniform(0.0, 1.2, 1600)]
+    return np.vstack([top, wall]) + rng.normal(0, 0.001, (2000, 3))
+
+
+def test_the_table_is_sought_where_the_tags_lie_not_on_the_largest_plane():
+    rng = np.random.default_rng(0)
+    points = _table_and_wall(rng)
+    colors = np.full((len(points), 3), 128, np.uint8)
+    tags = TagPlane(np.array([0.5, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]))
+    # The largest plane is the wall: 90 degrees from where the tags lie.
+    table, _, _ = level_table(points, colors, np.zeros(3))
+    assert table.tilt_deg > 80
+    table, _, _ = level_table(points, colors, np.zeros(3), tags=tags)
+    assert table.tilt_deg < 0.5 and abs(table.height) < 0.002 and table.inliers >= 380
+    # A top tilted 6 degrees from the tags lying on it is refused, not levelled.
+    with pytest.raises(CaptureError, match="tilted .* from the tags' plane.*--no-tags-on-table"):
+        level_table(_table_and_wall(rng, 6.0), colors, np.zeros(3), tags=tags)
+    # No points near the tags' plane (only the wall, above the table): say so.
+    wall = points[400:][points[400:, 2] > 0.05]
+    with pytest.raises(CaptureError, match="within 3 cm of the tags' plane"):
+        level_table(wall, colors[: len(wall)], np.zeros(3), tags=tags)
 
 
 def test_the_front_camera_is_placed_from_its_photo(built):

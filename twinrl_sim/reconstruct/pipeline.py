@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import open3d as o3d
 
@@ -42,6 +43,7 @@ from twinrl_sim.reconstruct.result import TwinBuild
 from twinrl_sim.reconstruct.segment import (
     PLANE_TOLERANCE,
     TablePlane,
+    TagPlane,
     describe_cluster,
     find_objects,
     level_table,
@@ -174,7 +176,11 @@ def build_twin(
         _check_scale(path, pivot, settings)
         stage("table")
         table, levelling, levelled = level_table(
-            alignment.to_base.apply(model.points), model.colors, pivot, settings.seed
+            alignment.to_base.apply(model.points),
+            model.colors,
+            pivot,
+            settings.seed,
+            tags=tag_plane(settings) if settings.tags_on_table else None,
         )
         to_cell = alignment.to_base.turned(levelling, pivot)  # SfM -> levelled base frame
         on_plane = np.abs(levelled[:, 2] - table.height) < PLANE_TOLERANCE
@@ -234,6 +240,22 @@ def build_twin(
     if not settings.keep_work:
         shutil.rmtree(work, ignore_errors=True)
     return built
+
+
+def tag_plane(settings: BuildSettings) -> TagPlane | None:
+    """The plane the tags lie on, in the base frame: the tag's own (``tag_pose``) or the
+    one through the tags' centres (``tag_points``)."""
+    if settings.tag_pose is not None:
+        quat = np.asarray(settings.tag_pose[3:], float)
+        normal = np.zeros(3)
+        mujoco.mju_rotVecQuat(normal, np.array([0.0, 0.0, 1.0]), quat / np.linalg.norm(quat))
+        return TagPlane(np.asarray(settings.tag_pose[:3], float), normal)
+    centres = np.array([p[:3] for p in settings.tag_points.values()], float)
+    if len(centres) < 3:
+        return None
+    centre = centres.mean(axis=0)
+    normal = np.linalg.svd(centres - centre)[2][-1]
+    return TagPlane(centre, normal if normal[2] >= 0 else -normal)
 
 
 def _check_scale(camera_path: np.ndarray, pivot: np.ndarray, settings: BuildSettings) -> None:

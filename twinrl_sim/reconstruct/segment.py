@@ -1,6 +1,7 @@
 """The table and the objects on it, from the aligned point cloud.
 
-- **Table**: RANSAC plane (open3d ``segment_plane``); the cloud is then turned so that
+- **Table**: RANSAC plane (open3d ``segment_plane``), sought near the tags' plane when
+  the tags lie on the table; the cloud is then turned so that
   the plane's normal is the base frame's z (gravity), about the tag's centre so that the
   tag keeps its measured position; the table's extent is that of the plane's inliers.
 - **Objects**: points above the table (and below ``max_height``) clustered with DBSCAN
@@ -21,6 +22,9 @@ import open3d as o3d
 from twinrl_sim.reconstruct.frames import CaptureError
 
 PLANE_TOLERANCE = 0.004  # m: RANSAC inlier distance
+NEAR_TAGS = 0.03  # m from the tags' plane within which the table top is sought
+MIN_TABLE_POINTS = 20  # points near the tags' plane needed to fit the table
+MAX_TILT_FROM_TAGS = 3.0  # deg between the table's plane and the tags' that is accepted
 ABOVE_TABLE = 0.004  # m: points higher than this over the plane may belong to objects
 CLUSTER_EPS = 0.02  # m: DBSCAN neighbourhood
 MIN_CLUSTER_POINTS = 25
@@ -117,27 +121,63 @@ def describe_cluster(
     )
 
 
+@dataclass(frozen=True)
+class TagPlane:
+    """The plane the tags lie on, in the base frame: where the table top must be."""
+
+    point: np.ndarray  # (3,)
+    normal: np.ndarray  # (3,) unit, upward
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        return (points - self.point) @ self.normal
+
+
 def level_table(
-    points: np.ndarray, colors: np.ndarray, pivot: np.ndarray, seed: int = 0
+    points: np.ndarray,
+    colors: np.ndarray,
+    pivot: np.ndarray,
+    seed: int = 0,
+    tags: TagPlane | None = None,
 ) -> tuple[TablePlane, np.ndarray, np.ndarray]:
     """Fit the table plane and level the cloud about ``pivot``.
 
+    With ``tags`` (the tags lie on the table) the plane is sought among the points near
+    the tags' plane only, so a wall or the floor with more points is never taken for the
+    table, and a fitted plane tilted from the tags' is refused rather than levelled.
     The table's heading is that of its seen top's minimum-area rectangle (its edges),
     folded so that the table's x axis is the one nearest the base frame's.
 
     Returns the table, the rotation applied (3x3, about ``pivot``) and the levelled points.
     """
     o3d.utility.random.seed(seed)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    (a, b, c, _), inliers = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
-    if len(inliers) < 0.2 * len(points):
+    candidates = np.arange(len(points))
+    if tags is not None:
+        candidates = np.flatnonzero(np.abs(tags.distance(points)) < NEAR_TAGS)
+        if len(candidates) < MIN_TABLE_POINTS:
+            raise CaptureError(
+                f"only {len(candidates)} points lie within {100 * NEAR_TAGS:g} cm of the tags' "
+                "plane; film the table top around the tags, or if the tags do not lie on "
+                "the table give --no-tags-on-table"
+            )
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[candidates]))
+    (a, b, c, _), found = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
+    inliers = candidates[found]
+    if len(inliers) < 0.2 * len(candidates):
         raise CaptureError(
-            f"no table plane: only {len(inliers)} of {len(points)} points lie on one plane; "
-            "film the table top with more of it in view"
+            f"no table plane: only {len(inliers)} of {len(candidates)} points lie on one "
+            "plane; film the table top with more of it in view"
         )
     normal = np.array([a, b, c]) / np.linalg.norm([a, b, c])
     if normal[2] < 0:
         normal = -normal
+    if tags is not None:
+        tilt = float(np.degrees(np.arccos(np.clip(abs(normal @ tags.normal), -1, 1))))
+        if tilt > MAX_TILT_FROM_TAGS:
+            raise CaptureError(
+                f"the table plane near the tags is tilted {tilt:.1f} deg from the tags' plane "
+                f"(more than {MAX_TILT_FROM_TAGS:g}); check that the tags lie flat on the "
+                "table, or if they do not, give --no-tags-on-table"
+            )
     z_to_normal = np.zeros(4)
     mujoco.mju_quatZ2Vec(z_to_normal, normal)
     matrix = np.zeros(9)

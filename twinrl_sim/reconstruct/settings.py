@@ -37,6 +37,9 @@ class BuildSettings:
     tag_points: dict[int, tuple[float, ...]] = field(default_factory=dict)
     """ID=x,y,z: the centre of tag ID in the robot-base frame (m), instead of a tag pose;
     3 or more tags, not on one line. Repeatable."""
+    tags_on_table: bool = True
+    """The tags lie on the table: its plane is sought near the tags' plane only, and one
+    tilted from it is refused (--no-tags-on-table: the largest plane in view)."""
     task: str | None = None
     """Task whose cell was filmed: objects are named after its objects, and its robot,
     cameras and physics are kept."""
