@@ -189,7 +189,7 @@ def test_the_table_is_sought_where_the_tags_lie_not_on_the_largest_plane():
     table, _, _ = level_table(points, colors, np.zeros(3), tags=tags)
     assert table.tilt_deg < 0.5 and abs(table.height) < 0.002 and table.inliers >= 380
     # A top tilted 6 degrees from the tags lying on it is refused, not levelled.
-    with pytest.raises(CaptureError, match="tilted .* from the tags' plane.*--no-tags-on-table"):
+    with pytest.raises(CaptureError, match="tilted .* from the tags' plane.*`tags_on_table` off"):
         level_table(_table_and_wall(rng, 6.0), colors, np.zeros(3), tags=tags)
     # No points near the tags' plane (only the wall, above the table): say so.
     wall = points[400:][points[400:, 2] > 0.05]

@@ -157,7 +157,7 @@ def level_table(
             raise CaptureError(
                 f"only {len(candidates)} points lie within {100 * NEAR_TAGS:g} cm of the tags' "
                 "plane; film the table top around the tags, or if the tags do not lie on "
-                "the table give --no-tags-on-table"
+                "the table set `tags_on_table` off"
             )
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[candidates]))
     (a, b, c, _), found = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
@@ -176,7 +176,7 @@ def level_table(
             raise CaptureError(
                 f"the table plane near the tags is tilted {tilt:.1f} deg from the tags' plane "
                 f"(more than {MAX_TILT_FROM_TAGS:g}); check that the tags lie flat on the "
-                "table, or if they do not, give --no-tags-on-table"
+                "table, or if they do not, set `tags_on_table` off"
             )
     z_to_normal = np.zeros(4)
     mujoco.mju_quatZ2Vec(z_to_normal, normal)
