@@ -52,7 +52,6 @@ RESET_SPEED, RESET_ACCELERATION = 0.6, 1.2  # rad/s, rad/s^2 of the move to a st
 SERVO_STOP_DECELERATION = 10.0  # rad/s^2
 ARRIVED = 2e-3  # rad from a move's goal that counts as there
 RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
-STATE_SETTLE_S = 0.1  # s for a refused target's cause to show in the controller's state
 Arrange = Callable[[TaskConfig], None]
 """Sets a configuration's objects up in the cell (a person guided by the twin; the
 emulator's harness in tests); the arm is already at its start pose."""
@@ -261,24 +260,12 @@ class URArm:
 
     def _check(self, refused: str | None = None) -> None:
         if self.fault is None:
-            reason = self._stop_reason()
-            if not reason and (self.stream.fault or refused):
-                # The refusal can come before the controller's state says why (that comes
-                # with its next RTDE frame): wait for the reason before naming the symptom.
-                reason = self._settled_stop_reason() or self.stream.fault or refused
+            reason = self._stop_reason() or self.stream.fault or refused
             if reason:
                 self.stream.stop()
                 self.fault = reason
         if self.fault is not None:
             raise RobotStopped(self.fault)
-
-    def _settled_stop_reason(self) -> str:
-        deadline = time.monotonic() + STATE_SETTLE_S
-        while time.monotonic() < deadline:
-            time.sleep(0.005)
-            if reason := self._stop_reason():
-                return reason
-        return ""
 
     def _stop_reason(self) -> str:
         """Why the arm cannot be commanded now, in one line, or ``""``."""

@@ -51,7 +51,6 @@ PROTECTIVE_FORCE = 150.0  # N between the robot and the table: a UR's default fo
 STOP_DECELERATION = 15.0  # rad/s^2 with which a stopped program brings the joints to rest
 FEED_FORWARD_PERIODS = 5  # servo periods the servo's speed feed-forward averages over
 STALLED_PERIODS = 3  # servo periods without a new target after which the stream has stopped
-# (the arm then brakes from the stream's speed at STOP_DECELERATION)
 
 
 @dataclass(frozen=True)
@@ -111,11 +110,7 @@ class EmulatedArm:
         gripper_output: int | None = None,
     ) -> None:
         self.task = task
-        # A UR's joint servos damp the speed error, not the speed: the plant's servos
-        # are the twin's tracking ones (twinrl_sim.servo), stepped here at the servo rate.
-        physics = task.scene.physics.model_copy(update={"servo": "track"})
-        scene = task.scene.model_copy(update={"physics": physics})
-        self.cell = Cell(compile_scene(scene, extra_effects=effects or None))
+        self.cell = Cell(compile_scene(task.scene, extra_effects=effects or None))
         model = self.cell.model
         steps = model.opt.timestep * servo_hz
         self.physics_per_tick = max(1, round(1.0 / steps))
@@ -133,7 +128,8 @@ class EmulatedArm:
         self.gripper_position = 0.0
         self.ticks = 0
         self._motion = _Motion()
-        self._lead = self.cell.servo_lead or 0.0  # s of velocity feed-forward
+        kp = model.actuator_gainprm[self.cell.arm_act, 0]
+        self._lead = model.dof_damping[self.cell.arm_dof] / np.maximum(kp, 1e-9)  # s
         self._flange = model.body(self.cell.layout.flange_body).id
         self._base = model.body(MOUNT_BODY).id
         self._table = model.geom(self.cell.layout.table_geom).id
@@ -145,8 +141,6 @@ class EmulatedArm:
         self._feed_forward = np.zeros_like(self._reference)
         self._history: deque[np.ndarray] = deque(maxlen=FEED_FORWARD_PERIODS + 1)
         self._unchanged = 0
-        self._stream_velocity = np.zeros_like(self._reference)
-        self._stale_target: np.ndarray | None = None  # a dried-up stream's last target
 
     # -------------------------------------------------------------- commands
     def servo_pose(self, pose: np.ndarray) -> None:
@@ -156,16 +150,10 @@ class EmulatedArm:
             self.servo(self.tool.solve(pose, start))
 
     def servo(self, q: np.ndarray) -> None:
-        """servoJ: track ``q`` from the next period on (the newest target wins). The
-        script re-sends its last target every cycle; once the stream has dried up and the
-        arm braked, that stale target is ignored until a new one comes."""
+        """servoJ: track ``q`` from the next period on (the newest target wins)."""
         with self.lock:
-            q = np.asarray(q, float)
-            if self._stale_target is not None and np.array_equal(q, self._stale_target):
-                return
-            self._stale_target = None
             if self._may_move():
-                self._motion = _Motion("servo", target=q)
+                self._motion = _Motion("servo", target=np.asarray(q, float))
 
     def speed(self, qd: np.ndarray, acceleration: float) -> None:
         """speedJ: run the joints at ``qd`` (rad/s), reached at ``acceleration``."""
@@ -234,7 +222,6 @@ class EmulatedArm:
         self._reference = self.cell.arm_q
         self._reference_velocity[:] = 0.0
         self._feed_forward[:] = 0.0
-        self._stream_velocity[:] = 0.0
         self._history.clear()
 
     # ------------------------------------------------------------------ scene
@@ -268,8 +255,8 @@ class EmulatedArm:
         with self.lock:
             self._advance_reference()
             cell = self.cell
-            # Velocity feed-forward, as a UR's servo does: the position servo would lag its
-            # reference by damping/stiffness x speed; leading the reference by as much
+            # Velocity feed-forward, as a UR's servo does: the plant's position servo lags
+            # its reference by damping/stiffness x speed; leading the reference by as much
             # lets the arm track servo targets closely at any speed.
             cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._feed_forward
             if cell.gripper_act is not None:
@@ -286,15 +273,6 @@ class EmulatedArm:
     def _advance_reference(self) -> None:
         motion, dt = self._motion, self.period
         previous = self._reference.copy()
-        stalled = motion.kind == "servo" and self._unchanged >= STALLED_PERIODS
-        if stalled and np.any(self._stream_velocity):
-            # The stream dried up mid-motion (a frozen host): brake from its speed, then
-            # return to its last target. Stopping dead on the target would ask more
-            # torque than the joints have: the arm would overshoot and creep back.
-            self._reference_velocity = self._stream_velocity
-            self._stream_velocity = np.zeros_like(self._reference)
-            self._stale_target = motion.target
-            self._motion = motion = _Motion("stop", acceleration=STOP_DECELERATION)
         if motion.kind == "servo" and motion.target is not None:
             self._reference = motion.target.copy()
         elif motion.kind == "speed" and motion.velocity is not None:
@@ -311,13 +289,7 @@ class EmulatedArm:
             slower = max(0.0, speed - motion.acceleration * dt)
             scale = slower / speed if speed > 0 else 0.0
             self._reference = self._reference + self._reference_velocity * scale * dt
-            if slower == 0.0 and self._stale_target is not None:
-                # Braked past a dried-up stream's last target: the servo's last target
-                # is where the arm ends, so it goes back there.
-                self._motion = _Motion(
-                    "move", target=self._stale_target, speed=0.5, acceleration=motion.acceleration
-                )
-            elif slower == 0.0:
+            if slower == 0.0:
                 self._motion = _Motion("idle")
         self._reference_velocity = (self._reference - previous) / dt
         self._feed_forward = self._servo_feed_forward(previous)
@@ -332,10 +304,7 @@ class EmulatedArm:
         self._unchanged = self._unchanged + 1 if unchanged else 0
         if self._unchanged >= STALLED_PERIODS or len(self._history) < 2:
             return np.zeros_like(self._reference)
-        speed = (self._history[-1] - self._history[0]) / ((len(self._history) - 1) * self.period)
-        if not unchanged and self._motion.kind == "servo":
-            self._stream_velocity = speed  # what a dried-up stream brakes from
-        return speed
+        return (self._history[-1] - self._history[0]) / ((len(self._history) - 1) * self.period)
 
     def _move_step(self, motion: _Motion, dt: float) -> np.ndarray:
         """One period of a synchronised trapezoidal joint move toward ``motion.target``."""
