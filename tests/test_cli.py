@@ -12,7 +12,7 @@ from twinrl_learn.cli import app
 runner = CliRunner()
 
 
-def twinrl(*args: str, cwd=None) -> subprocess.CompletedProcess:
+def twinrl(*args: str, cwd=None, stdin: str = "") -> subprocess.CompletedProcess:
     """Run the real entry point (so exit codes and stderr are what a user sees)."""
     return subprocess.run(
         [sys.executable, "-m", "twinrl_learn", *args],
@@ -20,6 +20,7 @@ def twinrl(*args: str, cwd=None) -> subprocess.CompletedProcess:
         text=True,
         timeout=300,
         cwd=cwd,
+        input=stdin,
     )
 
 

@@ -3,24 +3,13 @@ start pose is shown and confirmed, recorded as a new episode and overlaid in Rer
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.test_cli import twinrl
 from twinrl_data.session import Session
 from twinrl_robot.scripted import run_scripted_expert
-
-
-def twinrl(*args: str, stdin: str = "") -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "twinrl_learn", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        input=stdin,
-    )
 
 
 @pytest.fixture(scope="module")

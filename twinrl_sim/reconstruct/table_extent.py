@@ -143,7 +143,7 @@ def measure_table(
         [values[seen & in_core] for seen, values in sampled] or [np.empty((0, 3))]
     )
     if len(samples) < 50:
-        return dataclasses.replace(table, extent_from="points")
+        return table  # its extent_from stays "points"
     colour_model = TableColour.fit(samples)
     seen_count = np.zeros(len(cells))
     table_votes = np.zeros(len(cells))
@@ -162,7 +162,7 @@ def measure_table(
     core_labels = labels.ravel()[in_core]
     core_labels = core_labels[core_labels > 0]
     if count < 2 or len(core_labels) == 0:
-        return dataclasses.replace(table, extent_from="points")
+        return table  # its extent_from stays "points"
     region = _fill_holes(labels == np.bincount(core_labels).argmax())
     rows, columns = np.nonzero(region)
     low = np.array([grid.u[columns.min()], grid.v[rows.min()]]) - CELL / 2
