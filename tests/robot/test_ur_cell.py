@@ -154,6 +154,29 @@ def path_distance_rms(path: np.ndarray, other: np.ndarray, reach: int = 3) -> fl
     return float(np.sqrt(np.mean(np.square(distances)) / path.shape[1]))
 
 
+def test_a_host_busy_between_episodes_keeps_the_control_program(emulated) -> None:
+    """Connecting arms the 100 ms watchdog; the host then opens its recorder, arranges a
+    scene or writes an episode for longer than that without servoing, and the program
+    must still be running when the next episode starts."""
+    cell, _ = emulated
+    host = yaml.safe_load(cell.read_text())["arm"]["host"]
+    harness = HarnessClient(host)
+    task = make_task("pick_place")
+    robot = open_robot("real", task, cell=cell, emulated=True)
+    try:
+        time.sleep(0.5)  # five watchdog periods with nothing from the episode loop
+        assert harness.reading()["program_running"], "the watchdog stopped an idle host"
+        config = task.sample_config(np.random.default_rng(0))
+        robot.reset(config)
+        robot.act(np.array([0.01, 0, 0, 0, 0, 0, 0], np.float32))
+        robot.unwrapped.hold()
+        time.sleep(0.5)  # between episodes
+        robot.reset(config)
+    finally:
+        robot.close()
+        harness.close()
+
+
 def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) -> None:
     cell, _ = emulated
     host = yaml.safe_load(cell.read_text())["arm"]["host"]

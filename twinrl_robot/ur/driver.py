@@ -39,7 +39,7 @@ from twinrl_robot.guard import GuardLimits, JointGuard
 from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.ur.cameras import CameraRig
 from twinrl_robot.ur.gripper import Gripper, NoGripper
-from twinrl_robot.ur.servo import ServoStream
+from twinrl_robot.ur.servo import ServoStream, SharedControl
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -131,13 +131,15 @@ class URArm:
         self.start_q = np.array(twin.layout.home_qpos, float)
         self.fault: str | None = None
         self._counts_at_reset: dict[str, dict[str, int]] = {}
-        self._receive, self._control = _connect(self.host, self.servo_hz)
-        self._apply_cell_settings()
+        self._receive, control = _connect(self.host, self.servo_hz)
+        self._control = SharedControl(control)
         tool = ToolFrame(
             twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
         )
         servo_pose = tool.pose if cell.arm.servo == "servol" else None
         self.stream = ServoStream(self._control, self.servo_hz, servo_pose)
+        self.stream.open()  # kicks the watchdog from here on, whatever the host does
+        self._apply_cell_settings()
         self._next_step: float | None = None
 
     # ---------------------------------------------------------------- episode
@@ -160,13 +162,12 @@ class URArm:
         return self.observe()
 
     def _move_to(self, q: np.ndarray) -> None:
-        """moveJ to ``q``, asynchronously so the watchdog is kept alive while it moves."""
+        """moveJ to ``q``, asynchronously (the stream's thread keeps kicking the watchdog)."""
         if not self._control.moveJ(q.tolist(), RESET_SPEED, RESET_ACCELERATION, True):
             self._check(refused="the controller refused the move to the start pose")
         distance = float(np.abs(q - self.measured_q()).max())
         deadline = time.monotonic() + 3.0 + 2.0 * distance / RESET_SPEED
         while True:
-            self._control.kickWatchdog()
             self._check()
             arrived = np.abs(self.measured_q() - q).max() < ARRIVED
             if arrived and np.abs(self._receive.getActualQd()).max() < 1e-2:
@@ -222,7 +223,7 @@ class URArm:
         }
 
     def close(self) -> None:
-        self.stream.stop()
+        self.stream.close()
         try:
             if self._control.isProgramRunning():
                 self._control.servoStop(SERVO_STOP_DECELERATION)
@@ -255,14 +256,16 @@ class URArm:
                         "pendant for a popup and that it is in Remote Control"
                     )
                 time.sleep(0.01)
+            self.stream.resume()
             self._apply_cell_settings()  # a new program has no watchdog, TCP or payload yet
-        self.fault = self.stream.fault = None
+        self.stream.resume()
+        self.fault = None
 
     def _check(self, refused: str | None = None) -> None:
         if self.fault is None:
             reason = self._stop_reason() or self.stream.fault or refused
             if reason:
-                self.stream.stop()
+                self.stream.silence()
                 self.fault = reason
         if self.fault is not None:
             raise RobotStopped(self.fault)

@@ -1,4 +1,4 @@
-"""The servo stream: joint targets sent to a UR controller at its own rate.
+"""The servo stream: the one thread that talks to a UR controller at its own rate.
 
 The episode moves at the control rate (10 Hz); a UR controller servos at 125 Hz (CB3)
 or 500 Hz (e-Series) and wants a servoJ target every one of its periods. The stream
@@ -7,9 +7,18 @@ point of the current control step's segment that the clock has reached: each con
 target's segment runs from the previous target to it over one control period, starting
 when the previous segment ends (or now, if that has passed). So the arm follows the
 same path whatever the host's timing jitter: a step that comes a little early waits for
-the previous one to finish instead of cutting its corner. Every servoJ package
-refreshes the controller's RTDE watchdog; a stream that stops (the host process hangs
-or dies, the network goes) lets the watchdog stop the program on the controller.
+the previous one to finish instead of cutting its corner.
+
+The controller's RTDE watchdog stops its program when no command came for the cell's
+``watchdog_ms``. Every servoJ package refreshes it; between episodes (the arm moving to
+its start pose, objects being arranged, the host writing an episode) the thread kicks
+it instead, from the moment the connection opens until it closes. So only a host that
+hangs or dies, or a network that goes, lets the watchdog stop the program; after a
+fault the thread sends nothing until the stop is acknowledged.
+
+ur_rtde's control interface speaks a command-register protocol in which one command
+must finish before the next begins, so the driver and this thread share it through
+:class:`SharedControl`, one command at a time.
 """
 
 from __future__ import annotations
@@ -24,20 +33,48 @@ import numpy as np
 SERVO_LOOKAHEAD = 0.1  # s: servoJ's lookahead time (0.03..0.2); smooths the target
 SERVO_GAIN = 300.0  # servoJ's proportional gain (100..2000)
 GIL_SWITCH_INTERVAL = 2e-4  # s: how soon the stream thread gets the interpreter back
+IDLE, SERVO, SILENT, CLOSED = "idle", "servo", "silent", "closed"
+
+
+class SharedControl:
+    """An ``RTDEControlInterface`` used from several threads, one command at a time.
+
+    Every method call on it holds one lock; ``initPeriod``/``waitPeriod`` (the host's
+    own clock) do not, so a thread waiting for its next period never blocks another.
+    """
+
+    _UNLOCKED = frozenset({"initPeriod", "waitPeriod"})
+
+    def __init__(self, control: object) -> None:
+        self._control = control
+        self._lock = threading.Lock()
+
+    def __getattr__(self, name: str) -> Callable:
+        method = getattr(self._control, name)
+        if name in self._UNLOCKED or not callable(method):
+            return method
+
+        def call(*args: object) -> object:
+            with self._lock:
+                return method(*args)
+
+        return call
 
 
 class ServoStream:
-    """Streams servo targets over ``control`` (an ``RTDEControlInterface``) at ``servo_hz``.
+    """Streams servo targets over ``control`` at ``servo_hz``, and keeps the watchdog
+    fed between episodes.
 
     Targets are joint positions; ``servo_pose`` (e.g. the controller TCP's forward
     kinematics) turns each into a TCP pose sent with servoL instead of servoJ. ``fault``
-    is set, with a reason, when the controller refuses a target (its program stopped);
-    the driver reports it at the next control step.
+    is set, with a reason, when the controller refuses a command (its program stopped)
+    or the connection fails; the thread then falls silent and the driver reports the
+    fault at the next control step.
     """
 
     def __init__(
         self,
-        control: object,
+        control: SharedControl,
         servo_hz: float,
         servo_pose: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
@@ -49,20 +86,28 @@ class ServoStream:
         # (start, end, began, duration); the previous segment runs until this one begins.
         self._segment: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._previous: tuple[np.ndarray, np.ndarray, float, float] | None = None
-        self._running = False
+        self._mode = SILENT
         self._thread: threading.Thread | None = None
 
-    def start(self, q: np.ndarray) -> None:
-        """Start streaming, holding ``q`` until the first target arrives."""
-        self.stop()
-        q = np.asarray(q, float)
-        self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
-        self.fault = None
-        self._running = True
+    def open(self) -> None:
+        """Start the thread, kicking the watchdog (call once, right after connecting)."""
+        self._mode = IDLE
         if sys.getswitchinterval() > GIL_SWITCH_INTERVAL:
             sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         self._thread = threading.Thread(target=self._run, name="ur-servo", daemon=True)
         self._thread.start()
+
+    @property
+    def streaming(self) -> bool:
+        return self._mode == SERVO
+
+    def start(self, q: np.ndarray) -> None:
+        """Start streaming, holding ``q`` until the first target arrives."""
+        q = np.asarray(q, float)
+        with self._lock:
+            self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
+        self.fault = None
+        self._mode = SERVO
 
     def push(self, target: np.ndarray, duration: float) -> None:
         """Move from the previous target to ``target`` over ``duration`` seconds, from the
@@ -84,8 +129,25 @@ class ServoStream:
             self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
 
     def stop(self) -> None:
-        """Stop streaming (the thread ends; the controller holds the last target)."""
-        self._running = False
+        """Stop sending targets (the controller holds the last one); the watchdog is
+        still kicked, so the driver may move the arm with other commands."""
+        if self._mode == SERVO:
+            self._mode = IDLE
+
+    def resume(self) -> None:
+        """After an acknowledged fault: kick the watchdog again."""
+        self.fault = None
+        if self._mode == SILENT:
+            self._mode = IDLE
+
+    def silence(self) -> None:
+        """Send nothing more (a fault): the controller's program stays stopped."""
+        if self._mode != CLOSED:
+            self._mode = SILENT
+
+    def close(self) -> None:
+        """End the thread."""
+        self._mode = CLOSED
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=1.0)
         self._thread = None
@@ -102,27 +164,43 @@ class ServoStream:
         return start + (end - start) * fraction
 
     def _run(self) -> None:
-        control, period = self.control, self.servo_period
-        last = time.perf_counter()
-        while self._running:
-            began = control.initPeriod()  # type: ignore[attr-defined]
-            with self._lock:
-                q = self._point(time.monotonic())
-            if self.servo_pose is None:
-                sent = control.servoJ(  # type: ignore[attr-defined]
-                    q.tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN
-                )
+        control = self.control
+        last: float | None = None
+        while (mode := self._mode) != CLOSED:
+            began = control.initPeriod()
+            if mode == SILENT:
+                last = None
             else:
-                sent = control.servoL(  # type: ignore[attr-defined]
-                    self.servo_pose(q).tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN
-                )
-            if not sent:
-                self.fault = "the controller refused a servo target: its program is not running"
-                self._running = False
-                return
-            now = time.perf_counter()
+                try:
+                    sent = self._send_target() if mode == SERVO else control.kickWatchdog()
+                except RuntimeError as err:  # ur_rtde lost the connection
+                    self._fail(f"the connection to the controller failed ({err})")
+                    continue
+                if not sent:
+                    what = "a servo target" if mode == SERVO else "a watchdog kick"
+                    self._fail(f"the controller refused {what}: its program is not running")
+                    continue
+                last = self._count_period(last) if mode == SERVO else None
+            control.waitPeriod(began)
+
+    def _send_target(self) -> bool:
+        with self._lock:
+            q = self._point(time.monotonic())
+        period = self.servo_period
+        if self.servo_pose is None:
+            return self.control.servoJ(q.tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN)
+        pose = self.servo_pose(q).tolist()
+        return self.control.servoL(pose, 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN)
+
+    def _fail(self, reason: str) -> None:
+        if self._mode != CLOSED:
+            self.fault = reason
+            self._mode = SILENT
+
+    def _count_period(self, last: float | None) -> float:
+        now = time.perf_counter()
+        if last is not None:
             self.periods.append(now - last)
             if len(self.periods) > 20_000:
                 del self.periods[:10_000]
-            last = now
-            control.waitPeriod(began)  # type: ignore[attr-defined]
+        return now

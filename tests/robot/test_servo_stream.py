@@ -1,0 +1,111 @@
+"""The servo stream against a recording stand-in for ur_rtde's control interface: it
+kicks the watchdog whenever it is not servoing, sends nothing after a fault, and never
+lets two threads' commands interleave."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from twinrl_robot.ur.servo import ServoStream, SharedControl
+
+
+class RecordingControl:
+    """Answers like ``RTDEControlInterface`` and records each command; a command that
+    overlaps another (two threads inside at once) is counted."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.overlaps = 0
+        self.program_running = True
+        self._inside = 0
+        self._guard = threading.Lock()
+
+    def _command(self, name: str, seconds: float = 0.0) -> bool:
+        with self._guard:
+            self._inside += 1
+            self.overlaps += self._inside > 1
+        time.sleep(seconds)
+        self.calls.append(name)
+        with self._guard:
+            self._inside -= 1
+        return self.program_running
+
+    def initPeriod(self) -> float:
+        return time.perf_counter()
+
+    def waitPeriod(self, began: float) -> None:
+        time.sleep(max(0.0, began + 0.002 - time.perf_counter()))
+
+    def kickWatchdog(self) -> bool:
+        return self._command("kick")
+
+    def servoJ(self, *args: object) -> bool:
+        return self._command("servoJ")
+
+    def moveJ(self, *args: object) -> bool:
+        return self._command("moveJ", 0.01)
+
+
+def wait_for(condition, seconds: float = 2.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.005)
+
+
+def test_the_watchdog_is_kicked_from_open_whenever_no_target_is_sent() -> None:
+    control = RecordingControl()
+    stream = ServoStream(SharedControl(control), 500.0)
+    stream.open()
+    try:
+        wait_for(lambda: control.calls.count("kick") >= 5)
+        stream.start(np.zeros(6))
+        wait_for(lambda: control.calls.count("servoJ") >= 5)
+        stream.stop()
+        kicks = control.calls.count("kick")
+        wait_for(lambda: control.calls.count("kick") >= kicks + 5)
+        assert stream.fault is None
+    finally:
+        stream.close()
+    count = len(control.calls)
+    time.sleep(0.02)
+    assert len(control.calls) == count, "a closed stream sends nothing"
+
+
+def test_a_refused_kick_is_a_fault_and_silences_the_stream_until_resumed() -> None:
+    control = RecordingControl()
+    stream = ServoStream(SharedControl(control), 500.0)
+    stream.open()
+    try:
+        control.program_running = False  # the watchdog or the pendant stopped the program
+        wait_for(lambda: stream.fault is not None)
+        assert "refused a watchdog kick" in stream.fault
+        count = len(control.calls)
+        time.sleep(0.02)
+        assert len(control.calls) == count, "nothing is sent after a fault"
+        control.program_running = True
+        stream.resume()
+        wait_for(lambda: len(control.calls) > count + 3)
+        assert stream.fault is None
+    finally:
+        stream.close()
+
+
+def test_the_drivers_commands_never_interleave_with_the_streams() -> None:
+    control = RecordingControl()
+    shared = SharedControl(control)
+    stream = ServoStream(shared, 500.0)
+    stream.open()
+    try:
+        for _ in range(20):
+            shared.moveJ([0.0] * 6, 0.6, 1.2, True)
+        stream.start(np.zeros(6))
+        for _ in range(20):
+            shared.moveJ([0.0] * 6, 0.6, 1.2, True)
+    finally:
+        stream.close()
+    assert control.calls.count("moveJ") == 40
+    assert control.overlaps == 0
