@@ -407,20 +407,27 @@ class Summary:
 
 
 def read_summary(path: str | Path) -> Summary:
-    """The metadata of an episode file, finished or not (a killed recorder's file has
-    its start record and no end record)."""
+    """The metadata of an episode file, finished or not.
+
+    A file counts as finished only when it has its end record *and* runs to the MCAP
+    footer: the end record is written before the last chunk of steps and the summary,
+    so a recorder killed while finishing leaves a file with an end record that is not
+    whole (``length`` is ``None`` for it, as for a file with no end record)."""
     path = _open_checked(path)
     records: dict[str, dict[str, Any]] = {}
+    whole = False
     try:
         with open(path, "rb") as f:
             for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
                 if isinstance(record, Metadata):
                     records[record.name] = _decode(record.metadata)
+        whole = True
     except Exception as err:
         if META_START not in records:
             raise _damaged(path, err) from None
     end = records.get(META_END)
-    return Summary(_meta_from(path, records), None if end is None else int(end["length"]))
+    length = int(end["length"]) if end is not None and whole else None
+    return Summary(_meta_from(path, records), length)
 
 
 def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.EpisodeMeta:

@@ -161,6 +161,30 @@ def test_repair_adopts_orphans_reports_missing_and_recovers_an_unfinished_episod
     assert running.path.is_file()  # left alone
 
 
+def test_a_recorder_killed_while_finishing_leaves_no_listed_episode_unreadable(tmp_path):
+    """The end record goes into the file before its last chunk of steps and its summary:
+    a kill anywhere in between leaves an end record in a file that is not whole, which
+    must neither be listed as finished nor hide its steps from repair."""
+    session = Session.create(tmp_path / "s")
+    (path,) = _record(session, 1, length=15)
+    whole = path.read_bytes()
+    end_record = whole.find(mcap_log.META_END.encode())
+    assert 0 < end_record < len(whole) - 100
+    manifest = json.loads((tmp_path / "s" / MANIFEST).read_text())
+    manifest["episodes"][0].update(status="recording")  # its entry was never updated
+    manifest["episodes"][0].pop("length")
+    cuts = range(end_record, len(whole), max(1, (len(whole) - end_record) // 25))
+    for cut in cuts:
+        (tmp_path / "s" / MANIFEST).write_text(json.dumps(manifest))
+        path.write_bytes(whole[:cut])
+        for file in Session(tmp_path / "s").readable_paths():
+            assert len(read_episode(file, images=False)) == 15, f"cut at {cut}"
+    assert len(cuts) > 10
+    report = repair_session(tmp_path / "s")
+    assert report.recovered == [f"episodes/{path.name}"]
+    assert len(read_episode(path, images=False)) >= 1
+
+
 def test_files_take_their_permissions_from_the_umask(tmp_path):
     old = os.umask(0o022)
     try:

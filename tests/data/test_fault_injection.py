@@ -19,9 +19,6 @@ from twinrl_data.mcap_log import read_episode, read_summary
 from twinrl_data.repair import repair_session
 from twinrl_data.session import Session
 
-# Timed kills: beside another worker one left a listed episode damaged (a race to find).
-pytestmark = pytest.mark.realtime
-
 ROOT = Path(__file__).resolve().parents[2]
 
 RECORDER = """
