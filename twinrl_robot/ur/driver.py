@@ -52,6 +52,22 @@ RESET_SPEED, RESET_ACCELERATION = 0.6, 1.2  # rad/s, rad/s^2 of the move to a st
 SERVO_STOP_DECELERATION = 10.0  # rad/s^2
 ARRIVED = 2e-3  # rad from a move's goal that counts as there
 RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
+EMERGENCY_STOP = (
+    "the emergency stop is pressed; release it, power the arm on and release the brakes on "
+    "the pendant, then acknowledge"
+)
+PROTECTIVE_STOP = (
+    "the arm is in a protective stop (it hit something or exceeded a limit); inspect the "
+    "cell, unlock it on the pendant, then acknowledge"
+)
+LEFT_REMOTE = (
+    "the controller left remote control; switch the pendant back to Remote Control, then "
+    "acknowledge"
+)
+PROGRAM_STOPPED = (
+    "the control program on the controller stopped (watchdog: the host stopped sending, or "
+    "stopped from the pendant); acknowledge to start it again"
+)
 Arrange = Callable[[TaskConfig], None]
 """Sets a configuration's objects up in the cell (a person guided by the twin; the
 emulator's harness in tests); the arm is already at its start pose."""
@@ -263,7 +279,13 @@ class URArm:
 
     def _check(self, refused: str | None = None) -> None:
         if self.fault is None:
-            reason = self._stop_reason() or self.stream.fault or refused
+            reason = self._stop_reason()
+            if not reason and (self.stream.fault or refused):
+                # The controller refused a command before its published state shows why
+                # (the receive interface lags the control interface by a packet or two):
+                # its dashboard says at once whether the pendant or a stop is the cause.
+                cause = self._refusal_cause() if not self.stream.connection_failed else ""
+                reason = cause or self.stream.fault or refused or ""
             if reason:
                 self.stream.silence()
                 self.fault = reason
@@ -272,32 +294,33 @@ class URArm:
 
     def _stop_reason(self) -> str:
         """Why the arm cannot be commanded now, in one line, or ``""``."""
-        receive, host = self._receive, self.host
+        receive = self._receive
         if not receive.isConnected():
             return (
-                f"lost the connection to the controller at {host}; check the network cable "
-                "and the controller, then reconnect"
+                f"lost the connection to the controller at {self.host}; check the network "
+                "cable and the controller, then reconnect"
             )
         if receive.isEmergencyStopped():
-            return (
-                "the emergency stop is pressed; release it, power the arm on and release the "
-                "brakes on the pendant, then acknowledge"
-            )
+            return EMERGENCY_STOP
         if receive.isProtectiveStopped():
-            return (
-                "the arm is in a protective stop (it hit something or exceeded a limit); "
-                "inspect the cell, unlock it on the pendant, then acknowledge"
-            )
+            return PROTECTIVE_STOP
         if receive.getRuntimeState() != 2:
-            if not _in_remote_control(host):
-                return (
-                    "the controller left remote control; switch the pendant back to Remote "
-                    "Control, then acknowledge"
-                )
-            return (
-                "the control program on the controller stopped (watchdog: the host stopped "
-                "sending, or stopped from the pendant); acknowledge to start it again"
-            )
+            status = _dashboard_status(self.host)
+            return LEFT_REMOTE if status is not None and not status[0] else PROGRAM_STOPPED
+        return ""
+
+    def _refusal_cause(self) -> str:
+        """What the dashboard says stopped the arm (``""``: nothing it knows of)."""
+        status = _dashboard_status(self.host)
+        if status is None:
+            return ""
+        remote, safety = status
+        if not remote:
+            return LEFT_REMOTE
+        if "EMERGENCY" in safety.upper():
+            return EMERGENCY_STOP
+        if "PROTECTIVE" in safety.upper():
+            return PROTECTIVE_STOP
         return ""
 
     # ------------------------------------------------------------------ inside
@@ -368,16 +391,16 @@ def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
     return receive, control
 
 
-def _in_remote_control(host: str) -> bool:
-    """Whether the controller's dashboard says it is in remote control (``True`` when the
-    dashboard cannot be asked)."""
+def _dashboard_status(host: str) -> tuple[bool, str] | None:
+    """Whether the controller's dashboard says it is in remote control, and its safety
+    status (``None`` when the dashboard cannot be asked)."""
     import dashboard_client
 
     dashboard = dashboard_client.DashboardClient(host)
     try:
         dashboard.connect()
-        return bool(dashboard.isInRemoteControl())
+        return bool(dashboard.isInRemoteControl()), str(dashboard.safetystatus())
     except RuntimeError:
-        return True
+        return None
     finally:
         dashboard.disconnect()

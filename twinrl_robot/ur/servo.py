@@ -81,6 +81,7 @@ class ServoStream:
         self.control, self.servo_period = control, 1.0 / servo_hz
         self.servo_pose = servo_pose
         self.fault: str | None = None
+        self.connection_failed = False  # the fault is the connection's, not a refusal
         self.periods: list[float] = []  # s between consecutive targets sent (newest last)
         self._lock = threading.Lock()
         # (start, end, began, duration); the previous segment runs until this one begins.
@@ -136,7 +137,7 @@ class ServoStream:
 
     def resume(self) -> None:
         """After an acknowledged fault: kick the watchdog again."""
-        self.fault = None
+        self.fault, self.connection_failed = None, False
         if self._mode == SILENT:
             self._mode = IDLE
 
@@ -174,6 +175,7 @@ class ServoStream:
                 try:
                     sent = self._send_target() if mode == SERVO else control.kickWatchdog()
                 except RuntimeError as err:  # ur_rtde lost the connection
+                    self.connection_failed = True
                     self._fail(f"the connection to the controller failed ({err})")
                     continue
                 if not sent:

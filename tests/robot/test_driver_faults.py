@@ -1,0 +1,69 @@
+"""How the UR driver names a stop when the controller refuses a command before its
+published state shows why (the receive interface lags the control interface): the
+dashboard's word wins, then the refusal itself."""
+
+from __future__ import annotations
+
+import pytest
+
+from twinrl_robot.ur import driver
+from twinrl_robot.ur.driver import RobotStopped, URArm
+from twinrl_robot.ur.servo import ServoStream
+
+
+class StaleReceive:
+    """A receive interface whose last packet still shows a running program."""
+
+    def isConnected(self) -> bool:
+        return True
+
+    def isEmergencyStopped(self) -> bool:
+        return False
+
+    def isProtectiveStopped(self) -> bool:
+        return False
+
+    def getRuntimeState(self) -> int:
+        return 2
+
+
+def refused_arm(connection_failed: bool = False) -> URArm:
+    arm = object.__new__(URArm)  # no controller: only the fault path is exercised
+    arm.host, arm.fault, arm._receive = "192.0.2.1", None, StaleReceive()
+    arm.stream = ServoStream(object(), 500.0)
+    arm.stream.fault = "the controller refused a servo target: its program is not running"
+    arm.stream.connection_failed = connection_failed
+    return arm
+
+
+@pytest.mark.parametrize(
+    ("dashboard", "named"),
+    [
+        ((False, "Safetystatus: NORMAL"), driver.LEFT_REMOTE),
+        ((True, "Safetystatus: PROTECTIVE_STOP"), driver.PROTECTIVE_STOP),
+        ((True, "Safetystatus: ROBOT_EMERGENCY_STOP"), driver.EMERGENCY_STOP),
+        ((True, "Safetystatus: NORMAL"), "refused a servo target"),
+        (None, "refused a servo target"),  # the dashboard does not answer
+    ],
+)
+def test_a_refusal_is_named_by_the_dashboard_before_the_state_shows_it(
+    monkeypatch, dashboard, named
+) -> None:
+    monkeypatch.setattr(driver, "_dashboard_status", lambda host: dashboard)
+    arm = refused_arm()
+    with pytest.raises(RobotStopped, match=named[:30]) as stopped:
+        arm._check()
+    assert "\n" not in str(stopped.value)
+    with pytest.raises(RobotStopped, match=named[:30]):
+        arm._check()  # the same fault until acknowledged
+
+
+def test_a_failed_connection_is_not_asked_of_the_dashboard(monkeypatch) -> None:
+    def unreachable(host: str) -> tuple[bool, str]:
+        raise AssertionError("the dashboard was asked after the connection failed")
+
+    monkeypatch.setattr(driver, "_dashboard_status", unreachable)
+    arm = refused_arm(connection_failed=True)
+    arm.stream.fault = "the connection to the controller failed (broken pipe)"
+    with pytest.raises(RobotStopped, match="connection to the controller failed"):
+        arm._check()
