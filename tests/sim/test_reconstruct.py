@@ -22,12 +22,20 @@ from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
 from twinrl_sim.reconstruct.segment import TablePlane, TagPlane, describe_cluster, level_table
 from twinrl_sim.reconstruct.synthetic import (
     THREE_TAGS,
+    TagPlacement,
     WalkthroughSettings,
     render_fixed_view,
     render_walkthrough,
 )
 from twinrl_sim.reconstruct.table_extent import TableColour, read_colour
-from twinrl_sim.reconstruct.tag import other_families_seen
+from twinrl_sim.reconstruct.tag import (
+    DEFAULT_FAMILY,
+    FAMILIES,
+    detect,
+    family,
+    other_families_seen,
+    tag_image,
+)
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task
 
@@ -288,6 +296,7 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         ([*TAG, "--object-mesh", "apple=x.stl", "--task", "pick_place"], "no such file"),
         ([*TAG, "--density", "banana"], "must look like NAME=VALUE"),
         ([*TAG, "--task", "pick_plce"], "did you mean 'pick_place'"),
+        ([*TAG, "--tag-family", "qr"], "--tag-family 'qr' is not one of tag36h11, tag36h10"),
     ],
 )
 def test_bad_arguments_are_refused_before_any_work(tmp_path, args, message):
@@ -394,7 +403,53 @@ def test_a_missing_tag_or_another_family_is_named(built, clip):
     marker = cv2.aruco.generateImageMarker(
         cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_250), 3, 200
     )
-    assert other_families_seen(np.pad(marker, 40, constant_values=255)) == ["aruco 4x4"]
+    assert other_families_seen(np.pad(marker, 40, constant_values=255)) == ["aruco4x4"]
+
+
+@pytest.mark.parametrize("name", list(FAMILIES))
+def test_every_family_prints_and_reads_back_with_its_corners(name):
+    cell_px, pad = 12, 40
+    image = np.pad(tag_image(5, cell_px, 1, name), pad, constant_values=255)
+    (found,) = [d for d in detect(image, family_name=name) if d.tag_id == 5]
+    low = pad + cell_px - 0.5  # the black square starts after the white margin cell
+    high = low + family(name).cells * cell_px
+    square = np.array([[low, low], [high, low], [high, high], [low, high]])
+    assert np.abs(found.corners - square).max() < 1.0
+    # Read with the default family, a tag of another one is not taken for a 36h11 tag 5.
+    if name != DEFAULT_FAMILY:
+        assert not [d for d in detect(image) if d.tag_id == 5]
+
+
+@pytest.mark.slow
+def test_a_build_reads_the_tag_family_it_is_told(tmp_path):
+    tag = TagPlacement(family="aruco5x5", size=0.1)
+    walk = render_walkthrough(SCENE, tmp_path / "walk.mp4", tags=(tag,), settings=CLIP, seed=1)
+    settings = BuildSettings(
+        tag_size=tag.size,
+        tag_pose=tuple(walk.tag_poses[0]),
+        tag_family="aruco5x5",
+        frames=30,
+        keep_work=True,
+    )
+    built = build_twin(walk.video, tmp_path / "cell", settings)
+    assert built.alignment.residual_m < 0.002
+    truth = walk.camera_positions[built.selection.source_indices]
+    assert np.median(np.linalg.norm(built.camera_path - truth, axis=1)) < 0.02
+    frames = built.selection.paths[0].parent
+    with pytest.raises(
+        CaptureError, match="ArUco 5x5 markers instead: set `tag_family` to aruco5x5"
+    ):
+        align_to_tag(built.model, frames, walk.tag_poses[0], tag.size)
+
+
+def test_the_tag_family_setting_lists_every_family():
+    from twinrl_sim.reconstruct import settings
+
+    assert BuildSettings().tag_family == DEFAULT_FAMILY
+    source = Path(settings.__file__).read_text()
+    described = source.split("tag_family: str")[1].split("tags_on_table")[0]
+    words = set(described.replace(",", " ").replace("(", " ").replace(")", " ").split())
+    assert set(FAMILIES) <= words
 
 
 def test_unreadable_sources_say_what_to_give(tmp_path):

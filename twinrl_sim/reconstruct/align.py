@@ -28,7 +28,13 @@ from twinrl_data.errors import SettingError
 from twinrl_sim.errors import TwinError
 from twinrl_sim.reconstruct.frames import CaptureError
 from twinrl_sim.reconstruct.sfm import SparseModel
-from twinrl_sim.reconstruct.tag import corners_in_tag_frame, detect, other_families_seen
+from twinrl_sim.reconstruct.tag import (
+    DEFAULT_FAMILY,
+    corners_in_tag_frame,
+    detect,
+    family,
+    other_families_seen,
+)
 
 MIN_TAG_VIEWS = 3
 CORNER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
@@ -113,8 +119,10 @@ class TagSighting:
     frames: frozenset[str]  # the registered frames that saw it
 
 
-def locate_tags(model: SparseModel, image_dir: Path) -> dict[int, TagSighting]:
-    """Every 36h11 tag seen in at least :data:`MIN_TAG_VIEWS` registered frames."""
+def locate_tags(
+    model: SparseModel, image_dir: Path, family_name: str = DEFAULT_FAMILY
+) -> dict[int, TagSighting]:
+    """Every tag of the family seen in at least :data:`MIN_TAG_VIEWS` registered frames."""
     rays: dict[int, list[list]] = {}
     frames: dict[int, set[str]] = {}
     for image in model.reconstruction.images.values():
@@ -123,7 +131,7 @@ def locate_tags(model: SparseModel, image_dir: Path) -> dict[int, TagSighting]:
         rgb = cv2.cvtColor(cv2.imread(str(image_dir / image.name)), cv2.COLOR_BGR2RGB)
         camera = model.reconstruction.cameras[image.camera_id]
         pose = image.cam_from_world().matrix()
-        for found in detect(rgb):
+        for found in detect(rgb, family_name=family_name):
             normalised = camera.cam_from_img(found.corners.astype(float))
             per_corner = rays.setdefault(found.tag_id, [[], [], [], []])
             frames.setdefault(found.tag_id, set()).add(image.name)
@@ -138,18 +146,22 @@ def locate_tags(model: SparseModel, image_dir: Path) -> dict[int, TagSighting]:
     }
 
 
-def _missing_tag(model: SparseModel, image_dir: Path, what: str, seen: dict) -> CaptureError:
+def _missing_tag(
+    model: SparseModel, image_dir: Path, what: str, seen: dict, family_name: str
+) -> CaptureError:
     """The error for a tag that is not seen often enough, with what was seen instead."""
     if seen:
         hint = f"; tags seen: {', '.join(str(i) for i in sorted(seen))}"
     else:
         names = sorted(i.name for i in model.reconstruction.images.values() if i.has_pose)
         sample = cv2.imread(str(image_dir / names[len(names) // 2])) if names else None
-        others = other_families_seen(sample) if sample is not None else []
+        others = other_families_seen(sample, family_name) if sample is not None else []
+        label = family(family_name).label
         hint = (
-            f"; the frames show a {others[0]} marker instead: print an AprilTag 36h11"
+            f"; the frames show {family(others[0]).label} markers instead: set `tag_family` "
+            f"to {others[0]}"
             if others
-            else "; lay a printed AprilTag 36h11 flat on the table and keep it in view"
+            else f"; lay a printed {label} tag flat on the table and keep it in view"
         )
     return CaptureError(f"{what} was found in fewer than {MIN_TAG_VIEWS} registered frames{hint}")
 
@@ -171,9 +183,10 @@ def align_to_tag(
     tag_pose: np.ndarray,
     tag_size: float,
     tag_id: int | None = None,
+    family_name: str = DEFAULT_FAMILY,
 ) -> Alignment:
     """The similarity from the SfM frame to the robot-base frame, from one tag's pose."""
-    seen = locate_tags(model, image_dir)
+    seen = locate_tags(model, image_dir, family_name)
     if tag_id is None and len(seen) > 1:
         raise CaptureError(
             f"several tags are in view ({', '.join(str(i) for i in sorted(seen))}); say "
@@ -181,8 +194,9 @@ def align_to_tag(
         )
     chosen = tag_id if tag_id is not None else next(iter(seen), None)
     if chosen not in seen:
-        what = "the AprilTag 36h11" if tag_id is None else f"AprilTag 36h11 id {tag_id}"
-        raise _missing_tag(model, image_dir, what, seen)
+        label = family(family_name).label
+        what = f"the {label} tag" if tag_id is None else f"{label} id {tag_id}"
+        raise _missing_tag(model, image_dir, what, seen, family_name)
     sighting = seen[chosen]
     corners_base = tag_corners_in_base(tag_pose, tag_size)
     return Alignment(
@@ -218,15 +232,19 @@ def check_reference_points(points: dict[int, tuple[float, ...]]) -> None:
 
 
 def align_to_points(
-    model: SparseModel, image_dir: Path, points: dict[int, tuple[float, ...]]
+    model: SparseModel,
+    image_dir: Path,
+    points: dict[int, tuple[float, ...]],
+    family_name: str = DEFAULT_FAMILY,
 ) -> Alignment:
     """The similarity from the SfM frame to the robot-base frame, from the base
     coordinates of 3+ tags' centres (``{tag id: (x, y, z)}``)."""
     check_reference_points(points)
-    seen = locate_tags(model, image_dir)
+    seen = locate_tags(model, image_dir, family_name)
+    label = family(family_name).label
     for tag_id in points:
         if tag_id not in seen:
-            raise _missing_tag(model, image_dir, f"AprilTag 36h11 id {tag_id}", seen)
+            raise _missing_tag(model, image_dir, f"{label} id {tag_id}", seen, family_name)
     ids = sorted(points)
     centres_sfm = np.array([seen[i].corners_sfm.mean(axis=0) for i in ids])
     centres_base = np.array([points[i] for i in ids], float)

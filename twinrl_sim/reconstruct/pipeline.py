@@ -52,6 +52,7 @@ from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 from twinrl_sim.reconstruct.silhouette import carve_footprints
 from twinrl_sim.reconstruct.table_extent import measure_table
+from twinrl_sim.reconstruct.tag import FAMILIES
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
 from twinrl_sim.tasks import make_task
 
@@ -78,6 +79,10 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
             )
         if np.linalg.norm(settings.tag_pose[3:]) < 1e-6:
             raise SettingError("tag_pose", "has a zero quaternion; a tag lying flat is '1 0 0 0'")
+    if settings.tag_family not in FAMILIES:
+        raise SettingError(
+            "tag_family", f"'{settings.tag_family}' is not one of {', '.join(FAMILIES)}"
+        )
     if settings.frames < 12:
         raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
@@ -156,7 +161,9 @@ def build_twin(
         )
         stage("alignment")
         if settings.tag_points:
-            alignment = align_to_points(model, work / "frames", settings.tag_points)
+            alignment = align_to_points(
+                model, work / "frames", settings.tag_points, settings.tag_family
+            )
         else:
             alignment = align_to_tag(
                 model,
@@ -164,6 +171,7 @@ def build_twin(
                 np.asarray(settings.tag_pose, float),
                 settings.tag_size,
                 settings.tag_id,
+                settings.tag_family,
             )
         pivot = alignment.pivot
         walk = [
@@ -414,6 +422,7 @@ def _scene_spec(
         "provenance": {
             "built_from": str(source),
             "frames_registered": f"{model.registered}/{model.frames}",
+            "tag_family": settings.tag_family,
             **(
                 {"tag_points": {i: [float(v) for v in p] for i, p in settings.tag_points.items()}}
                 if settings.tag_points

@@ -28,7 +28,7 @@ class BuildSettings:
     """
 
     tag_size: float | None = None
-    """Edge of the AprilTag 36h11's black square (m), e.g. 0.08."""
+    """Edge of the tag's black square (m), e.g. 0.08."""
     tag_pose: tuple[float, ...] | None = None
     """The tag's centre and orientation in the robot-base frame: 'x y z qw qx qy qz' (m;
     a tag lying flat, printed x along the base's x: 'x y z 1 0 0 0'). Needs the tag size."""
@@ -37,6 +37,9 @@ class BuildSettings:
     tag_points: dict[int, tuple[float, ...]] = field(default_factory=dict)
     """ID=x,y,z: the centre of tag ID in the robot-base frame (m), instead of a tag pose;
     3 or more tags, not on one line. Repeatable."""
+    tag_family: str = "tag36h11"
+    """The printed markers' family: tag36h11, tag36h10, tag25h9, tag16h5 (AprilTag),
+    aruco4x4, aruco5x5, aruco6x6, aruco7x7, aruco_original (ArUco)."""
     tags_on_table: bool = True
     """The tags lie on the table: its plane is sought near the tags' plane only, and one
     tilted from it is refused (--no-tags-on-table: the largest plane in view)."""

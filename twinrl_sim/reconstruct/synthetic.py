@@ -2,7 +2,8 @@
 
 The cell of a scene spec (table and objects; the arm is left out, as in a walk-around
 clip of the workspace) gets textures a feature matcher can hold on to (multi-scale noise
-on the table and the objects) and AprilTags 36h11 lying on the table. A hand-held-like
+on the table and the objects) and printed tags (AprilTag 36h11 unless told otherwise)
+lying on the table. A hand-held-like
 camera walks an arc around the table (slow azimuth sweep, wobbling height, distance
 and aim) and the frames are written as an mp4 with PyAV. Ground truth is the scene that
 rendered it and the camera path (:class:`Walkthrough`).
@@ -20,7 +21,7 @@ import mujoco
 import numpy as np
 
 from twinrl_sim.build import build_mjspec, yaw_quat
-from twinrl_sim.reconstruct.tag import CELLS, tag_image
+from twinrl_sim.reconstruct.tag import DEFAULT_FAMILY, family, tag_image
 from twinrl_sim.spec import SceneSpec
 
 HIDDEN_GROUP = 5  # geom group of the arm, not rendered
@@ -29,12 +30,13 @@ TAG_MARGIN_CELLS = 1  # white cells around the black square
 
 @dataclass(frozen=True)
 class TagPlacement:
-    """An AprilTag 36h11 lying face up on the table."""
+    """A printed tag lying face up on the table."""
 
     tag_id: int = 0
     xy: tuple[float, float] = (0.3, 0.3)  # centre, base frame (m)
     yaw: float = 0.3  # rad, printed x from the base's x
     size: float = 0.08  # edge of the black square (m)
+    family: str = DEFAULT_FAMILY  # see twinrl_sim.reconstruct.tag.FAMILIES
 
 
 ONE_TAG = (TagPlacement(),)
@@ -131,8 +133,9 @@ def walkthrough_model(
     thickness = 0.0006
     poses = {}
     for tag in tags:
-        edge = tag.size * (CELLS + 2 * TAG_MARGIN_CELLS) / CELLS
-        image = tag_image(tag.tag_id, cell_px=32, margin_cells=TAG_MARGIN_CELLS)
+        cells = family(tag.family).cells
+        edge = tag.size * (cells + 2 * TAG_MARGIN_CELLS) / cells
+        image = tag_image(tag.tag_id, 32, TAG_MARGIN_CELLS, tag.family)
         quat = yaw_quat(tag.yaw)
         spec.worldbody.add_geom(
             name=f"apriltag{tag.tag_id}",
