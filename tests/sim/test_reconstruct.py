@@ -297,6 +297,8 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         ([*TAG, "--density", "banana"], "must look like NAME=VALUE"),
         ([*TAG, "--task", "pick_plce"], "did you mean 'pick_place'"),
         ([*TAG, "--tag-family", "qr"], "--tag-family 'qr' is not one of tag36h11, tag36h10"),
+        ([*TAG, "--intrinsics", "600 600 320"], "--intrinsics needs 4 numbers 'fx fy cx cy'"),
+        ([*TAG, "--intrinsics", "600 -600 320 240"], "--intrinsics fx fy cx cy must be positive"),
     ],
 )
 def test_bad_arguments_are_refused_before_any_work(tmp_path, args, message):
@@ -440,6 +442,29 @@ def test_a_build_reads_the_tag_family_it_is_told(tmp_path):
         CaptureError, match="ArUco 5x5 markers instead: set `tag_family` to aruco5x5"
     ):
         align_to_tag(built.model, frames, walk.tag_poses[0], tag.size)
+
+
+@pytest.mark.slow
+def test_known_intrinsics_are_held_fixed_and_recorded(clip, tmp_path):
+    walk, _ = clip
+    focal = (CLIP.height / 2) / np.tan(np.radians(walk.fovy_deg) / 2)
+    known = (focal, focal, CLIP.width / 2, CLIP.height / 2)
+    settings = BuildSettings(
+        tag_size=walk.tags[0].size,
+        tag_pose=tuple(walk.tag_poses[0]),
+        tag_id=0,
+        intrinsics=known,
+        frames=30,
+        keep_work=True,
+    )
+    built = build_twin(walk.video, tmp_path / "cell", settings)
+    (camera,) = built.model.reconstruction.cameras.values()
+    assert camera.model.name == "PINHOLE" and np.allclose(camera.params, known)
+    assert built.model.registered == 30 and built.alignment.residual_m < 0.002
+    truth = walk.camera_positions[built.selection.source_indices]
+    assert np.median(np.linalg.norm(built.camera_path - truth, axis=1)) < 0.02
+    scene = load_spec(built.scene_path)
+    assert scene.provenance["intrinsics"] == pytest.approx(list(known))
 
 
 def test_the_tag_family_setting_lists_every_family():

@@ -83,6 +83,17 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
         raise SettingError(
             "tag_family", f"'{settings.tag_family}' is not one of {', '.join(FAMILIES)}"
         )
+    if settings.intrinsics is not None:
+        known = settings.intrinsics
+        if len(known) not in (4, 8):
+            raise SettingError(
+                "intrinsics",
+                f"needs 4 numbers 'fx fy cx cy' or 8 with 'k1 k2 p1 p2', got {len(known)}",
+            )
+        if not all(np.isfinite(known)) or min(known[:4]) <= 0:
+            raise SettingError(
+                "intrinsics", "fx fy cx cy must be positive pixel values (e.g. '600 600 320 240')"
+            )
     if settings.frames < 12:
         raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
@@ -158,6 +169,7 @@ def build_twin(
             work / "sfm",
             fixed_cameras=settings.camera_images,
             seed=settings.seed,
+            intrinsics=settings.intrinsics,
         )
         stage("alignment")
         if settings.tag_points:
@@ -423,6 +435,7 @@ def _scene_spec(
             "built_from": str(source),
             "frames_registered": f"{model.registered}/{model.frames}",
             "tag_family": settings.tag_family,
+            "intrinsics": list(settings.intrinsics) if settings.intrinsics else "estimated",
             **(
                 {"tag_points": {i: [float(v) for v in p] for i, p in settings.tag_points.items()}}
                 if settings.tag_points

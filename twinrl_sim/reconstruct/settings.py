@@ -54,6 +54,10 @@ class BuildSettings:
     camera is placed at its pose with its focal length. Repeatable."""
     densities: dict[str, float] = field(default_factory=dict)
     """NAME=KG_PER_M3 for an object's mass (default 700). Repeatable."""
+    intrinsics: tuple[float, ...] | None = None
+    """The filming camera's intrinsics, when known: 'fx fy cx cy' in pixels of the clip's
+    frames, optionally followed by OpenCV's distortion 'k1 k2 p1 p2'; held fixed while
+    the walk is mapped (default: estimated from the frames)."""
     frames: int = 150
     """Frames to keep for structure from motion (at least 12)."""
     name: str | None = None

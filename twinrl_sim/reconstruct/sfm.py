@@ -48,9 +48,14 @@ def run_sfm(
     fixed_cameras: dict[str, Path] | None = None,
     seed: int = 0,
     overlap: int = 10,
+    intrinsics: tuple[float, ...] | None = None,
 ) -> SparseModel:
     """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``), with
-    the photos of ``fixed_cameras`` (camera name -> image file) registered among them."""
+    the photos of ``fixed_cameras`` (camera name -> image file) registered among them.
+
+    ``intrinsics`` (fx, fy, cx, cy in pixels, then optionally OpenCV's k1, k2, p1, p2)
+    are the filming camera's, when known: the walk is mapped with them held fixed
+    instead of estimating its focal length and principal point."""
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -62,17 +67,18 @@ def run_sfm(
     extraction.use_gpu = False
     extraction.num_threads = os.cpu_count() or 1  # said, so COLMAP does not warn about it
 
-    def extract(names: list[str]) -> None:
+    def extract(names: list[str], reader: pycolmap.ImageReaderOptions | None = None) -> None:
         # One call, one camera model: the walk's frames share one, each photo has its own.
         pycolmap.extract_features(
             database,
             image_dir,
             image_names=names,
             camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader or pycolmap.ImageReaderOptions(),
             extraction_options=extraction,
         )
 
-    extract(frame_names)
+    extract(frame_names, _known_camera(intrinsics) if intrinsics else None)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
     matching = pycolmap.FeatureMatchingOptions()
@@ -95,6 +101,9 @@ def run_sfm(
     options.random_seed = seed
     options.multiple_models = False
     options.image_names = frame_names
+    known = intrinsics is not None
+    options.ba_refine_focal_length = options.ba_refine_principal_point = not known
+    options.ba_refine_extra_params = not known
     models = pycolmap.incremental_mapping(database, image_dir, work_dir / "walk", options)
     if models and fixed_images:  # then the photos join the walk, whose poses stay fixed
         walk = max(models.values(), key=lambda r: r.num_reg_images())
@@ -103,6 +112,7 @@ def run_sfm(
         walk.write(walk_dir)
         options.image_names = frame_names + list(fixed_images.values())
         options.fix_existing_frames = True
+        options.ba_refine_focal_length = True  # the photos' own focal lengths are unknown
         models = pycolmap.incremental_mapping(
             database, image_dir, work_dir / "sparse", options, input_path=walk_dir
         )
@@ -130,3 +140,11 @@ def run_sfm(
     points = np.array([p.xyz for p in best.points3D.values()])
     colors = np.array([p.color for p in best.points3D.values()], np.uint8)
     return SparseModel(best, points, colors, registered, frames, fixed_images)
+
+
+def _known_camera(intrinsics: tuple[float, ...]) -> pycolmap.ImageReaderOptions:
+    """Reader options giving the walk's frames one camera with these intrinsics."""
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE" if len(intrinsics) == 4 else "OPENCV"
+    reader.camera_params = ",".join(f"{v:.10g}" for v in intrinsics)
+    return reader
