@@ -101,9 +101,9 @@ def run_sfm(
     options.random_seed = seed
     options.multiple_models = False
     options.image_names = frame_names
-    known = intrinsics is not None
-    options.ba_refine_focal_length = options.ba_refine_principal_point = not known
-    options.ba_refine_extra_params = not known
+    estimated = (options.ba_refine_focal_length, options.ba_refine_extra_params)
+    if intrinsics is not None:  # held as given (the principal point never is refined)
+        options.ba_refine_focal_length = options.ba_refine_extra_params = False
     models = pycolmap.incremental_mapping(database, image_dir, work_dir / "walk", options)
     if models and fixed_images:  # then the photos join the walk, whose poses stay fixed
         walk = max(models.values(), key=lambda r: r.num_reg_images())
@@ -112,7 +112,8 @@ def run_sfm(
         walk.write(walk_dir)
         options.image_names = frame_names + list(fixed_images.values())
         options.fix_existing_frames = True
-        options.ba_refine_focal_length = True  # the photos' own focal lengths are unknown
+        # The photos' own intrinsics are unknown: estimated as COLMAP does by default.
+        options.ba_refine_focal_length, options.ba_refine_extra_params = estimated
         models = pycolmap.incremental_mapping(
             database, image_dir, work_dir / "sparse", options, input_path=walk_dir
         )
