@@ -262,7 +262,8 @@ class URArm:
             if time.monotonic() > deadline:
                 raise RobotStopped(reason)
             time.sleep(0.02)
-        if not self._control.isProgramRunning():
+        restart = not self._control.isProgramRunning()
+        if restart:
             self._control.reuploadScript()
             deadline = time.monotonic() + 5.0
             while not self._control.isProgramRunning():
@@ -272,9 +273,9 @@ class URArm:
                         "pendant for a popup and that it is in Remote Control"
                     )
                 time.sleep(0.01)
-            self.stream.resume()
+        self.stream.resume()  # kicking before the watchdog is set again
+        if restart:
             self._apply_cell_settings()  # a new program has no watchdog, TCP or payload yet
-        self.stream.resume()
         self.fault = None
 
     def _check(self, refused: str | None = None) -> None:
@@ -284,7 +285,7 @@ class URArm:
                 # The controller refused a command before its published state shows why
                 # (the receive interface lags the control interface by a packet or two):
                 # its dashboard says at once whether the pendant or a stop is the cause.
-                cause = self._refusal_cause() if not self.stream.connection_failed else ""
+                cause = self._dashboard_cause() if not self.stream.connection_failed else ""
                 reason = cause or self.stream.fault or refused or ""
             if reason:
                 self.stream.silence()
@@ -305,21 +306,22 @@ class URArm:
         if receive.isProtectiveStopped():
             return PROTECTIVE_STOP
         if receive.getRuntimeState() != 2:
-            status = _dashboard_status(self.host)
-            return LEFT_REMOTE if status is not None and not status[0] else PROGRAM_STOPPED
+            return self._dashboard_cause() or PROGRAM_STOPPED
         return ""
 
-    def _refusal_cause(self) -> str:
-        """What the dashboard says stopped the arm (``""``: nothing it knows of)."""
+    def _dashboard_cause(self) -> str:
+        """What the dashboard says stopped the arm (``""``: nothing it knows of, or it
+        cannot be asked)."""
         status = _dashboard_status(self.host)
         if status is None:
             return ""
         remote, safety = status
         if not remote:
             return LEFT_REMOTE
-        if "EMERGENCY" in safety.upper():
+        safety = safety.upper()
+        if "EMERGENCY" in safety:
             return EMERGENCY_STOP
-        if "PROTECTIVE" in safety.upper():
+        if "PROTECTIVE" in safety:
             return PROTECTIVE_STOP
         return ""
 

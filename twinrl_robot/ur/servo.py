@@ -50,6 +50,8 @@ class SharedControl:
         self._lock = threading.Lock()
 
     def __getattr__(self, name: str) -> Callable:
+        """Looked up once per name: the wrapper is kept, so the servo thread's calls at
+        the controller's rate cost no more than a plain attribute."""
         method = getattr(self._control, name)
         if name in self._UNLOCKED or not callable(method):
             return method
@@ -58,6 +60,7 @@ class SharedControl:
             with self._lock:
                 return method(*args)
 
+        setattr(self, name, call)
         return call
 
 
@@ -97,10 +100,6 @@ class ServoStream:
             sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         self._thread = threading.Thread(target=self._run, name="ur-servo", daemon=True)
         self._thread.start()
-
-    @property
-    def streaming(self) -> bool:
-        return self._mode == SERVO
 
     def start(self, q: np.ndarray) -> None:
         """Start streaming, holding ``q`` until the first target arrives."""

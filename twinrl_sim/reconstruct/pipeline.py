@@ -262,7 +262,7 @@ def build_twin(
     return built
 
 
-def tag_plane(settings: BuildSettings) -> TagPlane | None:
+def tag_plane(settings: BuildSettings) -> TagPlane:
     """The plane the tags lie on, in the base frame: the tag's own (``tag_pose``) or the
     one through the tags' centres (``tag_points``)."""
     if settings.tag_pose is not None:
@@ -270,9 +270,7 @@ def tag_plane(settings: BuildSettings) -> TagPlane | None:
         normal = np.zeros(3)
         mujoco.mju_rotVecQuat(normal, np.array([0.0, 0.0, 1.0]), quat / np.linalg.norm(quat))
         return TagPlane(np.asarray(settings.tag_pose[:3], float), normal)
-    centres = np.array([p[:3] for p in settings.tag_points.values()], float)
-    if len(centres) < 3:
-        return None
+    centres = np.array([p[:3] for p in settings.tag_points.values()], float)  # 3+, checked
     centre = centres.mean(axis=0)
     normal = np.linalg.svd(centres - centre)[2][-1]
     return TagPlane(centre, normal if normal[2] >= 0 else -normal)

@@ -3,10 +3,10 @@
 The cell of a scene spec (table and objects; the arm is left out, as in a walk-around
 clip of the workspace) gets textures a feature matcher can hold on to (multi-scale noise
 on the table and the objects) and printed tags (AprilTag 36h11 unless told otherwise)
-lying on the table. A hand-held-like
-camera walks an arc around the table (slow azimuth sweep, wobbling height, distance
-and aim) and the frames are written as an mp4 with PyAV. Ground truth is the scene that
-rendered it and the camera path (:class:`Walkthrough`).
+lying on the table. A hand-held-like camera walks an arc around the table (slow azimuth
+sweep, wobbling height, distance and aim) and the frames are written as an mp4 with
+PyAV. Ground truth is the scene that rendered it and the camera path
+(:class:`Walkthrough`).
 """
 
 from __future__ import annotations
