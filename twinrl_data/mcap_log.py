@@ -40,7 +40,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
-from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.records import Channel, Chunk, DataEnd, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding
 from mcap.writer import CompressionType, Writer
@@ -330,6 +330,9 @@ def _iso_to_ns(text: str) -> int:
     return int(dt.datetime.fromisoformat(text).timestamp() * 1e9)
 
 
+RECOVERED_BY = "twinrl recover"  # the writer library of files ``data recover`` wrote
+
+
 def _open_checked(path: str | Path) -> Path:
     path = Path(path)
     if path.is_dir():
@@ -462,10 +465,16 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     def damaged(chunk: Chunk) -> None:
         raise _chunk_damage(path, chunk, records)
 
+    library = ""
+    checked = False  # the data section's end (and so its checksum) was reached
     try:
         with open(path, "rb") as f:
             for record in intact_records(f, damaged):
-                if isinstance(record, Message):
+                if isinstance(record, Header):
+                    library = record.library
+                elif isinstance(record, DataEnd):
+                    checked = True
+                elif isinstance(record, Message):
                     channel = channels.get(record.channel_id)
                     if channel is not None:
                         schema = schemas.get(channel.schema_id)
@@ -480,6 +489,13 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
         raise
     except Exception as err:
         raise _damaged(path, err) from None
+    if not checked or (META_END not in records and library != RECOVERED_BY):
+        # A damaged record length can make the reader jump over the rest of the data
+        # section (the end record and the checksum with it) and land on the summary.
+        raise McapError(
+            f"{path} is damaged: its data section does not end as written (a corrupt record "
+            f"skips past it); `twinrl data recover {path}` rewrites what can still be read"
+        )
     meta = _meta_from(path, records)
     if contract.STATE not in vectors:
         raise McapError(

@@ -98,7 +98,7 @@ def recover(path: str | Path, output: str | Path | None = None, *, force: bool =
     ]
     buffer = io.BytesIO()
     writer = Writer(buffer, compression=CompressionType.ZSTD, enable_data_crcs=True)
-    writer.start(profile="twinrl", library="twinrl recover")
+    writer.start(profile="twinrl", library=mcap_log.RECOVERED_BY)
     schema_ids = {
         old: writer.register_schema(s.name, s.encoding, s.data) for old, s in kept.schemas.items()
     }

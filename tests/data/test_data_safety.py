@@ -305,6 +305,29 @@ def test_no_damaged_episode_is_read_as_good(tmp_path):
     assert refused + same == 300 and refused > 250
 
 
+def test_a_corrupt_record_length_that_skips_the_data_end_is_refused(tmp_path):
+    """One flipped bit in a record's length can make a reader jump over the rest of the
+    data section (steps, the end record and the checksum) straight onto the summary."""
+    from mcap.records import DataEnd
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "episode.mcap"
+    write_episode(path, length=20)
+    data = bytearray(path.read_bytes())
+    stream = open(path, "rb")
+    ends, names = [], []
+    for record in StreamReader(stream, emit_chunks=True).records:
+        ends.append(stream.tell())
+        names.append(type(record).__name__)
+    stream.close()
+    record = ends[names.index("Chunk")]  # the record after the first chunk
+    summary = ends[names.index(DataEnd.__name__)]  # where the summary section begins
+    data[record + 1 : record + 9] = (summary - record - 9).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(McapError, match="data section does not end as written.*data recover"):
+        read_episode(path)
+
+
 def test_a_damaged_chunk_is_named_with_its_time_span_and_recovered_around(tmp_path):
     path = tmp_path / "episode.mcap"
     write_episode(path, length=40, flush_seconds=0.5)
