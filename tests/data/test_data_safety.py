@@ -314,12 +314,11 @@ def test_a_corrupt_record_length_that_skips_the_data_end_is_refused(tmp_path):
     path = tmp_path / "episode.mcap"
     write_episode(path, length=20)
     data = bytearray(path.read_bytes())
-    stream = open(path, "rb")
     ends, names = [], []
-    for record in StreamReader(stream, emit_chunks=True).records:
-        ends.append(stream.tell())
-        names.append(type(record).__name__)
-    stream.close()
+    with open(path, "rb") as stream:
+        for record in StreamReader(stream, emit_chunks=True).records:
+            ends.append(stream.tell())
+            names.append(type(record).__name__)
     record = ends[names.index("Chunk")]  # the record after the first chunk
     summary = ends[names.index(DataEnd.__name__)]  # where the summary section begins
     data[record + 1 : record + 9] = (summary - record - 9).to_bytes(8, "little")
