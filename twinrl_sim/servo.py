@@ -8,9 +8,12 @@ Two models, chosen by the scene (``physics.servo``) or by the ``servo_lead`` eff
   the line from the previous target to the new one, and leads it by ``lead`` seconds of
   its speed (velocity feed-forward). A position servo lags its setpoint by damping /
   stiffness times the speed; a lead of that size cancels the lag, so the arm follows the
-  targets within a fraction of a milliradian at any speed, as a real arm does. The lead
-  is a property of the compiled model (the custom numeric :data:`LEAD_NUMERIC`), so the
-  gap workflow fits it like any other effect.
+  targets within a fraction of a milliradian at any speed, as a real arm does. Its
+  position loop is :data:`TRACKING_STIFFNESS` times stiffer than the holding servo's, as
+  a UR's joint controller is: an arm that brakes past a target it stopped on returns in
+  a few milliseconds instead of creeping back over tens. The lead is a property of the
+  compiled model (the custom numeric :data:`LEAD_NUMERIC`), so the gap workflow fits it
+  like any other effect.
 """
 
 from __future__ import annotations
@@ -21,14 +24,15 @@ import numpy as np
 from twinrl_sim.layout import CellLayout
 
 LEAD_NUMERIC = "twinrl_servo_lead"  # s; present: the servos track, absent: they hold
+TRACKING_STIFFNESS = 4.0  # a tracking servo's position gain over the holding servo's
 
 
 def full_lead(spec: mujoco.MjSpec, layout: CellLayout) -> float:
-    """The lead that cancels the lag of the arm's (holding) servos: the median over its
-    joints of joint damping / actuator stiffness (s)."""
+    """The lead that cancels the lag of the arm's servos once they track: the median over
+    its joints of the (holding) joint damping / the tracking stiffness (s)."""
     ratios = []
     for joint, actuator in zip(layout.arm_joints, layout.arm_actuators, strict=True):
-        stiffness = float(spec.actuator(actuator).gainprm[0])
+        stiffness = TRACKING_STIFFNESS * float(spec.actuator(actuator).gainprm[0])
         damping = float(np.atleast_1d(spec.joint(joint).damping)[0])
         if stiffness > 0:
             ratios.append(damping / stiffness)
@@ -47,7 +51,8 @@ def set_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
     A holding servo's damping is the joint's (passive, so it drags at any speed); a
     tracking servo damps the speed error instead, so its damping moves into the
     actuator, where the lead's setpoint speed cancels it: moving fast costs no torque
-    beyond what the arm's inertia and friction take, as on a real arm."""
+    beyond what the arm's inertia and friction take, as on a real arm. The position gain
+    becomes :data:`TRACKING_STIFFNESS` times the holding servo's."""
     numeric = next((n for n in spec.numerics if n.name == LEAD_NUMERIC), None)
     if numeric is not None:
         numeric.data = [float(seconds)]
@@ -55,9 +60,11 @@ def set_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
     for joint_name, actuator_name in zip(layout.arm_joints, layout.arm_actuators, strict=True):
         joint, actuator = spec.joint(joint_name), spec.actuator(actuator_name)
         damping = float(np.atleast_1d(joint.damping)[0])
-        bias = list(actuator.biasprm)
+        gain, bias = list(actuator.gainprm), list(actuator.biasprm)
+        gain[0] *= TRACKING_STIFFNESS
+        bias[1] *= TRACKING_STIFFNESS
         bias[2] -= damping
-        actuator.biasprm = bias
+        actuator.gainprm, actuator.biasprm = gain, bias
         joint.damping = [0.0] * len(np.atleast_1d(joint.damping))
     spec.add_numeric(name=LEAD_NUMERIC, data=[float(seconds)], size=1)
 

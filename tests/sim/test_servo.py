@@ -11,7 +11,7 @@ from tests.sim.test_gap_diagnose import _record, _within
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.gap.diagnose import diagnose
-from twinrl_sim.servo import servo_lead, tracking_setpoints
+from twinrl_sim.servo import TRACKING_STIFFNESS, servo_lead, tracking_setpoints
 from twinrl_sim.spec import PhysicsSpec
 from twinrl_sim.tasks import make_task
 from twinrl_sim.windowed import Starts, WindowedReplay
@@ -49,7 +49,8 @@ def _follow(cell: Cell, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def test_tracking_servos_follow_a_fast_stream_that_holding_ones_saturate_on():
     hold, track = _cell("hold"), _cell("track")
     assert servo_lead(hold.model) is None
-    assert track.servo_lead == pytest.approx(0.05)  # damping / stiffness of the UR5e's servos
+    # damping / the tracking stiffness of the UR5e's servos
+    assert track.servo_lead == pytest.approx(0.05 / TRACKING_STIFFNESS)
     targets = _stream(hold)
     settled = slice(round(0.3 / hold.control_dt), None)
     hold_error, hold_torque = _follow(hold, targets)

@@ -330,18 +330,22 @@ class URArm:
         guarded = self.guard(target)
         self.gripper.command(float(np.clip(gripper, 0.0, 1.0)))
         period = 1.0 / self.control_hz
-        self.stream.push(guarded.q, period)
-        self._pace(period)
+        end = self._period_end(period)
+        # The segment ends with the control period, when the next observation is taken,
+        # as the twin's servos reach each target: the arm's lag is then the controller's
+        # own, not however long this step took the host.
+        self.stream.push(guarded.q, period, end)
+        time.sleep(max(0.0, end - time.monotonic()))
+        self._next_step = end + period
         self._check()
         return Sent(action=action, joint_target=guarded.q.astype(np.float32))
 
-    def _pace(self, period: float) -> None:
-        """Return at the end of this control period (the next one starts then)."""
+    def _period_end(self, period: float) -> float:
+        """When this control period ends (the next one starts then)."""
         now = time.monotonic()
         if self._next_step is None or now - self._next_step > period:
             self._next_step = now + period  # late by a whole period: start over, no burst
-        time.sleep(max(0.0, self._next_step - now))
-        self._next_step += period
+        return self._next_step
 
     def measured_q(self) -> np.ndarray:
         """The arm's joint positions (rad) as the controller measures them."""

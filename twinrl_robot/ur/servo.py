@@ -4,10 +4,12 @@ The episode moves at the control rate (10 Hz); a UR controller servos at 125 Hz 
 or 500 Hz (e-Series) and wants a servoJ target every one of its periods. The stream
 runs in its own thread, paced by ur_rtde's ``initPeriod``/``waitPeriod``, and sends the
 point of the current control step's segment that the clock has reached: each control
-target's segment runs from the previous target to it over one control period, starting
-when the previous segment ends (or now, if that has passed). So the arm follows the
-same path whatever the host's timing jitter: a step that comes a little early waits for
-the previous one to finish instead of cutting its corner.
+target's segment runs from the previous target to it and ends with the step's control
+period, when the next observation is taken (as the twin's servos reach each target by
+the end of their period); it starts when the previous segment ends, or, for a step the
+host was late with, as soon as it comes, running faster to end on time. So the arm
+follows the same path whatever the host's timing jitter, and one late step does not
+leave it behind the control loop for the rest of the episode.
 
 The controller's RTDE watchdog stops its program when no command came for the cell's
 ``watchdog_ms``. Every servoJ package refreshes it; between episodes (the arm moving to
@@ -33,6 +35,7 @@ import numpy as np
 SERVO_LOOKAHEAD = 0.1  # s: servoJ's lookahead time (0.03..0.2); smooths the target
 SERVO_GAIN = 300.0  # servoJ's proportional gain (100..2000)
 GIL_SWITCH_INTERVAL = 2e-4  # s: how soon the stream thread gets the interpreter back
+MIN_SEGMENT = 0.5  # of a control period: the fastest a segment may run to catch up
 IDLE, SERVO, SILENT, CLOSED = "idle", "servo", "silent", "closed"
 
 
@@ -109,18 +112,23 @@ class ServoStream:
         self.fault = None
         self._mode = SERVO
 
-    def push(self, target: np.ndarray, duration: float) -> None:
-        """Move from the previous target to ``target`` over ``duration`` seconds, from the
-        end of the previous segment (or now, when it has ended)."""
+    def push(self, target: np.ndarray, duration: float, until: float | None = None) -> None:
+        """Move from the previous target to ``target``, from the end of the previous
+        segment (or now, when it has ended) until ``until`` (monotonic seconds; default
+        ``duration`` seconds from now), never faster than over MIN_SEGMENT of
+        ``duration``."""
         now = time.monotonic()
+        until = now + duration if until is None else until
         with self._lock:
             assert self._segment is not None, "start the stream first"
             _, end, began, length = self._segment
             if now < began:  # the previous push has not begun: it is replaced
                 self._segment = (self._segment[0], np.asarray(target, float), began, duration)
                 return
+            start = max(began + length, now)
+            length = max(until - start, MIN_SEGMENT * duration)
             self._previous = self._segment
-            self._segment = (end, np.asarray(target, float), max(now, began + length), duration)
+            self._segment = (end, np.asarray(target, float), start, length)
 
     def hold(self, q: np.ndarray) -> None:
         """Hold ``q`` (the arm stops where it is)."""

@@ -110,7 +110,13 @@ class EmulatedArm:
         gripper_output: int | None = None,
     ) -> None:
         self.task = task
-        self.cell = Cell(compile_scene(task.scene, extra_effects=effects or None))
+        # A UR's joint servos are stiff and damp the speed error, not the speed: the
+        # plant's servos are the twin's tracking ones (twinrl_sim.servo), stepped here at
+        # the servo rate, so a fast stream does not saturate the wrists, a stopped one
+        # halts the arm at once, and a twin can model the arm.
+        physics = task.scene.physics.model_copy(update={"servo": "track"})
+        scene = task.scene.model_copy(update={"physics": physics})
+        self.cell = Cell(compile_scene(scene, extra_effects=effects or None))
         model = self.cell.model
         steps = model.opt.timestep * servo_hz
         self.physics_per_tick = max(1, round(1.0 / steps))
@@ -128,8 +134,7 @@ class EmulatedArm:
         self.gripper_position = 0.0
         self.ticks = 0
         self._motion = _Motion()
-        kp = model.actuator_gainprm[self.cell.arm_act, 0]
-        self._lead = model.dof_damping[self.cell.arm_dof] / np.maximum(kp, 1e-9)  # s
+        self._lead = self.cell.servo_lead or 0.0  # s of velocity feed-forward
         self._flange = model.body(self.cell.layout.flange_body).id
         self._base = model.body(MOUNT_BODY).id
         self._table = model.geom(self.cell.layout.table_geom).id
@@ -255,8 +260,8 @@ class EmulatedArm:
         with self.lock:
             self._advance_reference()
             cell = self.cell
-            # Velocity feed-forward, as a UR's servo does: the plant's position servo lags
-            # its reference by damping/stiffness x speed; leading the reference by as much
+            # Velocity feed-forward, as a UR's servo does: the position servo would lag its
+            # reference by damping/stiffness x speed; leading the reference by as much
             # lets the arm track servo targets closely at any speed.
             cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._feed_forward
             if cell.gripper_act is not None:
