@@ -109,6 +109,15 @@ def apply_joint_damping(spec: mujoco.MjSpec, layout: CellLayout, viscous: list[f
         joint.damping = joint.damping + value
 
 
+def apply_joint_armature(spec: mujoco.MjSpec, layout: CellLayout, inertia: list[float]) -> None:
+    """Reflected rotor inertia (motor and gearbox) per arm joint, added to the nominal:
+    torque the joint takes to accelerate that the links' inertia does not explain."""
+    for joint, value in zip(
+        _arm_joints(spec, layout, inertia, "joint_armature.inertia"), inertia, strict=True
+    ):
+        joint.armature = joint.armature + value
+
+
 def apply_servo_gain(spec: mujoco.MjSpec, layout: CellLayout, scale: list[float]) -> None:
     """Position-servo stiffness of each arm joint relative to the nominal gain."""
     _arm_joints(spec, layout, scale, "servo_gain.scale")
@@ -288,6 +297,12 @@ EFFECTS: dict[str, EffectDef] = {
             {"viscous": ParamDef(_PER_JOINT, "N m s/rad", 0.0, 200.0, "viscous friction")},
             apply_joint_damping,
             apply_joint_damping.__doc__ or "",
+        ),
+        EffectDef(
+            "joint_armature",
+            {"inertia": ParamDef(_PER_JOINT, "kg m^2", 0.0, 5.0, "rotor inertia per joint")},
+            apply_joint_armature,
+            apply_joint_armature.__doc__ or "",
         ),
         EffectDef(
             "servo_gain",

@@ -27,6 +27,7 @@ def test_the_library_has_exactly_the_documented_effects_and_parameters():
         "actuator_delay": {"seconds"},
         "joint_friction": {"coulomb"},
         "joint_damping": {"viscous"},
+        "joint_armature": {"inertia"},
         "servo_gain": {"scale"},
         "servo_lead": {"seconds"},
         "payload": {"mass"},
@@ -58,6 +59,14 @@ def test_joint_friction_and_damping_add_to_the_nominal():
     for name, value in zip(ARM, coulomb, strict=True):
         assert model.joint(name).frictionloss[0] == pytest.approx(value)
         assert model.joint(name).damping[0] == pytest.approx(NOMINAL.joint(name).damping[0] + 5.0)
+
+
+def test_joint_armature_adds_rotor_inertia_to_the_nominal():
+    inertia = [0.0, 0.0, 0.0, 0.15, 0.0, 0.04]
+    model = model_with({"joint_armature": {"inertia": inertia}})
+    for name, value in zip(ARM, inertia, strict=True):
+        nominal = NOMINAL.dof_armature[NOMINAL.joint(name).dofadr[0]]
+        assert model.dof_armature[model.joint(name).dofadr[0]] == pytest.approx(nominal + value)
 
 
 def test_servo_gain_scales_stiffness():

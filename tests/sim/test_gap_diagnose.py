@@ -2,6 +2,7 @@
 the right parameters, the held-out gap shrinks, and a clean plant gets nothing named."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -304,6 +305,47 @@ def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
     twin = load_spec(out / "twin_fitted.yaml")  # keeps the custom arm, with the effect added
     assert compile_scene(twin).layout.arm_joints == ("yaw", "shoulder", "elbow", "wrist")
     assert twin.effects["joint_friction"]["coulomb"] == fitted
+
+
+SEVEN_JOINT_CELL = Path(__file__).resolve().parents[2] / "docs/examples/seven_joint_arm/cell.yaml"
+
+
+@pytest.mark.slow  # two effects of 7 joints each, refit together in the second round: ~45 s
+def test_names_friction_and_rotor_inertia_of_a_seven_joint_arm_from_its_torques(tmp_path):
+    """The 7-joint example arm (written from published parameters) logs its joint
+    torques; a friction and a rotor inertia hidden in it are both named at their values,
+    the smaller one although it is not significant before the friction is named."""
+    friction = [0, 2.5, 0, 1.5, 0, 0.4, 0]
+    inertia = [0, 0, 0, 0.15, 0, 0.04, 0]
+    hidden = {"joint_friction": {"coulomb": friction}, "joint_armature": {"inertia": inertia}}
+    (tmp_path / "hidden.yaml").write_text(yaml.safe_dump(hidden))
+    _twinrl(
+        f"sim excite --twin {SEVEN_JOINT_CELL} --world plant --effects {tmp_path}/hidden.yaml "
+        f"--episodes 4 --duration 6 --seed 1 --out {tmp_path}/measured"
+    )
+    arm = tuple(f"joint{i}" for i in range(1, 8))
+    measured = read_episode(Session(tmp_path / "measured").episode_paths()[0], images=False)
+    assert measured.meta.names[schema.EFFORT] == schema.effort_names(list(arm))
+    out = tmp_path / "diag"
+    _twinrl(
+        f"gap diagnose {tmp_path}/measured --twin {SEVEN_JOINT_CELL} "
+        f"--effects-allowed joint_friction,joint_armature,joint_damping,payload --out {out}"
+    )
+    report = json.loads((out / "gap_report.json").read_text())
+    named = {s["effect"]: s for s in report["selected"]}
+    assert list(named) == ["joint_friction", "joint_armature"]
+    # Not significant in the first round: the friction's torque masks it.
+    first_round = {c["effect"]: c for c in report["rounds"][0]}
+    assert not first_round["joint_armature"]["significant"]
+    for effect, param, truth in (
+        ("joint_friction", "coulomb", friction),
+        ("joint_armature", "inertia", inertia),
+    ):
+        fitted = named[effect]["params"][param]
+        assert _within(fitted, truth, named[effect]["ci"][param], tolerance=0.1), (effect, fitted)
+    assert report["heldout_reduction"] >= 0.85
+    assert set(report["inverse_dynamics"]) == {f"tau_id.{j}" for j in arm}
+    assert compile_scene(load_spec(out / "twin_fitted.yaml")).layout.arm_joints == arm
 
 
 def test_diagnoses_episodes_from_a_lerobot_dataset(tmp_path):

@@ -52,6 +52,7 @@ CANDIDATES: dict[str, Candidate] = {
         Candidate("actuator_delay", 0.05, 0.01, 0.0, "arm"),
         Candidate("joint_friction", 5.0, 0.2, 0.0, "arm"),
         Candidate("joint_damping", 5.0, 0.2, 0.0, "arm"),
+        Candidate("joint_armature", 0.1, 0.01, 0.0, "arm"),
         Candidate("servo_gain", 1.0, 1.0, 1.0, "arm"),
         Candidate("servo_lead", 0.02, 0.02, 0.0, "arm"),
         Candidate("payload", 1.0, 0.1, 0.0, "arm"),

@@ -11,12 +11,12 @@
    **and** it cuts the held-out error by at least :data:`MIN_HELDOUT_GAIN`. Time-
    correlated residuals make information criteria over-confident; the held-out test
    keeps a candidate that only fits noise from being named.
-4. Repeat with the named effects added, until no candidate is significant: among every
-   remaining candidate while the held-out error is far above the noise floor
-   (:data:`FAR_ABOVE_NOISE`; a large effect can mask a smaller one in the first round),
-   else among those significant on their own. After each effect is named, all named
-   effects are refit together, and the search stops once the held-out error is at the
-   noise floor (:data:`AT_NOISE`).
+4. Repeat with the named effects added, until no candidate is significant, refitting
+   every remaining candidate (a large effect can mask a smaller one in the first round:
+   a rotor inertia beside joint friction is not significant on its own, yet explains
+   most of what the friction leaves). After each effect is named, all named effects are
+   refit together, and the search stops once the held-out error is at the noise floor
+   (:data:`AT_NOISE`).
 5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
@@ -59,7 +59,7 @@ MIN_IMAGE_GAIN = 0.2
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
 MAX_EFFECTS = 3  # rounds of naming
 # Held-out error (noise units: 1 is a twin that explains everything but sensor noise)
-# above which the next round refits every remaining candidate, not only the significant.
+# above which the report calls the twin far off, not close.
 FAR_ABOVE_NOISE = 2.0
 AT_NOISE = 1.2  # held-out error at which the named effects explain all but sensor noise
 
@@ -308,11 +308,10 @@ def diagnose(
             baseline = _score(scene, fit_on, held, noise, fixed, rollout)
             if baseline.heldout_error <= AT_NOISE:
                 break  # what is left is sensor noise: nothing more to name
-            # While what remains is far above the sensor noise, every other candidate
-            # is refit on it: an effect masked by a larger one is not significant in the
-            # first round, yet may explain most of what is left.
-            far = baseline.heldout_error > FAR_ABOVE_NOISE
-            pool = [r.effect for r in results[1:] if far or r.significant]
+            # Every other candidate is refit on what remains: an effect masked by a
+            # larger one is not significant in the first round, yet may explain most of
+            # what is left.
+            pool = [r.effect for r in results[1:]]
         camera_results, image_gap = [], {}
         for camera in cameras:
             log(f"fitting camera_pose of the {camera} camera on its images")
@@ -420,9 +419,16 @@ def _fit_candidate(
     scene, fit_on, held, noise, fixed, name, baseline: _Score, rollout
 ) -> CandidateResult:
     started = time.perf_counter()
-    replay = WindowReplay(scene, fit_on, noise, fixed=fixed, free=[name], pool=rollout)
+    # The named effects are refit with the candidate: held where they were named, they
+    # keep what they absorbed of it (a friction fitted without the rotor inertia beside
+    # it takes part of the inertia's torque), and a real effect would gain too little.
+    named = list(fixed)
+    replay = WindowReplay(
+        scene, fit_on, noise, free=[*named, name], start=fixed or None, pool=rollout
+    )
     x, half_width, iterations = replay.fit()
-    aic, bic = _information(replay.residuals(x), len(x))
+    refitted = sum(np.size(value) for n in named for value in fixed[n].values())
+    aic, bic = _information(replay.residuals(x), len(x) - refitted)
     effects = replay.effects_at(x)
     heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
     error = _rms(heldout)
