@@ -14,9 +14,11 @@
 4. Repeat with the named effects added, until no candidate is significant, refitting
    every remaining candidate (a large effect can mask a smaller one in the first round:
    a rotor inertia beside joint friction is not significant on its own, yet explains
-   most of what the friction leaves). After each effect is named, all named effects are
-   refit together, and the search stops once the held-out error is at the noise floor
-   (:data:`AT_NOISE`).
+   most of what the friction leaves). When none is significant with the named effects
+   held, the best :data:`JOINT_REFITS` are refit together with them (held, a named
+   effect keeps what it absorbed of the next one). After each effect is named, all
+   named effects are refit together, and the search stops once the held-out error is at
+   the noise floor (:data:`AT_NOISE`).
 5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
@@ -57,6 +59,7 @@ MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must
 # Appearance is judged by the same bar.
 MIN_IMAGE_GAIN = 0.2
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
+JOINT_REFITS = 2  # best candidates refit with the named effects when none is significant
 MAX_EFFECTS = 3  # rounds of naming
 # Held-out error (noise units: 1 is a twin that explains everything but sensor noise)
 # above which the report calls the twin far off, not close.
@@ -293,6 +296,17 @@ def diagnose(
                     _fit_candidate(scene, fit_on, held, noise, fixed, name, baseline, rollout)
                 )
             results.sort(key=lambda r: r.heldout_error)
+            if fixed and not results[0].significant:
+                # Held where they were named, the named effects keep what they absorbed
+                # of the next one (a friction fitted without the rotor inertia beside it
+                # takes part of its torque): the best few are refit together with them.
+                joint = [
+                    _fit_candidate(
+                        scene, fit_on, held, noise, fixed, r.effect, baseline, rollout, True
+                    )
+                    for r in results[:JOINT_REFITS]
+                ]
+                results = sorted(joint + results[JOINT_REFITS:], key=lambda r: r.heldout_error)
             rounds.append(results)
             best = results[0]
             if not best.significant:
@@ -416,15 +430,20 @@ def _score(scene, fit_on, held, noise, fixed, rollout) -> _Score:
 
 
 def _fit_candidate(
-    scene, fit_on, held, noise, fixed, name, baseline: _Score, rollout
+    scene, fit_on, held, noise, fixed, name, baseline: _Score, rollout, jointly: bool = False
 ) -> CandidateResult:
+    """``name`` fitted with the named effects (``fixed``) held, or ``jointly`` refit with
+    them (counted in the information criteria as the candidate's parameters only)."""
     started = time.perf_counter()
-    # The named effects are refit with the candidate: held where they were named, they
-    # keep what they absorbed of it (a friction fitted without the rotor inertia beside
-    # it takes part of the inertia's torque), and a real effect would gain too little.
-    named = list(fixed)
+    named = list(fixed) if jointly else []
     replay = WindowReplay(
-        scene, fit_on, noise, free=[*named, name], start=fixed or None, pool=rollout
+        scene,
+        fit_on,
+        noise,
+        fixed={} if jointly else fixed,
+        free=[*named, name],
+        start=fixed if jointly else None,
+        pool=rollout,
     )
     x, half_width, iterations = replay.fit()
     refitted = sum(np.size(value) for n in named for value in fixed[n].values())
