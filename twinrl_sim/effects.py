@@ -27,7 +27,7 @@ import yaml
 
 from twinrl_sim.errors import TwinError
 from twinrl_sim.layout import MOUNT_BODY
-from twinrl_sim.servo import set_lead, spec_lead
+from twinrl_sim.servo import scale_stiffness, set_lead, spec_lead
 
 if TYPE_CHECKING:
     from twinrl_sim.layout import CellLayout
@@ -122,11 +122,7 @@ def apply_servo_gain(spec: mujoco.MjSpec, layout: CellLayout, scale: list[float]
     """Position-servo stiffness of each arm joint relative to the nominal gain."""
     _arm_joints(spec, layout, scale, "servo_gain.scale")
     for name, value in zip(layout.arm_actuators, scale, strict=True):
-        act = spec.actuator(name)
-        gain, bias = np.array(act.gainprm), np.array(act.biasprm)
-        gain[0] *= value
-        bias[1] *= value
-        act.gainprm, act.biasprm = gain, bias
+        scale_stiffness(spec.actuator(name), value)
 
 
 def apply_payload(spec: mujoco.MjSpec, layout: CellLayout, mass: float) -> None:

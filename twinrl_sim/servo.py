@@ -27,6 +27,15 @@ LEAD_NUMERIC = "twinrl_servo_lead"  # s; present: the servos track, absent: they
 TRACKING_STIFFNESS = 4.0  # a tracking servo's position gain over the holding servo's
 
 
+def scale_stiffness(actuator: mujoco.MjsActuator, factor: float) -> None:
+    """Multiply a position servo's stiffness (its gain and the matching bias) by
+    ``factor``."""
+    gain, bias = list(actuator.gainprm), list(actuator.biasprm)
+    gain[0] *= factor
+    bias[1] *= factor
+    actuator.gainprm, actuator.biasprm = gain, bias
+
+
 def full_lead(spec: mujoco.MjSpec, layout: CellLayout) -> float:
     """The lead that cancels the lag of the arm's servos once they track: the median over
     its joints of the (holding) joint damping / the tracking stiffness (s)."""
@@ -60,11 +69,10 @@ def set_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
     for joint_name, actuator_name in zip(layout.arm_joints, layout.arm_actuators, strict=True):
         joint, actuator = spec.joint(joint_name), spec.actuator(actuator_name)
         damping = float(np.atleast_1d(joint.damping)[0])
-        gain, bias = list(actuator.gainprm), list(actuator.biasprm)
-        gain[0] *= TRACKING_STIFFNESS
-        bias[1] *= TRACKING_STIFFNESS
+        scale_stiffness(actuator, TRACKING_STIFFNESS)
+        bias = list(actuator.biasprm)
         bias[2] -= damping
-        actuator.gainprm, actuator.biasprm = gain, bias
+        actuator.biasprm = bias
         joint.damping = [0.0] * len(np.atleast_1d(joint.damping))
     spec.add_numeric(name=LEAD_NUMERIC, data=[float(seconds)], size=1)
 

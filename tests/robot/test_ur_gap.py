@@ -32,14 +32,12 @@ def _twin(servo: str):
     return SCENE.model_copy(update={"physics": SCENE.physics.model_copy(update={"servo": servo})})
 
 
-def _excite(folder: Path, effects: dict | None) -> list:
+def _excite(folder: Path, effects: dict) -> list:
     """Three 6 s excitation episodes recorded through the driver from an emulated arm
     with ``effects`` hidden in it."""
     folder.mkdir()
-    hidden = None
-    if effects:
-        hidden = folder / "hidden.yaml"
-        hidden.write_text(yaml.safe_dump(effects))
+    hidden = folder / "hidden.yaml"
+    hidden.write_text(yaml.safe_dump(effects))
     cell = write_cell(folder)
     session = Session.create(folder / "session")
     with EmulatorProcess(cell, effects=hidden):

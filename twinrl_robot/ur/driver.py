@@ -336,16 +336,17 @@ class URArm:
         # own, not however long this step took the host.
         self.stream.push(guarded.q, period, end)
         time.sleep(max(0.0, end - time.monotonic()))
-        self._next_step = end + period
         self._check()
         return Sent(action=action, joint_target=guarded.q.astype(np.float32))
 
     def _period_end(self, period: float) -> float:
-        """When this control period ends (the next one starts then)."""
+        """When this control period ends; the next one is booked to end a period later."""
         now = time.monotonic()
         if self._next_step is None or now - self._next_step > period:
             self._next_step = now + period  # late by a whole period: start over, no burst
-        return self._next_step
+        end = self._next_step
+        self._next_step = end + period
+        return end
 
     def measured_q(self) -> np.ndarray:
         """The arm's joint positions (rad) as the controller measures them."""

@@ -112,13 +112,11 @@ class ServoStream:
         self.fault = None
         self._mode = SERVO
 
-    def push(self, target: np.ndarray, duration: float, until: float | None = None) -> None:
+    def push(self, target: np.ndarray, duration: float, until: float) -> None:
         """Move from the previous target to ``target``, from the end of the previous
-        segment (or now, when it has ended) until ``until`` (monotonic seconds; default
-        ``duration`` seconds from now), never faster than over MIN_SEGMENT of
-        ``duration``."""
+        segment (or now, when it has ended) until ``until`` (monotonic seconds), never
+        faster than over MIN_SEGMENT of the control period ``duration``."""
         now = time.monotonic()
-        until = now + duration if until is None else until
         with self._lock:
             assert self._segment is not None, "start the stream first"
             _, end, began, length = self._segment

@@ -302,7 +302,7 @@ def diagnose(
                 # takes part of its torque): the best few are refit together with them.
                 joint = [
                     _fit_candidate(
-                        scene, fit_on, held, noise, fixed, r.effect, baseline, rollout, True
+                        scene, fit_on, held, noise, fixed, r.effect, baseline, rollout, jointly=True
                     )
                     for r in results[:JOINT_REFITS]
                 ]
@@ -435,18 +435,15 @@ def _fit_candidate(
     """``name`` fitted with the named effects (``fixed``) held, or ``jointly`` refit with
     them (counted in the information criteria as the candidate's parameters only)."""
     started = time.perf_counter()
-    named = list(fixed) if jointly else []
+    if jointly:
+        kept, refit, start = {}, list(fixed), fixed
+    else:
+        kept, refit, start = fixed, [], None
     replay = WindowReplay(
-        scene,
-        fit_on,
-        noise,
-        fixed={} if jointly else fixed,
-        free=[*named, name],
-        start=fixed if jointly else None,
-        pool=rollout,
+        scene, fit_on, noise, fixed=kept, free=[*refit, name], start=start, pool=rollout
     )
     x, half_width, iterations = replay.fit()
-    refitted = sum(np.size(value) for n in named for value in fixed[n].values())
+    refitted = sum(np.size(value) for n in refit for value in fixed[n].values())
     aic, bic = _information(replay.residuals(x), len(x) - refitted)
     effects = replay.effects_at(x)
     heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
