@@ -18,6 +18,7 @@ from twinrl_sim.reconstruct.table_extent import SIDES
 
 if TYPE_CHECKING:
     from twinrl_sim.reconstruct.result import TwinBuild
+    from twinrl_sim.reconstruct.sfm import SparseModel
 
 
 def _rectangle(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
@@ -104,7 +105,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
         f"| frames | {len(selection.paths)} kept of {selection.frames_in_clip} "
         f"({selection.dropped_blurry} blurry), camera travel {selection.travel:.2f} widths |",
         f"| structure from motion | {model.registered}/{model.frames} frames registered, "
-        f"{len(model.points)} points |",
+        f"{len(model.points)} points{_mapping_note(model)} |",
         f"| alignment | {alignment.reference} ({', '.join(alignment.labels)}), seen in "
         f"{alignment.views} frames, residual {1000 * alignment.residual_m:.2f} mm RMS, "
         f"scale {alignment.to_base.scale:.4f} m/unit |",
@@ -240,3 +241,13 @@ def _table_extent(table: TablePlane) -> str:
         f"size measured in the frames; edge {', '.join(unseen)} never seen beyond, so the "
         "table may reach further there"
     )
+
+
+def _mapping_note(model: SparseModel) -> str:
+    """How hard the mapper had to try, when it was more than once and one model."""
+    notes = []
+    if model.models > 1:
+        notes.append(f"the largest of {model.models} models")
+    if model.attempts > 1:
+        notes.append(f"found at initialisation {model.attempts} (a more lenient first pair)")
+    return f" ({'; '.join(notes)})" if notes else ""

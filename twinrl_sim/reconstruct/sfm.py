@@ -2,6 +2,11 @@
 come from one walk, so neighbours in time overlap) and incremental mapping. One camera
 model is shared by all frames (one phone, fixed zoom).
 
+Real footage breaks a mapper that must grow one model from its first pair: the mapper
+may make several models (the largest is kept) and, when that is still too small, is
+rerun with a more lenient initial pair. Extraction and matching run on one thread so
+that the same frames and seed give the same reconstruction (see :func:`run_sfm`).
+
 Photos from the cell's fixed cameras join the same reconstruction: each gets a camera
 model of its own (its intrinsics are estimated), is matched against every frame of the
 walk and, once the walk is mapped, registered into it (the walk's poses held fixed), so
@@ -9,7 +14,7 @@ its pose and focal length come out in the walk's frame."""
 
 from __future__ import annotations
 
-import os
+import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +27,9 @@ from twinrl_sim.reconstruct.frames import CaptureError
 
 MIN_REGISTERED_FRACTION = 0.6
 MIN_REGISTERED = 10
+# The mapper's initial pair, tried in turn while too few frames register: least
+# triangulation angle (deg) and inlier matches. COLMAP's default first.
+INITIAL_PAIRS = ((16.0, 100), (8.0, 60), (4.0, 30))
 
 
 @dataclass
@@ -34,6 +42,8 @@ class SparseModel:
     registered: int
     frames: int
     fixed_images: dict[str, str]  # camera name -> image name in the reconstruction
+    models: int = 1  # separate models the mapper made of the walk (the largest is kept)
+    attempts: int = 1  # initialisations tried (see INITIAL_PAIRS)
 
     def fixed_image(self, camera: str) -> pycolmap.Image:
         """The registered photo of fixed camera ``camera``."""
@@ -65,7 +75,10 @@ def run_sfm(
     pycolmap.logging.minloglevel = int(pycolmap.logging.WARNING)  # progress goes to our own bar
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.use_gpu = False
-    extraction.num_threads = os.cpu_count() or 1  # said, so COLMAP does not warn about it
+    # One thread each: COLMAP numbers the images in the order extraction finishes them
+    # and matches pairs in whatever order its threads take them, so with more threads the
+    # same frames and seed map differently from run to run (2, 3 or 93 of 93 frames).
+    extraction.num_threads = 1
 
     def extract(names: list[str], reader: pycolmap.ImageReaderOptions | None = None) -> None:
         # One call, one camera model: the walk's frames share one, each photo has its own.
@@ -83,7 +96,15 @@ def run_sfm(
     pairing.overlap = overlap
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
-    pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
+    matching.num_threads = 1
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = seed  # each pair's RANSAC: the same seed, the same matches
+    pycolmap.match_sequential(
+        database,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+    )
     fixed_images = {}
     for camera, photo in (fixed_cameras or {}).items():
         name = f"camera_{camera}{Path(photo).suffix.lower()}"
@@ -94,24 +115,30 @@ def run_sfm(
         write_text_atomic(pairs, "".join(f"{name} {frame}\n" for frame in frame_names))
         imported = pycolmap.ImportedPairingOptions()
         imported.match_list_path = str(pairs)
-        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=imported)
+        pycolmap.match_image_pairs(
+            database,
+            matching_options=matching,
+            pairing_options=imported,
+            verification_options=verification,
+        )
     # The walk is mapped first, on its own: a photo matched against every frame would
     # often seed the mapper's initial pair, and its unknown focal length can sink it.
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
-    options.multiple_models = False
     options.image_names = frame_names
     estimated = (options.ba_refine_focal_length, options.ba_refine_extra_params)
     if intrinsics is not None:  # held as given (the principal point never is refined)
         options.ba_refine_focal_length = options.ba_refine_extra_params = False
-    models = pycolmap.incremental_mapping(database, image_dir, work_dir / "walk", options)
+    needed = max(MIN_REGISTERED, math.ceil(MIN_REGISTERED_FRACTION * frames))
+    models, attempts = _map_walk(database, image_dir, work_dir, options, needed)
+    walk_models = len(models)
     if models and fixed_images:  # then the photos join the walk, whose poses stay fixed
-        walk = max(models.values(), key=lambda r: r.num_reg_images())
         walk_dir = work_dir / "walk_model"
         walk_dir.mkdir(parents=True, exist_ok=True)
-        walk.write(walk_dir)
+        _largest(models).write(walk_dir)
         options.image_names = frame_names + list(fixed_images.values())
         options.fix_existing_frames = True
+        options.multiple_models = False  # one model: the walk, grown by the photos
         # The photos' own intrinsics are unknown: estimated as COLMAP does by default.
         options.ba_refine_focal_length, options.ba_refine_extra_params = estimated
         models = pycolmap.incremental_mapping(
@@ -122,14 +149,14 @@ def run_sfm(
             f"structure from motion registered none of the {frames} frames; film a textured "
             "scene with slow, steady motion and plenty of overlap between views"
         )
-    best = max(models.values(), key=lambda r: r.num_reg_images())
+    best = _largest(models)
     registered_names = {i.name for i in best.images.values() if i.has_pose}
     registered = len(registered_names - set(fixed_images.values()))
-    if registered < max(MIN_REGISTERED, MIN_REGISTERED_FRACTION * frames):
+    if registered < needed:
         raise CaptureError(
             f"structure from motion registered only {registered} of {frames} frames (at "
-            f"least {max(MIN_REGISTERED, round(MIN_REGISTERED_FRACTION * frames))} needed); "
-            "move more slowly, keep the table in view and avoid plain, reflective surfaces"
+            f"least {needed} needed; {attempts} initialisations tried); move more slowly, "
+            "keep the table in view and avoid plain, reflective surfaces"
         )
     for camera, name in fixed_images.items():
         if name not in registered_names:
@@ -140,7 +167,40 @@ def run_sfm(
             )
     points = np.array([p.xyz for p in best.points3D.values()])
     colors = np.array([p.color for p in best.points3D.values()], np.uint8)
-    return SparseModel(best, points, colors, registered, frames, fixed_images)
+    return SparseModel(
+        best, points, colors, registered, frames, fixed_images, walk_models, attempts
+    )
+
+
+def _largest(models: dict[int, pycolmap.Reconstruction]) -> pycolmap.Reconstruction:
+    """The model with the most registered images (the first such, so runs agree)."""
+    return max(models.values(), key=lambda r: r.num_reg_images())
+
+
+def _map_walk(
+    database: Path,
+    image_dir: Path,
+    work_dir: Path,
+    options: pycolmap.IncrementalPipelineOptions,
+    needed: int,
+) -> tuple[dict[int, pycolmap.Reconstruction], int]:
+    """Map the walk's frames, allowing several models, and retry with a more lenient
+    initial pair while the largest registers fewer than ``needed``: on a narrow sweep
+    the default pair (16 deg apart, 100 inliers) may not exist or may not grow. The
+    best models found and the number of initialisations tried."""
+    options.multiple_models = True  # a first pair that does not grow is not the end
+    best: dict[int, pycolmap.Reconstruction] = {}
+    for attempt, (angle, inliers) in enumerate(INITIAL_PAIRS, start=1):
+        options.mapper.init_min_tri_angle, options.mapper.init_min_num_inliers = angle, inliers
+        out = work_dir / f"walk_{attempt}"
+        models = pycolmap.incremental_mapping(database, image_dir, out, options)
+        if models and (
+            not best or _largest(models).num_reg_images() > _largest(best).num_reg_images()
+        ):
+            best = models
+        if best and _largest(best).num_reg_images() >= needed:
+            break
+    return best, attempt
 
 
 def _known_camera(intrinsics: tuple[float, ...]) -> pycolmap.ImageReaderOptions:

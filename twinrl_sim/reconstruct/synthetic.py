@@ -7,12 +7,17 @@ lying on the table. A hand-held-like camera walks an arc around the table (slow 
 sweep, wobbling height, distance and aim) and the frames are written as an mp4 with
 PyAV. Ground truth is the scene that rendered it and the camera path
 (:class:`Walkthrough`).
+
+That clip is kinder than a real one. :data:`REALISTIC_WALK` films what a user has: a
+plain white table, a translucent bottle, textured clutter and a carpet behind, a 50 deg
+sweep, motion blur, and a phone's lens, auto exposure, noise and JPEG stills
+(:mod:`~twinrl_sim.reconstruct.camera_traits`), written as a folder of frames.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import av
@@ -20,7 +25,13 @@ import cv2
 import mujoco
 import numpy as np
 
-from twinrl_sim.build import build_mjspec, yaw_quat
+from twinrl_sim.build import FLOOR_DEPTH, build_mjspec, yaw_quat
+from twinrl_sim.reconstruct.camera_traits import (
+    REALISTIC_TRAITS,
+    CameraTraits,
+    TraitApplier,
+    pinhole_intrinsics,
+)
 from twinrl_sim.reconstruct.tag import DEFAULT_FAMILY, family, tag_image
 from twinrl_sim.spec import SceneSpec
 
@@ -63,6 +74,25 @@ class WalkthroughSettings:
     jitter: float = 0.01  # m of hand shake in the aim point
     motion_blur: int = 1  # sub-frames averaged per frame (1: none)
     static: bool = False  # the camera does not move (a bad clip, for tests)
+    plain_table: bool = False  # the table top keeps its spec colour, with no texture
+    clutter: int = 0  # textured boxes standing behind the table, and a carpet under them
+    traits: CameraTraits = field(
+        default_factory=CameraTraits
+    )  # the phone's lens, exposure, noise, JPEG
+
+
+REALISTIC_WALK = WalkthroughSettings(
+    seconds=9.3,
+    sweep_deg=50.0,
+    distance=0.9,
+    elevation_deg=-35.0,
+    jitter=0.02,
+    motion_blur=3,
+    plain_table=True,
+    clutter=8,
+    traits=REALISTIC_TRAITS,
+)
+"""93 frames at 640x480 of the cell a real user films: see the module's docstring."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +104,7 @@ class Walkthrough:
     tag_poses: dict[int, np.ndarray]  # id -> (7,) pose in the base frame: x y z qw qx qy qz
     camera_positions: np.ndarray  # (T, 3) in the base frame
     fovy_deg: float
+    intrinsics: tuple[float, ...]  # fx fy cx cy, then k1 k2 p1 p2 when the lens distorts
 
 
 def _noise_texture(rng: np.random.Generator, size: int, low: float, high: float) -> np.ndarray:
@@ -107,28 +138,41 @@ def walkthrough_model(
     tags: tuple[TagPlacement, ...],
     seed: int,
     image_size: tuple[int, int],
+    *,
+    plain_table: bool = False,
+    clutter: int = 0,
 ) -> tuple[mujoco.MjModel, dict[int, np.ndarray]]:
-    """The textured cell with the tags, able to render ``image_size`` (width, height)
-    images, and each tag's pose (x y z qw qx qy qz) by id."""
+    """The cell with the tags, able to render ``image_size`` (width, height) images, and
+    each tag's pose (x y z qw qx qy qz) by id. Opaque objects (and the table unless
+    ``plain_table``) get noise textures; a translucent object (alpha below 1) stays
+    clear and glossy, as a drinking bottle is. ``clutter`` boxes stand behind the table."""
     rng = np.random.default_rng(seed)
     spec, _ = build_mjspec(scene, apply_spec_effects=False)
     width, height = image_size
     spec.visual.global_.offwidth = max(spec.visual.global_.offwidth, width)
     spec.visual.global_.offheight = max(spec.visual.global_.offheight, height)
-    table = spec.geom("table_top")
-    table.material = _add_texture(
-        spec, "walk_table", _noise_texture(rng, 1024, 0.35, 1.0), scene.table.rgba
-    )
-    table.rgba = [0.5, 0.5, 0.5, 1]  # the default: the material's colour applies
+    if not plain_table:
+        table = spec.geom("table_top")
+        table.material = _add_texture(
+            spec, "walk_table", _noise_texture(rng, 1024, 0.35, 1.0), scene.table.rgba
+        )
+        table.rgba = [0.5, 0.5, 0.5, 1]  # the default: the material's colour applies
     own_bodies = {"world", "table", *scene.object_names}
     for index, geom in enumerate(spec.geoms):
         body = geom.parent.name or "world"
         if body not in own_bodies:
             geom.group = HIDDEN_GROUP
+        elif body in scene.object_names and 0 < geom.rgba[3] < 1:
+            geom.material = ""
+            glossy = spec.add_material(name=f"walk_glossy{index}", specular=0.9, shininess=0.9)
+            glossy.reflectance = 0.2
+            geom.material = glossy.name
         elif body in scene.object_names and geom.rgba[3] > 0 and not geom.material:
             noise = _noise_texture(rng, 128, 0.6, 1.0)
             geom.material = _add_texture(spec, f"walk_geom{index}", noise, list(geom.rgba))
             geom.rgba = [0.5, 0.5, 0.5, 1]
+    if clutter:
+        _add_clutter(spec, scene, clutter, rng)
     top = scene.table.top_height
     thickness = 0.0006
     poses = {}
@@ -151,6 +195,38 @@ def walkthrough_model(
         )
         poses[tag.tag_id] = np.concatenate([[tag.xy[0], tag.xy[1], top + thickness], quat])
     return spec.compile(), poses
+
+
+def _add_clutter(
+    spec: mujoco.MjSpec, scene: SceneSpec, boxes: int, rng: np.random.Generator
+) -> None:
+    """A carpet and ``boxes`` textured boxes on the floor beyond the table's base side,
+    where a walk on the far side looks past the table: what stands behind a real cell."""
+    floor = spec.geom("floor")
+    floor.material = _add_texture(
+        spec, "walk_carpet", _noise_texture(rng, 512, 0.2, 0.6), (0.55, 0.5, 0.45, 1), (6, 6)
+    )
+    floor.rgba = [0.5, 0.5, 0.5, 1]
+    table = scene.table
+    floor_z = table.top_height - FLOOR_DEPTH
+    near_edge = table.center[0] - table.size[0] / 2
+    for index in range(boxes):
+        half = rng.uniform([0.1, 0.1, 0.15], [0.25, 0.3, 0.5])
+        x = near_edge - rng.uniform(0.35, 1.2)
+        y = table.center[1] + rng.uniform(-1.0, 1.0)
+        colour = [*rng.uniform(0.3, 0.9, 3), 1.0]
+        spec.worldbody.add_geom(
+            name=f"walk_clutter{index}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            size=half.tolist(),
+            pos=[x, y, floor_z + half[2]],
+            quat=yaw_quat(rng.uniform(-0.6, 0.6)).tolist(),
+            material=_add_texture(
+                spec, f"walk_clutter{index}", _noise_texture(rng, 128, 0.4, 1.0), colour
+            ),
+            contype=0,
+            conaffinity=0,
+        )
 
 
 def _camera_path(
@@ -179,9 +255,13 @@ def render_walkthrough(
     settings: WalkthroughSettings = WalkthroughSettings(),
     seed: int = 0,
 ) -> Walkthrough:
-    """Render the hand-held walk around ``scene``'s table to the mp4 ``out``."""
+    """Render the hand-held walk around ``scene``'s table to ``out``: an mp4, or a
+    folder of numbered JPEG frames when the settings' camera saves JPEGs."""
     rng = np.random.default_rng(seed)
-    model, tag_poses = walkthrough_model(scene, tags, seed, (settings.width, settings.height))
+    size = (settings.width, settings.height)
+    model, tag_poses = walkthrough_model(
+        scene, tags, seed, size, plain_table=settings.plain_table, clutter=settings.clutter
+    )
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     renderer = mujoco.Renderer(model, settings.height, settings.width)
@@ -191,15 +271,21 @@ def render_walkthrough(
     table = scene.table
     aim = np.array([table.center[0], table.center[1] * 0.5, table.top_height])
     path = _camera_path(settings, aim, rng)
+    fovy = float(model.vis.global_.fovy)
+    pinhole = pinhole_intrinsics(settings.width, settings.height, fovy)
+    traits = settings.traits
+    apply_traits = TraitApplier(
+        traits,
+        pinhole,
+        size,
+        len(path) // settings.motion_blur,
+        np.random.default_rng([seed, 1]),  # its own stream: the path stays as it was
+    )
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     positions = []
     try:
-        with av.open(str(out), mode="w") as container:
-            stream = container.add_stream("libx264", rate=round(settings.fps))
-            stream.width, stream.height, stream.pix_fmt = settings.width, settings.height, "yuv420p"
-            stream.options = {"crf": "18"}
-            for start in range(0, len(path), settings.motion_blur):
+        with _FrameWriter(out, settings.fps, size, traits.jpeg_quality) as writer:
+            for index, start in enumerate(range(0, len(path), settings.motion_blur)):
                 frames = []
                 for lookat, distance, azimuth, elevation in path[
                     start : start + settings.motion_blur
@@ -211,13 +297,50 @@ def render_walkthrough(
                 eyes = renderer.scene.camera  # a mono render looks from between the eyes
                 positions.append((np.array(eyes[0].pos) + np.array(eyes[1].pos)) / 2)
                 image = np.mean(frames, axis=0).round().astype(np.uint8)
-                for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
-                    container.mux(packet)
-            for packet in stream.encode():
-                container.mux(packet)
+                writer.write(apply_traits(image, index))
     finally:
         renderer.close()
-    return Walkthrough(out, tags, tag_poses, np.array(positions), float(model.vis.global_.fovy))
+    intrinsics = pinhole + (traits.distortion if traits.distorted else ())
+    return Walkthrough(out, tags, tag_poses, np.array(positions), fovy, intrinsics)
+
+
+class _FrameWriter:
+    """Frames to an mp4 (H.264, near lossless) or, given a JPEG quality, to a folder of
+    numbered JPEGs, as a phone's burst or a frame export gives them."""
+
+    def __init__(
+        self, out: Path, fps: float, size: tuple[int, int], jpeg_quality: int | None
+    ) -> None:
+        self.out, self.fps, self.size, self.quality = out, fps, size, jpeg_quality
+        self.count = 0
+
+    def __enter__(self) -> _FrameWriter:
+        if self.quality is not None:
+            self.out.mkdir(parents=True, exist_ok=True)
+            return self
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self.container = av.open(str(self.out), mode="w")
+        self.stream = self.container.add_stream("libx264", rate=round(self.fps))
+        self.stream.width, self.stream.height = self.size
+        self.stream.pix_fmt = "yuv420p"
+        self.stream.options = {"crf": "18"}
+        return self
+
+    def write(self, image: np.ndarray) -> None:
+        if self.quality is not None:
+            path = self.out / f"frame_{self.count:05d}.jpg"
+            bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+            cv2.imwrite(str(path), bgr, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
+        else:
+            for packet in self.stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                self.container.mux(packet)
+        self.count += 1
+
+    def __exit__(self, *exc) -> None:
+        if self.quality is None:
+            for packet in self.stream.encode():
+                self.container.mux(packet)
+            self.container.close()
 
 
 def render_fixed_view(
