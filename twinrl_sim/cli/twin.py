@@ -61,7 +61,8 @@ def build(settings: dict[str, Any], source: Path, out: Path) -> None:
 
         built = build_twin(source, out, config, on_stage=advance)
     table = Table(title=f"{built.scene.name}: {len(built.objects)} objects")
-    for column in ("object", "role", "x (m)", "y (m)", "yaw (deg)", "mass (kg)", "parts"):
+    columns = ("object", "role", "x (m)", "y (m)", "yaw (deg)", "mass (kg)", "parts", "confidence")
+    for column in columns:
         table.add_column(column)
     for obj in built.objects:
         table.add_row(
@@ -72,6 +73,7 @@ def build(settings: dict[str, Any], source: Path, out: Path) -> None:
             f"{np.degrees(obj.yaw):+.1f}",
             f"{obj.mass:.3f}" if obj.role == "manipulated" else "fixed",
             str(len(obj.shape.parts)),
+            obj.evidence.confidence,
         )
     console.print(table)
     console.print(

@@ -30,6 +30,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import ConvexHull
 
 from twinrl_sim.build import compile_scene
+from twinrl_sim.reconstruct.evidence import ObjectEvidence
 from twinrl_sim.reconstruct.frames import CaptureError
 from twinrl_sim.reconstruct.segment import ROUND_ASPECT, ObjectCluster
 from twinrl_sim.spec import SceneSpec
@@ -65,6 +66,7 @@ class TwinObject:
     color: np.ndarray  # (3,) RGB in [0, 1]
     cluster: ObjectCluster
     source: str  # "points", "points + silhouettes", or the supplied mesh file
+    evidence: ObjectEvidence
     fit_rms: float | None = None  # ICP residual of a supplied mesh (m)
 
 

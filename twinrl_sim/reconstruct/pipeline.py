@@ -28,6 +28,7 @@ from twinrl_sim.reconstruct.align import (
     align_to_tag,
     check_reference_points,
 )
+from twinrl_sim.reconstruct.evidence import ObjectEvidence, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.objects import (
     DEFAULT_DENSITY,
@@ -204,7 +205,14 @@ def build_twin(
         )
         to_cell = alignment.to_base.turned(levelling, pivot)  # SfM -> levelled base frame
         on_plane = np.abs(levelled[:, 2] - table.height) < PLANE_TOLERANCE
-        table = measure_table(table, levelled[on_plane, :2], model, work / "frames", to_cell.invert)
+        table = measure_table(
+            table,
+            levelled[on_plane, :2],
+            model,
+            work / "frames",
+            to_cell.invert,
+            tags=alignment.tag_outlines if settings.tags_on_table else (),
+        )
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, model.colors, table)
@@ -222,7 +230,8 @@ def build_twin(
             else describe_cluster(cluster.points, cluster.color, table, hull)
             for cluster, hull in zip(clusters, hulls, strict=True)
         ]
-        objects, ratio = _objects(clusters, table, task_scene, meshes, settings)
+        evidence = [weigh_evidence(cluster, model, to_cell) for cluster in clusters]
+        objects, ratio = _objects(clusters, evidence, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
             name: _placed_camera(name, model, to_cell, table) for name in settings.camera_images
@@ -297,6 +306,7 @@ def _check_scale(camera_path: np.ndarray, pivot: np.ndarray, settings: BuildSett
 
 def _objects(
     clusters: list,
+    evidence: list[ObjectEvidence],
     table: TablePlane,
     task_scene: SceneSpec | None,
     meshes: dict[str, o3d.geometry.TriangleMesh],
@@ -341,6 +351,7 @@ def _objects(
                 color=cluster.color,
                 cluster=cluster,
                 source=source,
+                evidence=evidence[index],
                 fit_rms=fit_rms,
             )
         )

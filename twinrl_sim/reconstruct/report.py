@@ -120,8 +120,8 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
         "## Objects",
         "",
         "| name | role | x (m) | y (m) | yaw (deg) | size L x W x H (mm) | convex parts | "
-        "volume (cm^3) | mass (kg) | shape |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "volume (cm^3) | mass (kg) | shape | evidence | confidence |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for obj in built.objects:
         size = " x ".join(f"{1000 * v:.0f}" for v in obj.cluster.size)
@@ -134,8 +134,13 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
         lines.append(
             f"| {obj.name} | {obj.role} | {obj.position[0]:.3f} | {obj.position[1]:.3f} | "
             f"{np.degrees(obj.yaw):+.1f} | {size} | {len(obj.shape.parts)} | "
-            f"{1e6 * obj.shape.volume:.0f} | {mass} | {shape} |"
+            f"{1e6 * obj.shape.volume:.0f} | {mass} | {shape} | {obj.evidence.summary()} | "
+            f"{obj.evidence.confidence} |"
         )
+    doubtful = [obj for obj in built.objects if obj.evidence.doubts]
+    if doubtful:
+        lines += ["", "Where the evidence is thin:", ""]
+        lines += [f"- {obj.name}: {'; '.join(obj.evidence.doubts)}." for obj in doubtful]
     if built.cameras:
         lines += [
             "",

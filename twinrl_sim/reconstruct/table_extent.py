@@ -8,9 +8,10 @@ colour is learned from the frames too, in the core of the points' patch: a Gauss
 chromaticity and log brightness, fitted robustly (the core also shows tags and objects),
 so a textured top tolerates its own light and dark patches while a plain white one is
 told apart from a grey floor. The table is the connected region of table
-cells around that core; each side of it counts as *seen* where the cells just beyond it
-were seen and voted "not table" (otherwise the size along that side is a lower bound,
-and the report says so).
+cells around that core, turned to the direction its seen edges run (the points' yaw
+means nothing on a plain top); each side of it counts as *seen* where the cells just
+beyond it were seen and voted "not table" (otherwise the size along that side is a
+lower bound, and the report says so).
 """
 
 from __future__ import annotations
@@ -34,6 +35,11 @@ COLOUR_DISTANCE = 3.5  # Mahalanobis distance within which a pixel has the table
 MIN_SPREAD = np.array([0.008, 0.008, 0.05])  # chromaticity, log brightness: least std assumed
 BEYOND = (0.02, 0.06)  # m: the band outside a side that decides whether it was seen
 SIDES = ("-x", "+x", "-y", "+y")  # the table's edges, along its own axes
+SHEET = 1.5  # a tag's printed sheet, in half diagonals of its black square
+RING = 2.5  # the ring around a tag that shows the table, in sheets
+MIN_CORE_CELLS = 500  # core cells off the tags' sheets below which the rings are used
+EDGE_PERCENTILE = 10  # rows (or columns) whose end may lie beyond a side
+MIN_EDGE_CELLS = 30  # seen edge cells needed to take the table's yaw from its edges
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,13 +117,19 @@ def measure_table(
     model: SparseModel,
     image_dir: Path,
     to_sfm: Callable[[np.ndarray], np.ndarray],
+    tags: tuple[np.ndarray, ...] = (),
 ) -> TablePlane:
     """``table`` with its centre, size and colour measured in the frames.
 
     ``inlier_xy`` are the plane's SfM inliers (levelled base frame, their xy); ``to_sfm``
-    maps levelled base-frame points to the reconstruction's frame. Where the frames do
-    not show a table region around the points (no views, or no colour stands out), the
-    points' extent is kept and the table says so (``extent_from="points"``).
+    maps levelled base-frame points to the reconstruction's frame; ``tags`` are the
+    outlines (4, 3) of the tags lying on the table. Where the frames do not show a table
+    region around the points (no views, or no colour stands out), the points' extent is
+    kept and the table says so (``extent_from="points"``).
+
+    The colour is learned in the core of the inliers, never on a tag's sheet, and in a
+    ring around each tag when that core is small: on a plain top the tags hold most of
+    the plane's points, and their black and white would be taken for the table's.
     """
     axes = planar_axes(table.yaw)
     local = (inlier_xy - table.center) @ axes.T
@@ -133,6 +145,15 @@ def measure_table(
         & (vv.ravel() >= core_low[1])
         & (vv.ravel() <= core_high[1])
     )
+    off_sheets, rings = np.ones(len(cells), bool), np.zeros(len(cells), bool)
+    for outline in tags:
+        sheet = SHEET * np.max(np.linalg.norm(outline[:, :2] - outline[:, :2].mean(0), axis=1))
+        distance = np.linalg.norm(cells - outline[:, :2].mean(0), axis=1)
+        off_sheets &= distance > sheet
+        rings |= distance < RING * sheet
+    in_core &= off_sheets
+    if in_core.sum() < MIN_CORE_CELLS:  # the points were the tags': look around them
+        in_core |= rings & off_sheets
     # Each view's colour at every cell, read once (a frame is dropped once sampled).
     sampled = [
         _sample(model, image, read_colour(image_dir / image.name), sfm_points)
@@ -164,18 +185,57 @@ def measure_table(
     if count < 2 or len(core_labels) == 0:
         return table  # its extent_from stays "points"
     region = _fill_holes(labels == np.bincount(core_labels).argmax())
-    rows, columns = np.nonzero(region)
-    low = np.array([grid.u[columns.min()], grid.v[rows.min()]]) - CELL / 2
-    high = np.array([grid.u[columns.max()], grid.v[rows.max()]]) + CELL / 2
-    seen_sides = _sides_seen(grid, judged, is_table, low, high)
+    # The plane's yaw came from its points, which on a plain top are a patch of any
+    # shape: the edges the frames saw give the table's own.
+    turn = _edge_turn(region, judged & ~is_table)
+    yaw = table.yaw + turn
+    local = np.c_[uu.ravel(), vv.ravel()] @ planar_axes(turn).T  # cells in the new axes
+    low, high = _robust_extent(local[region.ravel()])
+    seen_sides = _sides_seen(local, judged.ravel(), is_table.ravel(), low, high)
     return dataclasses.replace(
         table,
-        center=table.center + ((low + high) / 2) @ axes,
+        center=table.center + ((low + high) / 2) @ planar_axes(yaw),
         size=high - low,
+        yaw=yaw,
         color=_rgb(colour_model.mean),
         extent_from="frames",
         sides_seen=seen_sides,
     )
+
+
+def _robust_extent(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rectangle's low and high corners (table axes) of region ``cells`` (N, 2):
+    each side where all but :data:`EDGE_PERCENTILE` % of the region's rows (or columns)
+    end, so that a few spur cells at a corner or along an edge (a blurred seam that
+    shared the top's colour) do not widen the table as the outermost cells would, while
+    notches (an object at the edge, a corner cut off) do not shrink it."""
+    low, high = np.empty(2), np.empty(2)
+    for axis in (0, 1):
+        lines = np.round(cells[:, 1 - axis] / CELL).astype(int)  # rows of the other axis
+        order = np.argsort(lines, kind="stable")
+        starts = np.flatnonzero(np.diff(lines[order], prepend=lines[order][0] - 1))
+        values = cells[order, axis]
+        low[axis] = np.percentile(np.minimum.reduceat(values, starts), EDGE_PERCENTILE)
+        high[axis] = np.percentile(np.maximum.reduceat(values, starts), 100 - EDGE_PERCENTILE)
+    low -= CELL / 2
+    high += CELL / 2
+    return low, high
+
+
+def _edge_turn(region: np.ndarray, not_table: np.ndarray) -> float:
+    """The turn (rad, within +-45 deg) from the grid's axes to the table's edges: the
+    dominant direction, modulo 90 deg, of the region's boundary where the frames saw
+    something else beyond it (not where the views ran out). 0 with too little edge."""
+    near_other = cv2.dilate(not_table.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    border = region & near_other
+    if border.sum() < MIN_EDGE_CELLS:
+        return 0.0
+    smooth = cv2.GaussianBlur(region.astype(np.float32), (0, 0), 2.0)
+    along_u = cv2.Sobel(smooth, cv2.CV_32F, 1, 0)[border]
+    along_v = cv2.Sobel(smooth, cv2.CV_32F, 0, 1)[border]
+    weights = np.hypot(along_u, along_v)
+    fourfold = np.sum(weights * np.exp(4j * np.arctan2(along_v, along_u)))
+    return float(np.angle(fourfold) / 4)
 
 
 def _rgb(colour: np.ndarray) -> np.ndarray:
@@ -195,11 +255,13 @@ def _fill_holes(region: np.ndarray) -> np.ndarray:
 
 
 def _sides_seen(
-    grid: _Grid, judged: np.ndarray, is_table: np.ndarray, low: np.ndarray, high: np.ndarray
+    local: np.ndarray, judged: np.ndarray, is_table: np.ndarray, low: np.ndarray, high: np.ndarray
 ) -> tuple[str, ...]:
-    """The sides (of :data:`SIDES`) whose outside band was mostly seen as not table."""
+    """The sides (of :data:`SIDES`) whose outside band was mostly seen as not table;
+    ``local`` (N, 2) are the cells in the table's axes, ``judged`` and ``is_table`` (N,)
+    their verdicts."""
     near, far = BEYOND
-    uu, vv = np.meshgrid(grid.u, grid.v)
+    uu, vv = local.T
     within_u = (uu >= low[0]) & (uu <= high[0])
     within_v = (vv >= low[1]) & (vv <= high[1])
     bands = {

@@ -1,0 +1,94 @@
+"""How much the frames say about each object, and so how far its shape can be trusted.
+
+A clear, glossy or plain object gives structure from motion few points; one filmed from
+one side has a depth (along the view) nobody saw. The build still makes such an object,
+and says so: each object carries the frames that saw it, the arc of directions they saw
+it from, its points and whether its silhouette was carved, a confidence and, in words,
+what is thin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twinrl_sim.reconstruct.align import Similarity
+from twinrl_sim.reconstruct.segment import ObjectCluster
+from twinrl_sim.reconstruct.sfm import SparseModel
+
+MIN_VIEWS = 10  # frames an object needs before its place is more than a glimpse
+ALL_ROUND_DEG = 90.0  # arc of view directions from which an object's depth is seen
+MIN_POINTS = 50  # points an uncarved object needs for its shape to be more than rough
+
+
+@dataclass(frozen=True)
+class ObjectEvidence:
+    """What the frames gave one object."""
+
+    views: int  # registered frames whose image holds the object's centre
+    arc_deg: float  # spread of the directions (about the vertical) those frames saw it from
+    points: int  # SfM points of its cluster
+    carved: bool  # whether its footprint was carved from silhouettes
+    doubts: tuple[str, ...]  # what is thin, one phrase each
+
+    @property
+    def confidence(self) -> str:
+        """high (nothing thin), medium (one thing) or low (more, or barely seen)."""
+        if self.views < MIN_VIEWS or len(self.doubts) >= 2:
+            return "low"
+        return "medium" if self.doubts else "high"
+
+    def summary(self) -> str:
+        """One line for the report's table: views, arc, points, carved."""
+        carved = "carved" if self.carved else "not carved"
+        return f"{self.views} views, {self.arc_deg:.0f} deg, {self.points} pts, {carved}"
+
+
+def weigh_evidence(
+    cluster: ObjectCluster, model: SparseModel, to_cell: Similarity
+) -> ObjectEvidence:
+    """The evidence for ``cluster`` (levelled base frame; ``to_cell`` maps the
+    reconstruction's frame to it) in the registered frames of the walk."""
+    centre = np.asarray(cluster.center, float)
+    centre_sfm = to_cell.invert(centre[None])[0]
+    walk = set(model.fixed_images.values())
+    directions = []
+    for image in model.reconstruction.images.values():
+        if not image.has_pose or image.name in walk:
+            continue
+        camera = model.reconstruction.cameras[image.camera_id]
+        in_camera = image.cam_from_world().matrix() @ np.r_[centre_sfm, 1.0]
+        if in_camera[2] <= 1e-3:
+            continue
+        u, v = camera.img_from_cam(in_camera[None])[0]
+        if 0 <= u < camera.width and 0 <= v < camera.height:
+            directions.append(image.projection_center())
+    if directions:
+        seen_from = to_cell.apply(np.array(directions)) - centre
+        azimuths = np.arctan2(seen_from[:, 1], seen_from[:, 0])
+        arc = _arc_deg(azimuths)
+    else:
+        arc = 0.0
+    carved = cluster.carved is not None
+    doubts = []
+    if len(directions) < MIN_VIEWS:
+        doubts.append(f"seen in only {len(directions)} frames")
+    if arc < ALL_ROUND_DEG:
+        doubts.append(
+            f"seen from one side only ({arc:.0f} deg of arc): its depth along the view is "
+            "a guess; film it from more sides"
+        )
+    if not carved and len(cluster.points) < MIN_POINTS:
+        doubts.append(
+            f"only {len(cluster.points)} points and no silhouette (a clear, glossy or plain "
+            "surface, or one the colour of the table): its size is rough"
+        )
+    return ObjectEvidence(len(directions), arc, len(cluster.points), carved, tuple(doubts))
+
+
+def _arc_deg(azimuths: np.ndarray) -> float:
+    """The smallest arc (deg) holding every azimuth: 360 minus the widest gap."""
+    ordered = np.sort(np.mod(azimuths, 2 * np.pi))
+    gaps = np.diff(np.r_[ordered, ordered[0] + 2 * np.pi])
+    return float(np.degrees(2 * np.pi - gaps.max()))
