@@ -53,9 +53,10 @@ class _Carving:
         mask = (to_object < MASK_CHROMA) & (to_object < to_table)
         in_camera = self.homogeneous @ pose.T
         ahead = in_camera[:, 2] > 1e-3
-        uv = np.full((len(in_camera), 2), -1)
-        uv[ahead] = np.round(camera.img_from_cam(in_camera[ahead])).astype(int)
-        u, v = uv.T
+        projected = np.full((len(in_camera), 2), -1.0)
+        projected[ahead] = camera.img_from_cam(in_camera[ahead])
+        projected[~np.isfinite(projected).all(axis=1)] = -1.0  # a lens model's far outside
+        u, v = np.round(projected).astype(int).T
         visible = ahead & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
         self.seen[visible] += 1
         self.inside[visible] += mask[v[visible], u[visible]]

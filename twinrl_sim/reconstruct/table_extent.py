@@ -94,9 +94,11 @@ def _sample(model: SparseModel, image, colour: np.ndarray, sfm_points: np.ndarra
     camera = model.reconstruction.cameras[image.camera_id]
     in_camera = np.c_[sfm_points, np.ones(len(sfm_points))] @ image.cam_from_world().matrix().T
     ahead = in_camera[:, 2] > 1e-3
-    uv = np.full((len(sfm_points), 2), -1)
-    uv[ahead] = np.round(camera.img_from_cam(in_camera[ahead])).astype(int)
-    u, v = uv.T
+    projected = np.full((len(sfm_points), 2), -1.0)
+    projected[ahead] = camera.img_from_cam(in_camera[ahead])
+    # A lens model diverges far outside its frame: those cells are not in view.
+    projected[~np.isfinite(projected).all(axis=1)] = -1.0
+    u, v = np.round(projected).astype(int).T
     seen = ahead & (u >= 0) & (v >= 0) & (u < colour.shape[1]) & (v < colour.shape[0])
     values = np.zeros((len(sfm_points), 3), np.float32)  # unseen cells: never compared
     values[seen] = colour[v[seen], u[seen]]
