@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from twinrl_sim.reconstruct.calibration import Calibration, write_calibration
 from twinrl_sim.reconstruct.camera_traits import CameraTraits, TraitApplier, camera_matrix
 from twinrl_sim.reconstruct.evidence import ObjectEvidence, _arc_deg
 from twinrl_sim.reconstruct.pipeline import build_twin
@@ -47,15 +48,19 @@ def footage(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def built(footage, tmp_path_factory):
-    """Built as a user who calibrated the phone would: with its intrinsics."""
+    """Built as a user who calibrated the phone would: with its calibration file."""
+    root = tmp_path_factory.mktemp("built")
+    phone = write_calibration(
+        Calibration(footage.intrinsics, (640, 480), 0.1, 30, 30), root / "phone.yaml"
+    )
     settings = BuildSettings(
         tag_size=0.14,
         tag_pose=tuple(footage.tag_poses[12]),
         tag_id=12,
-        intrinsics=footage.intrinsics,
+        calibration=phone,
         frames=93,
     )
-    return build_twin(footage.video, tmp_path_factory.mktemp("built") / "cell", settings)
+    return build_twin(footage.video, root / "cell", settings)
 
 
 def test_the_realistic_clip_is_jpeg_frames_with_a_phones_traits(footage):
@@ -88,6 +93,7 @@ def test_the_same_frames_and_seed_map_the_same_way(footage, tmp_path):
 
 def test_the_plain_table_is_found_where_the_tag_lies(built):
     assert built.model.registered >= 0.9 * built.model.frames
+    assert built.scene.provenance["intrinsics"].startswith("calibration phone.yaml")
     table = built.table
     assert abs(table.height - OFFICE.table.top_height) < 0.01 and table.tilt_deg < 2.0
     assert abs(math.degrees(table.yaw)) < 2.0

@@ -16,7 +16,7 @@ from twinrl_data.console import progress
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.settings_cli import options, settings_command
 from twinrl_sim.cli.common import console
-from twinrl_sim.reconstruct.settings import STAGES, BuildSettings
+from twinrl_sim.reconstruct.settings import STAGES, Board, BuildSettings
 
 twin_app = typer.Typer(
     help="Build the twin of a cell from a phone video of it.", no_args_is_help=True
@@ -99,4 +99,53 @@ settings_command(
     build,
     help=build.__doc__ or "",
     extra=[SOURCE, OUT],
+)
+
+
+CLIP = SOURCE.replace(
+    annotation=Annotated[
+        Path,
+        typer.Argument(
+            help="Clip (or folder of frames) of the printed board, filmed with the camera "
+            "and zoom that film the cell.",
+            metavar="SOURCE",
+            show_default=False,
+        ),
+    ]
+)
+CALIBRATION_OUT = OUT.replace(
+    annotation=Annotated[
+        Path, typer.Option(help="Calibration file to write (OpenCV YAML), e.g. phone.yaml.")
+    ]
+)
+
+
+def calibrate(settings: dict[str, Any], source: Path, out: Path) -> None:
+    """Estimate the filming camera's intrinsics (pinhole, k1 k2 p1 p2) from a clip of a
+    printed checkerboard or ChArUco board, for twin build --calibration."""
+    from twinrl_sim.reconstruct.calibration import calibrate as solve
+    from twinrl_sim.reconstruct.calibration import check_new_file, write_calibration
+
+    board = Board(**settings)
+    check_new_file(out)  # before the clip is read
+    with progress() as bar:
+        job = bar.add_task("frames searched", total=None)
+        solved = solve(source, board, on_frame=lambda n: bar.update(job, completed=n))
+    write_calibration(solved, out)
+    fx, fy, cx, cy, k1, k2, p1, p2 = solved.intrinsics
+    console.print(
+        f"fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f} px, k1 {k1:+.4f} k2 {k2:+.4f} "
+        f"p1 {p1:+.5f} p2 {p2:+.5f} at {solved.size[0]}x{solved.size[1]}; reprojection "
+        f"{solved.rms_px:.2f} px RMS over {solved.views} views ({solved.frames} frames read)"
+    )
+    console.print(f"{out} (use as twinrl twin build --calibration {out})")
+
+
+settings_command(
+    twin_app,
+    "calibrate",
+    options(Board),
+    calibrate,
+    help=calibrate.__doc__ or "",
+    extra=[CLIP, CALIBRATION_OUT],
 )

@@ -53,7 +53,7 @@ def sharpness(image: np.ndarray) -> float:
     return float(cv2.Laplacian(grey, cv2.CV_64F).var())
 
 
-def _stream(source: Path) -> Iterator[np.ndarray]:
+def stream_frames(source: Path) -> Iterator[np.ndarray]:
     """The RGB frames of a video file or an image folder, one at a time."""
     if source.is_dir():
         files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -112,7 +112,7 @@ def select_frames(
     """Pick up to ``target`` sharp frames spread over ``source`` and write them as PNGs
     into ``out_dir``; raise :class:`CaptureError` when the clip cannot work."""
     source, out_dir = Path(source), Path(out_dir)
-    scores = np.array([sharpness(frame) for frame in _stream(source)])
+    scores = np.array([sharpness(frame) for frame in stream_frames(source)])
     sharp = scores >= MIN_SHARPNESS
     if sharp.sum() < MIN_FRAMES:
         raise CaptureError(
@@ -129,7 +129,7 @@ def select_frames(
     created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     paths, greys, wanted = [], [], set(kept)
-    for index, frame in enumerate(_stream(source)):
+    for index, frame in enumerate(stream_frames(source)):
         if index not in wanted:
             continue
         path = out_dir / f"frame_{index:05d}.png"

@@ -28,6 +28,7 @@ from twinrl_sim.reconstruct.align import (
     align_to_tag,
     check_reference_points,
 )
+from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
 from twinrl_sim.reconstruct.evidence import ObjectEvidence, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.objects import (
@@ -95,6 +96,10 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
             raise SettingError(
                 "intrinsics", "fx fy cx cy must be positive pixel values (e.g. '600 600 320 240')"
             )
+    if settings.intrinsics is not None and settings.calibration is not None:
+        raise TwinError("give the camera's `intrinsics` or its `calibration` file, not both")
+    if settings.calibration is not None and not Path(settings.calibration).is_file():
+        raise SettingError("calibration", f"{settings.calibration} is not a file")
     if settings.frames < 12:
         raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
@@ -165,12 +170,16 @@ def build_twin(
         stage("frames")
         selection = select_frames(source, work / "frames", target=settings.frames)
         stage("structure from motion")
+        camera = filming_camera(
+            source, selection.paths[0], settings.intrinsics, settings.calibration
+        )
         model = run_sfm(
             work / "frames",
             work / "sfm",
             fixed_cameras=settings.camera_images,
             seed=settings.seed,
-            intrinsics=settings.intrinsics,
+            intrinsics=camera.intrinsics,
+            focal_prior=camera.focal_prior,
         )
         stage("alignment")
         if settings.tag_points:
@@ -237,7 +246,9 @@ def build_twin(
             name: _placed_camera(name, model, to_cell, table) for name in settings.camera_images
         }
         stage("scene")
-        scene = _scene_spec(settings, source, table, objects, cameras, task_scene, model, alignment)
+        scene = _scene_spec(
+            settings, source, table, objects, cameras, task_scene, model, alignment, camera
+        )
         scene_path = _write_scene(scene, objects, out)
         built = TwinBuild(
             scene_path=scene_path,
@@ -401,6 +412,7 @@ def _scene_spec(
     task_scene: SceneSpec | None,
     model: SparseModel,
     alignment: Alignment,
+    camera: FilmingCamera,
 ) -> SceneSpec:
     base = task_scene.model_dump(mode="python") if task_scene else {"name": "cell"}
     base_cameras = _base_cameras(task_scene)
@@ -444,7 +456,7 @@ def _scene_spec(
             "built_from": str(source),
             "frames_registered": f"{model.registered}/{model.frames}",
             "tag_family": settings.tag_family,
-            "intrinsics": list(settings.intrinsics) if settings.intrinsics else "estimated",
+            "intrinsics": camera.describe(),
             **(
                 {"tag_points": {i: [float(v) for v in p] for i, p in settings.tag_points.items()}}
                 if settings.tag_points

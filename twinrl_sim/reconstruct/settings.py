@@ -58,6 +58,10 @@ class BuildSettings:
     """The filming camera's intrinsics, when known: 'fx fy cx cy' in pixels of the clip's
     frames, optionally followed by OpenCV's distortion 'k1 k2 p1 p2'; held fixed while
     the walk is mapped (default: estimated from the frames)."""
+    calibration: Path | None = None
+    """The filming camera's calibration file instead of `intrinsics`: OpenCV's YAML, XML
+    or JSON (as `twinrl twin calibrate` writes) or a COLMAP cameras.txt; scaled to the
+    frames' size. With neither, an EXIF 35 mm focal length is used as a first guess."""
     frames: int = 150
     """Frames to keep for structure from motion (at least 12)."""
     name: str | None = None
@@ -66,3 +70,24 @@ class BuildSettings:
     """Keep the frames and the COLMAP database under OUT/work."""
     seed: int = 0
     """Seeds structure from motion, RANSAC and the decomposition."""
+
+
+BOARDS = ("checkerboard", "charuco")
+
+
+@dataclass(frozen=True)
+class Board:
+    """The printed board ``twinrl twin calibrate`` looks for."""
+
+    board: str = "checkerboard"
+    """checkerboard, or charuco (a chessboard with ArUco markers in its white squares:
+    found even when partly out of view)."""
+    squares: tuple[int, int] = (9, 6)
+    """Checkerboard: inner corners across x down (a board of 10 x 7 squares has 9x6);
+    ChArUco: squares across x down."""
+    square_size: float = 0.025
+    """Edge of one square (m), as printed (measure it)."""
+    marker_size: float = 0.018
+    """ChArUco: edge of one ArUco marker (m)."""
+    dictionary: str = "DICT_5X5_100"
+    """ChArUco: the markers' OpenCV ArUco dictionary."""

@@ -19,6 +19,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 
@@ -59,13 +60,15 @@ def run_sfm(
     seed: int = 0,
     overlap: int = 10,
     intrinsics: tuple[float, ...] | None = None,
+    focal_prior: float | None = None,
 ) -> SparseModel:
     """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``), with
     the photos of ``fixed_cameras`` (camera name -> image file) registered among them.
 
     ``intrinsics`` (fx, fy, cx, cy in pixels, then optionally OpenCV's k1, k2, p1, p2)
     are the filming camera's, when known: the walk is mapped with them held fixed
-    instead of estimating its focal length and principal point."""
+    instead of estimating its focal length and principal point. Without them,
+    ``focal_prior`` (px, e.g. from EXIF) is the focal length the mapper starts from."""
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -91,7 +94,12 @@ def run_sfm(
             extraction_options=extraction,
         )
 
-    extract(frame_names, _known_camera(intrinsics) if intrinsics else None)
+    if intrinsics is not None:
+        extract(frame_names, _known_camera(intrinsics))
+    elif focal_prior is not None:
+        extract(frame_names, _focal_prior(focal_prior, image_dir / frame_names[0]))
+    else:
+        extract(frame_names)
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = overlap
     matching = pycolmap.FeatureMatchingOptions()
@@ -201,6 +209,16 @@ def _map_walk(
         if best and _largest(best).num_reg_images() >= needed:
             break
     return best, attempt
+
+
+def _focal_prior(focal: float, frame: Path) -> pycolmap.ImageReaderOptions:
+    """Reader options starting the walk's one camera (COLMAP's default model) at focal
+    length ``focal`` px with the principal point at the frame's centre; refined."""
+    height, width = cv2.imread(str(frame)).shape[:2]
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"
+    reader.camera_params = f"{focal:.10g},{width / 2:.10g},{height / 2:.10g},0"
+    return reader
 
 
 def _known_camera(intrinsics: tuple[float, ...]) -> pycolmap.ImageReaderOptions:

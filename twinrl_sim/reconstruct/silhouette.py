@@ -56,7 +56,7 @@ class _Carving:
         projected = np.full((len(in_camera), 2), -1.0)
         projected[ahead] = camera.img_from_cam(in_camera[ahead])
         projected[~np.isfinite(projected).all(axis=1)] = -1.0  # a lens model's far outside
-        u, v = np.round(projected).astype(int).T
+        u, v = np.round(np.clip(projected, -1, 1e6)).astype(int).T
         visible = ahead & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
         self.seen[visible] += 1
         self.inside[visible] += mask[v[visible], u[visible]]

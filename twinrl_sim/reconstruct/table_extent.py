@@ -96,9 +96,10 @@ def _sample(model: SparseModel, image, colour: np.ndarray, sfm_points: np.ndarra
     ahead = in_camera[:, 2] > 1e-3
     projected = np.full((len(sfm_points), 2), -1.0)
     projected[ahead] = camera.img_from_cam(in_camera[ahead])
-    # A lens model diverges far outside its frame: those cells are not in view.
+    # A lens model diverges far outside its frame: those cells are not in view (and
+    # huge values are clipped before the cast to pixels).
     projected[~np.isfinite(projected).all(axis=1)] = -1.0
-    u, v = np.round(projected).astype(int).T
+    u, v = np.round(np.clip(projected, -1, 1e6)).astype(int).T
     seen = ahead & (u >= 0) & (v >= 0) & (u < colour.shape[1]) & (v < colour.shape[0])
     values = np.zeros((len(sfm_points), 3), np.float32)  # unseen cells: never compared
     values[seen] = colour[v[seen], u[seen]]
