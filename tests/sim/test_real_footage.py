@@ -18,26 +18,17 @@ from twinrl_sim.reconstruct.pipeline import build_twin
 from twinrl_sim.reconstruct.segment import planar_axes
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import run_sfm
-from twinrl_sim.reconstruct.synthetic import REALISTIC_WALK, TagPlacement, render_walkthrough
-from twinrl_sim.reconstruct.table_extent import _edge_turn, _robust_extent
-from twinrl_sim.spec import GeomSpec, ObjectSpec, SceneSpec, TableSpec
-
-BOTTLE_XY, BOTTLE_HEIGHT = np.array([0.62, 0.15]), 0.25
-OFFICE = SceneSpec(
-    name="office",
-    table=TableSpec(size=(0.8, 1.4), center=(0.5, 0.0), rgba=(0.93, 0.93, 0.91, 1)),
-    objects=[
-        ObjectSpec(
-            name="bottle",
-            role="manipulated",
-            mass=0.3,
-            pos=(*BOTTLE_XY, BOTTLE_HEIGHT / 2),
-            rgba=(0.85, 0.9, 0.95, 0.35),
-            geoms=[GeomSpec(type="cylinder", size=[0.0375, BOTTLE_HEIGHT / 2])],
-        )
-    ],
+from twinrl_sim.reconstruct.synthetic import (
+    OFFICE_SCENE,
+    OFFICE_TAG,
+    REALISTIC_WALK,
+    render_walkthrough,
 )
-TAG = (TagPlacement(tag_id=12, xy=(0.5, 0.0), yaw=0.0, size=0.14),)
+from twinrl_sim.reconstruct.table_extent import _edge_turn, _robust_extent
+
+OFFICE, TAG = OFFICE_SCENE, OFFICE_TAG
+BOTTLE_XY = np.array(OFFICE.objects[0].pos[:2])
+BOTTLE_HEIGHT = 2 * OFFICE.objects[0].geoms[0].size[1]
 
 
 @pytest.fixture(scope="module")

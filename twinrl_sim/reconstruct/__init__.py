@@ -1,7 +1,8 @@
 """The twin from a phone video (``twinrl twin build``): frames, structure from motion
 (pycolmap), metric scale and robot-base frame from AprilTags (one tag's pose, or 3+ tags'
-centres), table plane and objects (open3d, CoACD), fixed cameras from photos, and the
-scene spec that comes out.
+centres), table plane and objects (open3d, CoACD) with the evidence for each, fixed
+cameras from photos, and the scene spec that comes out; and the filming camera's
+calibration (``twinrl twin calibrate``).
 
 Names load on first use: open3d, pycolmap and CoACD take seconds to import, and the
 command line reads only :mod:`twinrl_sim.reconstruct.settings` to build its options.
@@ -17,6 +18,12 @@ _EXPORTS = {
     "Similarity": "align",
     "align_to_points": "align",
     "align_to_tag": "align",
+    "Board": "settings",
+    "Calibration": "calibration",
+    "calibrate": "calibration",
+    "read_calibration": "calibration",
+    "write_calibration": "calibration",
+    "ObjectEvidence": "evidence",
     "CaptureError": "frames",
     "FrameSelection": "frames",
     "select_frames": "frames",

@@ -160,7 +160,14 @@ def level_table(
                 "the table set `tags_on_table` off"
             )
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[candidates]))
-    (a, b, c, _), found = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
+    # One thread: open3d's threads draw RANSAC samples from one seeded stream in
+    # whatever order they run, so planes with near-equal support swapped between runs.
+    threads = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(1)
+    try:
+        (a, b, c, _), found = cloud.segment_plane(PLANE_TOLERANCE, 3, 2000)
+    finally:
+        o3d.utility.set_max_threads(threads)
     inliers = candidates[found]
     if len(inliers) < 0.2 * len(candidates):
         raise CaptureError(

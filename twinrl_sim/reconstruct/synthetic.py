@@ -33,7 +33,7 @@ from twinrl_sim.reconstruct.camera_traits import (
     pinhole_intrinsics,
 )
 from twinrl_sim.reconstruct.tag import DEFAULT_FAMILY, family, tag_image
-from twinrl_sim.spec import SceneSpec
+from twinrl_sim.spec import GeomSpec, ObjectSpec, SceneSpec, TableSpec
 
 HIDDEN_GROUP = 5  # geom group of the arm, not rendered
 TAG_MARGIN_CELLS = 1  # white cells around the black square
@@ -93,6 +93,24 @@ REALISTIC_WALK = WalkthroughSettings(
     traits=REALISTIC_TRAITS,
 )
 """93 frames at 640x480 of the cell a real user films: see the module's docstring."""
+
+OFFICE_SCENE = SceneSpec(
+    name="office",
+    table=TableSpec(size=(0.8, 1.4), center=(0.5, 0.0), rgba=(0.93, 0.93, 0.91, 1)),
+    objects=[
+        ObjectSpec(
+            name="bottle",
+            role="manipulated",
+            mass=0.3,
+            pos=(0.62, 0.15, 0.125),
+            rgba=(0.85, 0.9, 0.95, 0.35),
+            geoms=[GeomSpec(type="cylinder", size=[0.0375, 0.125])],
+        )
+    ],
+)
+"""What a new user films first: a white office table, a clear drinking bottle (7.5 cm
+across, 25 cm tall) and :data:`OFFICE_TAG`, a 14 cm tag, lying beside it."""
+OFFICE_TAG = (TagPlacement(tag_id=12, xy=(0.5, 0.0), yaw=0.0, size=0.14),)
 
 
 @dataclass(frozen=True)
