@@ -227,10 +227,13 @@ def _robust_extent(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _edge_turn(region: np.ndarray, not_table: np.ndarray) -> float:
     """The turn (rad, within +-45 deg) from the grid's axes to the table's edges: the
-    dominant direction, modulo 90 deg, of the region's boundary where the frames saw
-    something else beyond it (not where the views ran out). 0 with too little edge."""
-    near_other = cv2.dilate(not_table.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
-    border = region & near_other
+    dominant direction, modulo 90 deg, of the region's outer boundary where the frames
+    saw something else beyond it (not where the views ran out, nor the outlines of the
+    objects and tags standing on it). 0 with too little edge."""
+    square = np.ones((3, 3), np.uint8)
+    near_other = cv2.dilate(not_table.astype(np.uint8), square) > 0
+    outline = region & (cv2.erode(region.astype(np.uint8), square) == 0)  # not the holes'
+    border = outline & near_other
     if border.sum() < MIN_EDGE_CELLS:
         return 0.0
     smooth = cv2.GaussianBlur(region.astype(np.float32), (0, 0), 2.0)
