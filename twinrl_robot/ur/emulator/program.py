@@ -44,6 +44,9 @@ def complete_script(text: str) -> int | None:
     return int(found.group(1)) if found else 0
 
 
+STALL = 0.02  # s between two control cycles beyond which the emulator itself stalled
+
+
 class ControlProgram:
     """The running control script (see the module docstring)."""
 
@@ -54,6 +57,11 @@ class ControlProgram:
         self.pending: str | None = None  # a blocking command still under way
         self.watchdog_period: float | None = None
         self.started_at = 0.0
+        # A real controller never stalls; this process can (two cores, a camera to
+        # render): after the emulator's own cycle was late, the host gets a whole
+        # watchdog period from then, so a stall here is never blamed on the host.
+        self._previous_cycle = 0.0
+        self._resumed_at = 0.0
         self.messages: list[str] = []  # what the program stopped for, newest last
         self._warned: set[int] = set()  # commands reported as not emulated
 
@@ -84,6 +92,10 @@ class ControlProgram:
     # ------------------------------------------------------------------ cycle
     def cycle(self) -> None:
         """One control cycle of the script (called before each servo period)."""
+        now = time.monotonic()
+        if now - self._previous_cycle > STALL:
+            self._resumed_at = now
+        self._previous_cycle = now
         if not self.running:
             return
         if self._watchdog_expired():
@@ -109,7 +121,7 @@ class ControlProgram:
         if self.watchdog_period is None:
             return False
         name = f"input_int_register_{self.offset}"
-        last = self.registers.updated.get(name, self.started_at)
+        last = max(self.registers.updated.get(name, self.started_at), self._resumed_at)
         return time.monotonic() - last > self.watchdog_period
 
     def _realtime(self, cmd: int) -> None:
