@@ -29,10 +29,14 @@ from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
 from twinrl_sim.tasks import make_task
 
 AT_REST = 0.02  # rad/s
-pytestmark = [
+# Tests against the emulator: Linux routes all of 127.0.0.0/8 to loopback (each
+# emulated controller has an address of its own), and the emulator keeps the
+# controller's clock, so these do not run beside other tests.
+EMULATED = [
     pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N"),
-    pytest.mark.realtime,  # the emulator keeps the controller's clock: not beside other tests
+    pytest.mark.realtime,
 ]
+pytestmark = EMULATED
 
 
 def write_cell(folder: Path, **changes: object) -> Path:

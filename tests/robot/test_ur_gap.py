@@ -4,13 +4,12 @@ twin with a UR's tracking servos names the arm's hidden delay."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
-from tests.robot.test_ur_cell import write_cell
+from tests.robot.test_ur_cell import EMULATED, write_cell
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
@@ -19,8 +18,7 @@ from twinrl_sim.gap.diagnose import diagnose
 from twinrl_sim.tasks import make_task
 
 pytestmark = [
-    pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N"),
-    pytest.mark.realtime,  # the emulator keeps the controller's clock: not beside other tests
+    *EMULATED,
     pytest.mark.slow,  # an excitation session in real time and two diagnoses: ~1.5 min
 ]
 HIDDEN_DELAY = 0.03  # s, the emulated arm's command-to-motion latency

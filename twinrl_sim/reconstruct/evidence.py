@@ -15,7 +15,7 @@ import numpy as np
 
 from twinrl_sim.reconstruct.align import Similarity
 from twinrl_sim.reconstruct.segment import ObjectCluster
-from twinrl_sim.reconstruct.sfm import SparseModel
+from twinrl_sim.reconstruct.sfm import SparseModel, project
 
 MIN_VIEWS = 10  # frames an object needs before its place is more than a glimpse
 ALL_ROUND_DEG = 90.0  # arc of view directions from which an object's depth is seen
@@ -51,18 +51,14 @@ def weigh_evidence(
     """The evidence for ``cluster`` (levelled base frame; ``to_cell`` maps the
     reconstruction's frame to it) in the registered frames of the walk."""
     centre = np.asarray(cluster.center, float)
-    centre_sfm = to_cell.invert(centre[None])[0]
-    walk = set(model.fixed_images.values())
+    centre_sfm = to_cell.invert(centre[None])
+    photos = set(model.fixed_images.values())  # the fixed cameras' photos: not the walk
     directions = []
     for image in model.reconstruction.images.values():
-        if not image.has_pose or image.name in walk:
+        if not image.has_pose or image.name in photos:
             continue
-        camera = model.reconstruction.cameras[image.camera_id]
-        in_camera = image.cam_from_world().matrix() @ np.r_[centre_sfm, 1.0]
-        if in_camera[2] <= 1e-3:
-            continue
-        u, v = camera.img_from_cam(in_camera[None])[0]
-        if 0 <= u < camera.width and 0 <= v < camera.height:
+        _, _, visible = project(image, model.reconstruction.cameras[image.camera_id], centre_sfm)
+        if visible[0]:
             directions.append(image.projection_center())
     if directions:
         seen_from = to_cell.apply(np.array(directions)) - centre

@@ -180,6 +180,22 @@ def run_sfm(
     )
 
 
+def project(
+    image: pycolmap.Image, camera: pycolmap.Camera, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixel columns and rows (int) of ``points`` (N, 3, the reconstruction's frame) in
+    registered ``image``, and whether each is in view: in front of the camera and inside
+    its frame. A lens model diverges far outside its frame: such points are out of view."""
+    in_camera = np.c_[points, np.ones(len(points))] @ image.cam_from_world().matrix().T
+    ahead = in_camera[:, 2] > 1e-3
+    projected = np.full((len(points), 2), -1.0)
+    projected[ahead] = camera.img_from_cam(in_camera[ahead])
+    projected[~np.isfinite(projected).all(axis=1)] = -1.0
+    u, v = np.round(np.clip(projected, -1, 1e6)).astype(int).T  # clipped before the cast
+    visible = ahead & (u >= 0) & (v >= 0) & (u < camera.width) & (v < camera.height)
+    return u, v, visible
+
+
 def _largest(models: dict[int, pycolmap.Reconstruction]) -> pycolmap.Reconstruction:
     """The model with the most registered images (the first such, so runs agree)."""
     return max(models.values(), key=lambda r: r.num_reg_images())

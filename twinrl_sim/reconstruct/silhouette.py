@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane
-from twinrl_sim.reconstruct.sfm import SparseModel
+from twinrl_sim.reconstruct.sfm import SparseModel, project
 
 VOXEL = 0.003  # m
 MARGIN = 0.04  # m searched around each cluster's points
@@ -43,21 +43,15 @@ class _Carving:
 
     chroma: np.ndarray  # (2,) the object's colour
     grid: np.ndarray  # (V, 3) voxel centres, levelled base frame
-    homogeneous: np.ndarray  # (V, 4) the same in the reconstruction's frame
+    in_sfm: np.ndarray  # (V, 3) the same in the reconstruction's frame
     inside: np.ndarray  # (V,) views that saw the voxel inside the silhouette
     seen: np.ndarray  # (V,) views that saw the voxel at all
 
-    def observe(self, lab: np.ndarray, to_table: np.ndarray, camera, pose: np.ndarray) -> None:
-        """Count one frame's votes (``lab``: its a*b* image; ``pose``: cam_from_world)."""
+    def observe(self, lab: np.ndarray, to_table: np.ndarray, image, camera) -> None:
+        """Count one frame's votes (``lab``: its a*b* image)."""
         to_object = np.linalg.norm(lab - self.chroma, axis=2)
         mask = (to_object < MASK_CHROMA) & (to_object < to_table)
-        in_camera = self.homogeneous @ pose.T
-        ahead = in_camera[:, 2] > 1e-3
-        projected = np.full((len(in_camera), 2), -1.0)
-        projected[ahead] = camera.img_from_cam(in_camera[ahead])
-        projected[~np.isfinite(projected).all(axis=1)] = -1.0  # a lens model's far outside
-        u, v = np.round(np.clip(projected, -1, 1e6)).astype(int).T
-        visible = ahead & (u >= 0) & (v >= 0) & (u < mask.shape[1]) & (v < mask.shape[0])
+        u, v, visible = project(image, camera, self.in_sfm)
         self.seen[visible] += 1
         self.inside[visible] += mask[v[visible], u[visible]]
 
@@ -79,9 +73,8 @@ def _carving(
     high[2] = table.height + max(cluster.size[2], VOXEL)
     axes = [np.arange(a, b + VOXEL / 2, VOXEL) for a, b in zip(low, high, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    homogeneous = np.c_[to_sfm(grid), np.ones(len(grid))]
     votes = np.zeros(len(grid))
-    return _Carving(_chroma(cluster.color), grid, homogeneous, votes, votes.copy())
+    return _Carving(_chroma(cluster.color), grid, to_sfm(grid), votes, votes.copy())
 
 
 def carve_footprints(
@@ -114,8 +107,7 @@ def carve_footprints(
             lab = cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB)[:, :, 1:].astype(np.float32)
             to_table = np.linalg.norm(lab - table_chroma, axis=2)
             camera = model.reconstruction.cameras[image.camera_id]
-            pose = image.cam_from_world().matrix()
             for carving in active:
-                carving.observe(lab, to_table, camera, pose)
+                carving.observe(lab, to_table, image, camera)
     rng = np.random.default_rng(seed)
     return [None if c is None else c.footprint(rng) for c in carvings]

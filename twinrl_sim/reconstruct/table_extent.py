@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from twinrl_sim.reconstruct.segment import TablePlane, planar_axes
-from twinrl_sim.reconstruct.sfm import SparseModel
+from twinrl_sim.reconstruct.sfm import SparseModel, project
 
 CELL = 0.01  # m: grid on the table plane
 REACH = 1.5  # m searched around the points' patch of the top
@@ -91,16 +91,7 @@ class TableColour:
 
 def _sample(model: SparseModel, image, colour: np.ndarray, sfm_points: np.ndarray):
     """Per point, whether ``image`` sees it (in front, inside the frame) and its Lab."""
-    camera = model.reconstruction.cameras[image.camera_id]
-    in_camera = np.c_[sfm_points, np.ones(len(sfm_points))] @ image.cam_from_world().matrix().T
-    ahead = in_camera[:, 2] > 1e-3
-    projected = np.full((len(sfm_points), 2), -1.0)
-    projected[ahead] = camera.img_from_cam(in_camera[ahead])
-    # A lens model diverges far outside its frame: those cells are not in view (and
-    # huge values are clipped before the cast to pixels).
-    projected[~np.isfinite(projected).all(axis=1)] = -1.0
-    u, v = np.round(np.clip(projected, -1, 1e6)).astype(int).T
-    seen = ahead & (u >= 0) & (v >= 0) & (u < colour.shape[1]) & (v < colour.shape[0])
+    u, v, seen = project(image, model.reconstruction.cameras[image.camera_id], sfm_points)
     values = np.zeros((len(sfm_points), 3), np.float32)  # unseen cells: never compared
     values[seen] = colour[v[seen], u[seen]]
     return seen, values
