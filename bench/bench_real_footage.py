@@ -6,7 +6,8 @@ phone's calibration file, each twice with one seed.
 Targets (the footage issue's acceptance): >= 90 % of frames registered, the table plane
 within 1 cm and 2 deg of the tag's, each object within 3 cm of where it stands and its
 height within 25 %, at most 2 minutes for 100 frames at 640x480 on 2 cores; and the
-two builds of one seed alike. Usage::
+two builds of one seed alike. Also the look: masked PSNR and SSIM of the twin, dressed
+in the frames' pictures and in flat colours, against held-out frames. Usage::
 
     python bench/bench_real_footage.py
 """
@@ -42,6 +43,7 @@ def _row(label: str, built, seconds: float) -> dict[str, float | str]:
     height = 2 * OFFICE_SCENE.objects[0].geoms[0].size[1]
     distances = [np.linalg.norm(o.position - bottle) for o in built.objects]
     heights = [abs(o.cluster.size[2] / height - 1) for o in built.objects]
+    look = built.look_score  # held-out frames against the twin's renders
     return {
         "build": label,
         "registered": f"{built.model.registered}/{built.model.frames}",
@@ -55,6 +57,8 @@ def _row(label: str, built, seconds: float) -> dict[str, float | str]:
         "bottle (mm off, worst)": round(1000 * max(distances)),
         "height (% off, worst)": round(100 * max(heights)),
         "confidence": ", ".join(o.evidence.confidence for o in built.objects),
+        "PSNR dressed / flat (dB)": f"{look.psnr:.1f} / {look.flat_psnr:.1f}",
+        "SSIM dressed / flat": f"{look.ssim:.3f} / {look.flat_ssim:.3f}",
     }
 
 

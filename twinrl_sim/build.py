@@ -18,7 +18,9 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+from PIL import Image
 
+from twinrl_sim.cubemap import cube_directions, cube_lookup
 from twinrl_sim.effects import apply_effects
 from twinrl_sim.layout import MOUNT_BODY, CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
@@ -31,6 +33,7 @@ EMPTY_PREFIX_WARNING = "Attaching a spec with an empty prefix"  # MuJoCo's words
 FLOOR_DEPTH = 0.75  # floor below the table top (m)
 ENV_CONTYPE, ENV_CONAFFINITY = 1, 1
 VISUAL_GROUP = 1
+UNSEEN_GROUP = 3  # geoms that collide where a picture shows instead (viewers hide group 3)
 
 
 @dataclass(frozen=True)
@@ -140,15 +143,18 @@ def _check_stable(model: mujoco.MjModel, name: str) -> None:
 
 def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
     table = scene.table
-    spec.add_texture(
-        name="skybox",
-        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-        rgb1=[0.55, 0.65, 0.75],
-        rgb2=[0.1, 0.1, 0.12],
-        width=64,
-        height=64,
-    )
+    if scene.backdrop is not None:
+        _add_backdrop(spec, scene.backdrop)
+    else:
+        spec.add_texture(
+            name="skybox",
+            type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+            builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+            rgb1=[0.55, 0.65, 0.75],
+            rgb2=[0.1, 0.1, 0.12],
+            width=64,
+            height=64,
+        )
     spec.worldbody.add_geom(
         name="floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -157,6 +163,7 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         rgba=[0.3, 0.3, 0.32, 1],
         contype=ENV_CONTYPE,
         conaffinity=ENV_CONAFFINITY,
+        group=UNSEEN_GROUP if scene.backdrop is not None else 0,  # the backdrop shows the floor
     )
     body = spec.worldbody.add_body(
         name="table",
@@ -164,7 +171,15 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         quat=yaw_quat(table.yaw).tolist(),
     )
     material = ""
-    if table.texture != "plain":
+    if table.image is not None:
+        spec.add_texture(
+            name="table_image", type=mujoco.mjtTexture.mjTEXTURE_2D, file=str(table.image)
+        )
+        material_spec = spec.add_material(name="table_material", texrepeat=[1, 1])
+        material_spec.texuniform = False
+        material_spec.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "table_image"
+        material = "table_material"
+    elif table.texture != "plain":
         builtin = {
             "checker": mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
             "gradient": mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
@@ -187,11 +202,34 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         type=mujoco.mjtGeom.mjGEOM_BOX,
         size=[table.size[0] / 2, table.size[1] / 2, table.thickness / 2],
         pos=[0, 0, -table.thickness / 2],
-        rgba=table.rgba,
+        rgba=(1.0, 1.0, 1.0, 1.0) if table.image is not None else table.rgba,
         friction=[table.friction, 0.005, 0.0001],
         contype=ENV_CONTYPE,
         conaffinity=ENV_CONAFFINITY,
     )
+
+
+def _add_backdrop(spec: mujoco.MjSpec, picture: Path) -> None:
+    """The skybox from a cube map of the base frame. MuJoCo turns a skybox so that its
+    +y face is up: each of its texels takes the backdrop's texel in the direction it
+    shows, (x, y, z) of the skybox being (x, -z, y) of the base frame."""
+    backdrop = np.asarray(Image.open(picture).convert("RGB"))
+    size = backdrop.shape[1]
+    if backdrop.shape[0] != 6 * size:
+        raise SpecError(
+            f"backdrop {picture} is {backdrop.shape[1]}x{backdrop.shape[0]} pixels; a cube map "
+            "is six square faces stacked (width x 6*width)"
+        )
+    shown = cube_directions(size)
+    base = np.stack([shown[..., 0], -shown[..., 2], shown[..., 1]], axis=-1)
+    texture = spec.add_texture(
+        name="skybox",
+        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+        width=size,
+        height=6 * size,
+        nchannel=3,
+    )
+    texture.data = np.ascontiguousarray(cube_lookup(backdrop, base)).tobytes()
 
 
 def _add_robot(
@@ -349,6 +387,11 @@ def _add_object(spec: mujoco.MjSpec, scene: SceneSpec, obj: ObjectSpec) -> None:
     else:
         body.mocap = True
         density = 1000.0
+    look = ""
+    if obj.look is not None:
+        look = f"{obj.name}_look"
+        spec.add_texture(name=look, type=mujoco.mjtTexture.mjTEXTURE_2D, file=str(obj.look))
+        spec.add_material(name=look).textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = look
     for i, geom in enumerate(obj.geoms):
         kwargs = {}
         size = list(geom.size) + [0.0] * (3 - len(geom.size))
@@ -366,19 +409,21 @@ def _add_object(spec: mujoco.MjSpec, scene: SceneSpec, obj: ObjectSpec) -> None:
             kwargs["meshname"] = mesh_name
             size = [0.0, 0.0, 0.0]
         contact = geom.contact
+        if look and not contact:
+            kwargs["material"] = look
         body.add_geom(
             name=f"{obj.name}_geom{i}",
             type=_GEOM_TYPES[geom.type],
             size=size,
             pos=list(geom.pos),
             quat=_euler_quat(geom.euler),
-            rgba=list(geom.rgba or obj.rgba),
+            rgba=[1.0, 1.0, 1.0, 1.0] if look and not contact else list(geom.rgba or obj.rgba),
             friction=[obj.friction, 0.01, 0.0001],
             condim=4 if contact else 3,
             density=density if contact else 0.0,
             contype=ENV_CONTYPE if contact else 0,
             conaffinity=ENV_CONAFFINITY if contact else 0,
-            group=0 if contact else VISUAL_GROUP,
+            group=(UNSEEN_GROUP if look else 0) if contact else VISUAL_GROUP,
             **kwargs,
         )
 

@@ -112,11 +112,25 @@ class ObjectSpec(_Strict):
     friction: Annotated[float, Field(gt=0, le=5)] = 1.0
     rgba: Rgba = (0.8, 0.8, 0.8, 1.0)
     geoms: list[GeomSpec] = Field(min_length=1)
+    look: Path | None = None
+    """A picture (PNG) wrapped on the object's ``contact: false`` meshes by their OBJ
+    texture coordinates (``twinrl twin build`` projects it from the frames); its contact
+    parts then collide unseen."""
 
     @model_validator(mode="after")
     def _mass_for_free_bodies(self) -> ObjectSpec:
         if self.role == "manipulated" and self.mass is None:
             raise TwinError(f"manipulated object '{self.name}' needs a mass (kg)")
+        return self
+
+    @model_validator(mode="after")
+    def _look_needs_a_surface(self) -> ObjectSpec:
+        if self.look is not None and not any(
+            g.type == "mesh" and not g.contact for g in self.geoms
+        ):
+            raise TwinError(
+                f"object '{self.name}' has a look but no 'contact: false' mesh to wrap it on"
+            )
         return self
 
 
@@ -172,6 +186,9 @@ class TableSpec(_Strict):
     friction: Annotated[float, Field(gt=0, le=5)] = 0.8
     rgba: Rgba = (0.55, 0.45, 0.35, 1.0)
     texture: Literal["plain", "checker", "gradient"] = "plain"
+    image: Path | None = None
+    """A picture (PNG) of the top, stretched over it instead of ``texture``: its columns
+    run along the table's x (``size[0]``), its first row is the +y edge."""
 
 
 class CameraSpec(_Strict):
@@ -255,6 +272,10 @@ class SceneSpec(_Strict):
     workspace: WorkspaceSpec = WorkspaceSpec()
     physics: PhysicsSpec = PhysicsSpec()
     effects: dict[str, dict[str, Any]] = {}
+    backdrop: Path | None = None
+    """The room behind the cell seen at infinity (PNG, six square faces stacked: +x, -x,
+    +y, -y, +z, -z of the base frame, each as seen from inside, OpenGL's cube-map
+    orientation); default a plain gradient."""
     provenance: dict[str, Any] = {}
 
     @field_validator("effects")
@@ -299,6 +320,11 @@ class SceneSpec(_Strict):
             for geom in obj["geoms"]:
                 if geom["file"] is not None:
                     geom["file"] = _file_sha256(geom["file"])
+            if obj["look"] is not None:
+                obj["look"] = _file_sha256(obj["look"])
+        for owner, key in ((payload["table"], "image"), (payload, "backdrop")):
+            if owner[key] is not None:
+                owner[key] = _file_sha256(owner[key])
         text = json.dumps(payload, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -356,7 +382,7 @@ def load_spec(path: str | Path) -> SceneSpec:
 
 
 def resolve_files(spec: SceneSpec, folder: Path) -> SceneSpec:
-    """``spec`` with its relative file paths (robot MJCF, meshes) made absolute from
+    """``spec`` with its relative file paths (robot MJCF, meshes, pictures) made absolute from
     ``folder``; a missing file is a :class:`SpecError` naming it."""
     updates: dict[str, Any] = {}
     if spec.robot.mjcf is not None:
@@ -373,8 +399,14 @@ def resolve_files(spec: SceneSpec, folder: Path) -> SceneSpec:
             else g
             for i, g in enumerate(obj.geoms)
         ]
-        objects.append(obj.model_copy(update={"geoms": geoms}))
+        look = obj.look and _existing(folder, obj.look, f"objects.{obj.name}.look")
+        objects.append(obj.model_copy(update={"geoms": geoms, "look": look}))
     updates["objects"] = objects
+    if spec.table.image is not None:
+        image = _existing(folder, spec.table.image, "table.image")
+        updates["table"] = spec.table.model_copy(update={"image": image})
+    if spec.backdrop is not None:
+        updates["backdrop"] = _existing(folder, spec.backdrop, "backdrop")
     return spec.model_copy(update=updates)
 
 

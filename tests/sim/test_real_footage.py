@@ -111,6 +111,15 @@ def test_a_clear_bottle_is_built_where_it_stands_and_its_doubts_are_said(built):
     assert "Where the evidence is thin" in report and "| low |" in report
 
 
+def test_a_plain_table_and_clear_bottle_still_look_like_the_frames(built):
+    """Painted from JPEG frames with auto exposure, lens and noise, the twin seen from
+    held-out poses is nearer the frames than the same twin in flat colours."""
+    score = built.look_score
+    assert score is not None and score.frames >= 10
+    assert score.psnr > score.flat_psnr + 2.0 and score.ssim > score.flat_ssim
+    assert built.look.table_seen > 0.6
+
+
 def test_the_lens_bends_a_point_where_opencv_projects_it():
     intrinsics = (500.0, 500.0, 160.0, 120.0)
     traits = CameraTraits(distortion=(0.3, -0.1, 0.002, -0.001))

@@ -18,7 +18,7 @@ from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
 from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
-from twinrl_sim.reconstruct.pipeline import BuildSettings, build_twin
+from twinrl_sim.reconstruct.pipeline import BuildSettings, _inside, build_twin
 from twinrl_sim.reconstruct.segment import TablePlane, TagPlane, describe_cluster, level_table
 from twinrl_sim.reconstruct.synthetic import (
     THREE_TAGS,
@@ -241,6 +241,7 @@ def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
     result = twinrl(
         "twin", "build", str(walk.video), "--out", str(tmp_path / "cell"), *centres,
         "--task", "pick_place", "--object-mesh", f"banana={mesh_file}", "--frames", "40",
+        "--no-look",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert "banana" in result.stdout and "scene.yaml" in result.stdout
@@ -256,6 +257,25 @@ def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
         "banana.stl (ICP" in report and "| alignment | tag centres (tag 0, tag 1, tag 2)" in report
     )
     assert abs(scene.table.top_height) < 0.005
+    # Without the look: flat colours, no pictures written, none judged.
+    assert scene.table.image is None and scene.backdrop is None and banana.look is None
+    assert "The cell's look" not in report and not (tmp_path / "cell" / "looks").exists()
+
+
+def test_the_twin_wears_the_frames_look_and_resembles_frames_it_was_not_painted_from(built):
+    look, score = built.look, built.look_score
+    assert look is not None and score is not None
+    assert score.frames >= 5 and not set(look.judges) & set(look.painters)
+    assert look.table_seen > 0.5
+    # The textured table and objects, against their flat colours, from held-out poses.
+    assert score.psnr > score.flat_psnr + 2.0 and score.ssim > score.flat_ssim + 0.02
+    scene = built.scene
+    assert scene.table.image is not None and scene.backdrop is not None
+    assert all(obj.look is not None for obj in scene.objects)
+    folder = built.scene_path.parent
+    assert (folder / "look.png").is_file() and "## The cell's look" in (
+        folder / "report.md"
+    ).read_text()
 
 
 def test_a_wrong_tag_size_is_named_and_nothing_is_left(clip, built, tmp_path):
@@ -299,12 +319,25 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         ([*TAG, "--tag-family", "qr"], "--tag-family 'qr' is not one of tag36h11, tag36h10"),
         ([*TAG, "--intrinsics", "600 600 320"], "--intrinsics needs 4 numbers 'fx fy cx cy'"),
         ([*TAG, "--intrinsics", "600 -600 320 240"], "--intrinsics fx fy cx cy must be positive"),
+        ([*TAG, "--workspace", "0 -1 -0.1 1 1"], "--workspace needs 6 numbers"),
+        ([*TAG, "--workspace", "1 -1 -0.1 0 1 0.5"], "each minimum must be below its maximum"),
     ],
 )
 def test_bad_arguments_are_refused_before_any_work(tmp_path, args, message):
     result = twinrl("twin", "build", str(tmp_path), "--out", str(tmp_path / "o"), *args)
     assert result.returncode == 2 and message in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_the_workspace_box_cuts_the_background_before_any_fitting():
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(0.1, 0.9, 500), rng.uniform(-0.5, 0.5, 500), np.zeros(500)]
+    wall = np.c_[np.full(300, 2.5), rng.uniform(-1, 1, 300), rng.uniform(0, 2, 300)]
+    colours = np.r_[np.full((500, 3), 200), np.full((300, 3), 50)].astype(np.uint8)
+    points, kept = _inside(np.r_[table, wall], colours, (0.0, -0.6, -0.1, 1.0, 0.6, 0.5))
+    assert len(points) == 500 and np.all(kept == 200)
+    with pytest.raises(CaptureError, match=r"only 0 of 800 points lie inside `workspace`"):
+        _inside(np.r_[table, wall], colours, (3.0, 3.0, 3.0, 4.0, 4.0, 4.0))
 
 
 def test_cameras_and_meshes_must_fit_the_task(tmp_path):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import shutil
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import mujoco
@@ -31,6 +32,8 @@ from twinrl_sim.reconstruct.align import (
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
 from twinrl_sim.reconstruct.evidence import ObjectEvidence, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
+from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell
+from twinrl_sim.reconstruct.look_score import score_look, twin_lighting
 from twinrl_sim.reconstruct.objects import (
     DEFAULT_DENSITY,
     TwinObject,
@@ -55,10 +58,19 @@ from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
 from twinrl_sim.reconstruct.silhouette import carve_footprints
 from twinrl_sim.reconstruct.table_extent import measure_table
 from twinrl_sim.reconstruct.tag import FAMILIES
-from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, load_spec, parse_spec
+from twinrl_sim.spec import (
+    CameraSpec,
+    GeomSpec,
+    ObjectSpec,
+    SceneSpec,
+    load_spec,
+    parse_spec,
+    resolve_files,
+)
 from twinrl_sim.tasks import make_task
 
 CAMERA_DISTANCE = (0.15, 4.0)  # m: where a hand-held phone can be, seen from the tag
+MIN_WORKSPACE_POINTS = 200  # points inside the workspace box needed to find a table in
 
 
 def check_settings(settings: BuildSettings, out: Path) -> None:
@@ -100,6 +112,14 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
         raise TwinError("give the camera's `intrinsics` or its `calibration` file, not both")
     if settings.calibration is not None and not Path(settings.calibration).is_file():
         raise SettingError("calibration", f"{settings.calibration} is not a file")
+    if settings.workspace is not None:
+        box = settings.workspace
+        if len(box) != 6 or not all(np.isfinite(box)):
+            raise SettingError(
+                "workspace", f"needs 6 numbers 'x_min y_min z_min x_max y_max z_max', got {box}"
+            )
+        if any(lo >= hi for lo, hi in zip(box[:3], box[3:], strict=True)):
+            raise SettingError("workspace", "each minimum must be below its maximum")
     if settings.frames < 12:
         raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
@@ -205,9 +225,12 @@ def build_twin(
         path = alignment.to_base.apply(np.array([i.projection_center() for i in walk]))
         _check_scale(path, pivot, settings)
         stage("table")
+        points, colours = alignment.to_base.apply(model.points), model.colors
+        if settings.workspace is not None:  # the background is cut before any fitting
+            points, colours = _inside(points, colours, settings.workspace)
         table, levelling, levelled = level_table(
-            alignment.to_base.apply(model.points),
-            model.colors,
+            points,
+            colours,
             pivot,
             settings.seed,
             tags=tag_plane(settings) if settings.tags_on_table else None,
@@ -224,7 +247,7 @@ def build_twin(
         )
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
-        clusters = find_objects(levelled, model.colors, table)
+        clusters = find_objects(levelled, colours, table)
         hulls = carve_footprints(
             clusters,
             table,
@@ -245,11 +268,24 @@ def build_twin(
         cameras = {
             name: _placed_camera(name, model, to_cell, table) for name in settings.camera_images
         }
-        stage("scene")
-        scene = _scene_spec(
-            settings, source, table, objects, cameras, task_scene, model, alignment, camera
+        stage("look")
+        _write_meshes(objects, out)
+        scene_of = partial(
+            _scene_spec, settings, source, table, objects, cameras, task_scene, model, alignment
         )
-        scene_path = _write_scene(scene, objects, out)
+        look, judges, pictures, lighting = None, [], {}, {}
+        if settings.look:
+            views = frame_views(model, work / "frames", to_cell)
+            look = paint_cell(views, table, objects)
+            painters = [view for view in views if view.name in look.painters]
+            plain = resolve_files(scene_of(camera), out)
+            look.relight(twin_lighting(plain, painters, dressed=True))
+            lighting = twin_lighting(plain, painters, dressed=False)  # of the plain colours
+            judges = [view for view in views if view.name in look.judges]
+            pictures = look.write(out)
+        stage("scene")
+        scene_path = out / "scene.yaml"
+        write_text_atomic(scene_path, scene_of(camera, pictures, lighting).to_yaml())
         built = TwinBuild(
             scene_path=scene_path,
             scene=load_spec(scene_path),
@@ -263,9 +299,12 @@ def build_twin(
             camera_path=camera_path,
             seconds=seconds,
             size_ratio=ratio,
+            look=look,
         )
         compiled = compile_scene(built.scene)  # a SpecError here names what does not compile
         stage("report")
+        if judges:
+            built.look_score = score_look(built.scene, judges)
         write_build_rrd(built, compiled, out / "reconstruction.rrd")
         plots = plot_build(built, out)
         stage(None)
@@ -280,6 +319,21 @@ def build_twin(
     if not settings.keep_work:
         shutil.rmtree(work, ignore_errors=True)
     return built
+
+
+def _inside(
+    points: np.ndarray, colours: np.ndarray, workspace: tuple[float, ...]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud's points (base frame) inside the box ``workspace`` and their colours."""
+    low, high = np.asarray(workspace[:3]), np.asarray(workspace[3:])
+    keep = np.all((points >= low) & (points <= high), axis=1)
+    if keep.sum() < MIN_WORKSPACE_POINTS:
+        raise CaptureError(
+            f"only {keep.sum()} of {len(points)} points lie inside `workspace` "
+            f"{' '.join(f'{v:g}' for v in workspace)}; give the box around the table in "
+            "the robot-base frame (m), as 'x_min y_min z_min x_max y_max z_max'"
+        )
+    return points[keep], colours[keep]
 
 
 def tag_plane(settings: BuildSettings) -> TagPlane:
@@ -413,7 +467,17 @@ def _scene_spec(
     model: SparseModel,
     alignment: Alignment,
     camera: FilmingCamera,
+    pictures: dict[str, Path] | None = None,
+    lighting: dict[str, Lighting] | None = None,
 ) -> SceneSpec:
+    """The scene spec; ``pictures`` (from :meth:`CellLook.write`) dress it where given,
+    and its colours are those the twin's ``lighting`` renders as the frames show them."""
+    pictures, lighting = pictures or {}, lighting or {}
+
+    def colour(seen: np.ndarray, owner: str) -> tuple[float, ...]:
+        rgb = lighting[owner].colour_for(seen) if owner in lighting else seen
+        return (*(float(c) for c in rgb), 1.0)
+
     base = task_scene.model_dump(mode="python") if task_scene else {"name": "cell"}
     base_cameras = _base_cameras(task_scene)
     merged = [cameras.get(c.name, c) for c in base_cameras]
@@ -421,7 +485,7 @@ def _scene_spec(
     frictions = {o.name: o.friction for o in task_scene.objects} if task_scene else {}
     specs = []
     for obj in objects:
-        rgba = (*(float(c) for c in obj.color), 1.0)
+        rgba = colour(obj.color, obj.name)
         geoms = [
             GeomSpec(type="mesh", file=Path(f"meshes/{obj.name}_part{k}.obj"))
             for k in range(len(obj.shape.parts))
@@ -437,6 +501,7 @@ def _scene_spec(
                 friction=frictions.get(obj.name, 1.0),
                 rgba=rgba,
                 geoms=geoms,
+                look=pictures.get(obj.name),
             )
         )
     data = {
@@ -448,8 +513,10 @@ def _scene_spec(
             "center": tuple(float(v) for v in table.center),
             "yaw": float(table.yaw),
             "top_height": float(table.height),
-            "rgba": (*(float(c) for c in table.color), 1.0),
+            "rgba": colour(table.color, "table"),
+            "image": pictures.get("table"),
         },
+        "backdrop": pictures.get("backdrop"),
         "objects": [o.model_dump(mode="python") for o in specs],
         "cameras": [c.model_dump(mode="python") for c in merged],
         "provenance": {
@@ -471,18 +538,17 @@ def _scene_spec(
     return parse_spec(data, source="built scene")
 
 
-def _write_scene(scene: SceneSpec, objects: list[TwinObject], out: Path) -> Path:
+def _write_meshes(objects: list[TwinObject], out: Path) -> None:
+    """Each object's convex parts and its whole surface (a painted surface replaces it
+    when the look is written)."""
     meshes = out / "meshes"
     meshes.mkdir(parents=True, exist_ok=True)
     for obj in objects:
         surface = o3d.geometry.TriangleMesh(obj.shape.surface)
-        surface.triangle_normals = o3d.utility.Vector3dVector()  # OBJ keeps vertex normals only
+        surface.triangle_normals = o3d.utility.Vector3dVector()  # OBJ: vertex normals only
         o3d.io.write_triangle_mesh(str(meshes / f"{obj.name}.obj"), surface)
         for k, (vertices, triangles) in enumerate(obj.shape.parts):
             part = o3d.geometry.TriangleMesh(
                 o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(triangles)
             )
             o3d.io.write_triangle_mesh(str(meshes / f"{obj.name}_part{k}.obj"), part)
-    path = out / "scene.yaml"
-    write_text_atomic(path, scene.to_yaml())
-    return path

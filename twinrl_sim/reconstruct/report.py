@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 import rerun as rr
+from PIL import Image
 
 from twinrl_data.atomic import write_text_atomic
 from twinrl_sim.build import CompiledScene
@@ -156,6 +157,8 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
                 f"| {camera.name} | {pos} | {lookat} | {camera.fovy:.1f} | "
                 f"{camera.width}x{camera.height} |"
             )
+    if built.look is not None:
+        lines += _look_section(built, out)
     lines += ["", "## Time", "", "| stage | seconds |", "|---|---|"]
     lines += [f"| {name} | {value:.1f} |" for name, value in built.seconds.items()]
     lines += [f"| total | {sum(built.seconds.values()):.1f} |", ""]
@@ -256,3 +259,33 @@ def _mapping_note(model: SparseModel) -> str:
     if model.attempts > 1:
         notes.append(f"found at initialisation {model.attempts} (a more lenient first pair)")
     return f" ({'; '.join(notes)})" if notes else ""
+
+
+def _look_section(built: TwinBuild, out: Path) -> list[str]:
+    """The pictures the twin wears and how much it looks like frames they were not
+    painted from, with one such frame beside the twin's renders (look.png)."""
+    look, score = built.look, built.look_score
+    lines = [
+        "",
+        "## The cell's look",
+        "",
+        f"Table top, objects and backdrop painted from {len(look.painters)} frames; "
+        f"{100 * look.table_seen:.0f} % of the top was seen (the rest takes its colour).",
+    ]
+    if score is None:
+        return lines
+    Image.fromarray(score.example).save(out / "look.png")
+    lines += [
+        f"Judged on {score.frames} held-out frames, over the pixels where the twin shows "
+        f"its table and objects ({100 * score.covered:.0f} % of a frame on average):",
+        "",
+        "| twin | PSNR (dB) | SSIM |",
+        "|---|---|---|",
+        f"| dressed | {score.psnr:.1f} | {score.ssim:.3f} |",
+        f"| flat colours | {score.flat_psnr:.1f} | {score.flat_ssim:.3f} |",
+        "",
+        "![look](look.png)",
+        "",
+        "A held-out frame, the dressed twin and the flat twin from its pose.",
+    ]
+    return lines

@@ -9,6 +9,8 @@ import numpy as np
 
 from twinrl_sim.reconstruct.align import Alignment
 from twinrl_sim.reconstruct.frames import FrameSelection
+from twinrl_sim.reconstruct.look import CellLook
+from twinrl_sim.reconstruct.look_score import LookScore
 from twinrl_sim.reconstruct.objects import TwinObject
 from twinrl_sim.reconstruct.segment import TablePlane
 from twinrl_sim.reconstruct.sfm import SparseModel
@@ -31,3 +33,5 @@ class TwinBuild:
     camera_path: np.ndarray  # (F, 3) the walk's camera centres, base frame
     seconds: dict[str, float]
     size_ratio: float | None = None  # reconstructed / task object size (median)
+    look: CellLook | None = None  # the pictures the twin is dressed in
+    look_score: LookScore | None = None  # how much it looks like held-out frames

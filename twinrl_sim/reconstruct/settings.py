@@ -13,6 +13,7 @@ STAGES = (
     "table",
     "objects",
     "cameras",
+    "look",
     "scene",
     "report",
 )
@@ -43,6 +44,10 @@ class BuildSettings:
     tags_on_table: bool = True
     """The tags lie on the table: its plane is sought near the tags' plane only, and one
     tilted from it is refused (--no-tags-on-table: the largest plane in view)."""
+    workspace: tuple[float, ...] | None = None
+    """A box around the table in the robot-base frame, 'x_min y_min z_min x_max y_max
+    z_max' (m): points outside it (the room behind, the floor) are cut before the table
+    and objects are fitted (default: all points)."""
     task: str | None = None
     """Task whose cell was filmed: objects are named after its objects, and its robot,
     cameras and physics are kept."""
@@ -62,6 +67,10 @@ class BuildSettings:
     """The filming camera's calibration file instead of `intrinsics`: OpenCV's YAML, XML
     or JSON (as `twinrl twin calibrate` writes) or a COLMAP cameras.txt; scaled to the
     frames' size. With neither, an EXIF 35 mm focal length is used as a first guess."""
+    look: bool = True
+    """Dress the twin in pictures projected from the frames (the table's top, the
+    objects, the room as a backdrop) and judge them on held-out frames (--no-look: flat
+    colours, a few seconds sooner)."""
     frames: int = 150
     """Frames to keep for structure from motion (at least 12)."""
     name: str | None = None
