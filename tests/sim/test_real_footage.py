@@ -82,6 +82,19 @@ def test_the_same_frames_and_seed_map_the_same_way(footage, tmp_path):
     np.testing.assert_allclose(poses[0], poses[1], atol=1e-9)
 
 
+def test_photos_in_no_order_map_when_every_pair_is_matched(footage, tmp_path):
+    """Photos taken in no particular order: sequential matching pairs strangers, every
+    pair finds the neighbours."""
+    shuffled = tmp_path / "photos"
+    shuffled.mkdir()
+    frames = sorted(footage.video.glob("*.jpg"))[::3]
+    order = np.random.default_rng(0).permutation(len(frames))
+    for k, index in enumerate(order):
+        shutil.copy(frames[index], shuffled / f"photo_{k:03d}.jpg")
+    model = run_sfm(shuffled, tmp_path / "sfm", seed=0, matching="exhaustive")
+    assert model.registered >= 0.9 * model.frames
+
+
 def test_the_plain_table_is_found_where_the_tag_lies(built):
     assert built.model.registered >= 0.9 * built.model.frames
     assert built.scene.provenance["intrinsics"].startswith("calibration phone.yaml")

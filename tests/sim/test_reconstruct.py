@@ -320,6 +320,7 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         ([*TAG, "--intrinsics", "600 600 320"], "--intrinsics needs 4 numbers 'fx fy cx cy'"),
         ([*TAG, "--intrinsics", "600 -600 320 240"], "--intrinsics fx fy cx cy must be positive"),
         ([*TAG, "--workspace", "0 -1 -0.1 1 1"], "--workspace needs 6 numbers"),
+        ([*TAG, "--matching", "vocab"], "--matching 'vocab' is not one of sequential"),
         ([*TAG, "--workspace", "1 -1 -0.1 0 1 0.5"], "each minimum must be below its maximum"),
     ],
 )

@@ -54,7 +54,7 @@ from twinrl_sim.reconstruct.segment import (
     level_table,
 )
 from twinrl_sim.reconstruct.settings import BuildSettings
-from twinrl_sim.reconstruct.sfm import SparseModel, run_sfm
+from twinrl_sim.reconstruct.sfm import MATCHINGS, SparseModel, run_sfm
 from twinrl_sim.reconstruct.silhouette import carve_footprints
 from twinrl_sim.reconstruct.table_extent import measure_table
 from twinrl_sim.reconstruct.tag import FAMILIES
@@ -120,6 +120,10 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
             )
         if any(lo >= hi for lo, hi in zip(box[:3], box[3:], strict=True)):
             raise SettingError("workspace", "each minimum must be below its maximum")
+    if settings.matching not in MATCHINGS:
+        raise SettingError(
+            "matching", f"'{settings.matching}' is not one of {', '.join(MATCHINGS)}"
+        )
     if settings.frames < 12:
         raise SettingError("frames", f"must be at least 12, got {settings.frames}")
     if settings.tag_size is not None and not 0.005 <= settings.tag_size <= 1.0:
@@ -200,6 +204,7 @@ def build_twin(
             seed=settings.seed,
             intrinsics=camera.intrinsics,
             focal_prior=camera.focal_prior,
+            matching=settings.matching,
         )
         stage("alignment")
         if settings.tag_points:

@@ -71,6 +71,10 @@ class BuildSettings:
     """Dress the twin in pictures projected from the frames (the table's top, the
     objects, the room as a backdrop) and judge them on held-out frames (--no-look: flat
     colours, a few seconds sooner)."""
+    matching: str = "sequential"
+    """How frames are paired for feature matching: sequential (each with the next ten:
+    a walk) or exhaustive (every pair: photos taken in no order, or a walk that comes
+    back to where it started; slower, growing with the square of the frames)."""
     frames: int = 150
     """Frames to keep for structure from motion (at least 12)."""
     name: str | None = None

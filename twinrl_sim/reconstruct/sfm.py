@@ -31,6 +31,7 @@ MIN_REGISTERED = 10
 # The mapper's initial pair, tried in turn while too few frames register: least
 # triangulation angle (deg) and inlier matches. COLMAP's default first.
 INITIAL_PAIRS = ((16.0, 100), (8.0, 60), (4.0, 30))
+MATCHINGS = ("sequential", "exhaustive")  # how frames are paired for matching
 
 
 @dataclass
@@ -61,6 +62,7 @@ def run_sfm(
     overlap: int = 10,
     intrinsics: tuple[float, ...] | None = None,
     focal_prior: float | None = None,
+    matching: str = "sequential",
 ) -> SparseModel:
     """Reconstruct the frames in ``image_dir`` (files written under ``work_dir``), with
     the photos of ``fixed_cameras`` (camera name -> image file) registered among them.
@@ -68,7 +70,9 @@ def run_sfm(
     ``intrinsics`` (fx, fy, cx, cy in pixels, then optionally OpenCV's k1, k2, p1, p2)
     are the filming camera's, when known: the walk is mapped with them held fixed
     instead of estimating its focal length and principal point. Without them,
-    ``focal_prior`` (px, e.g. from EXIF) is the focal length the mapper starts from."""
+    ``focal_prior`` (px, e.g. from EXIF) is the focal length the mapper starts from.
+    ``matching``: "sequential" pairs each frame with the next ``overlap`` (a walk),
+    "exhaustive" every pair (photos in no order, or a walk that closes its loop)."""
     image_dir, work_dir = Path(image_dir), Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -100,19 +104,26 @@ def run_sfm(
         extract(frame_names, _focal_prior(focal_prior, image_dir / frame_names[0]))
     else:
         extract(frame_names)
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = overlap
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.use_gpu = False
-    matching.num_threads = 1
+    if matching not in MATCHINGS:
+        raise ValueError(f"matching '{matching}' is not one of {', '.join(MATCHINGS)}")
+    matcher = pycolmap.FeatureMatchingOptions()
+    matcher.use_gpu = False
+    matcher.num_threads = 1
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = seed  # each pair's RANSAC: the same seed, the same matches
-    pycolmap.match_sequential(
-        database,
-        matching_options=matching,
-        pairing_options=pairing,
-        verification_options=verification,
-    )
+    if matching == "exhaustive":
+        pycolmap.match_exhaustive(
+            database, matching_options=matcher, verification_options=verification
+        )
+    else:
+        sequential = pycolmap.SequentialPairingOptions()
+        sequential.overlap = overlap
+        pycolmap.match_sequential(
+            database,
+            matching_options=matcher,
+            pairing_options=sequential,
+            verification_options=verification,
+        )
     fixed_images = {}
     for camera, photo in (fixed_cameras or {}).items():
         name = f"camera_{camera}{Path(photo).suffix.lower()}"
@@ -125,7 +136,7 @@ def run_sfm(
         imported.match_list_path = str(pairs)
         pycolmap.match_image_pairs(
             database,
-            matching_options=matching,
+            matching_options=matcher,
             pairing_options=imported,
             verification_options=verification,
         )
