@@ -81,6 +81,12 @@ def build(settings: dict[str, Any], source: Path, out: Path) -> None:
         f"{1000 * built.alignment.residual_m:.2f} mm, table top at {built.table.height:+.4f} m, "
         f"{sum(built.seconds.values()):.0f} s"
     )
+    if built.look_score is not None:
+        look = built.look_score
+        console.print(
+            f"look, from {look.frames} held-out frames: PSNR {look.psnr:.1f} dB, SSIM "
+            f"{look.ssim:.3f} (flat colours: {look.flat_psnr:.1f} dB, {look.flat_ssim:.3f})"
+        )
     console.print(f"{out}/scene.yaml (use as --twin), report.md, reconstruction.rrd")
 
 
