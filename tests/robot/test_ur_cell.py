@@ -278,6 +278,40 @@ def test_a_protective_stop_aborts_the_episode_keeps_its_data_and_blocks_until_ac
         harness.close()
 
 
+def test_a_slow_move_to_the_start_pose_is_waited_for_and_a_halted_one_is_stopped(
+    emulated,
+) -> None:
+    """The pendant's speed slider at 20 % makes the move to the start pose five times
+    slower and it completes; at 0 % the arm halts short of it, which ends the reset
+    with one line within a few seconds, without a protective stop."""
+    cell, _ = emulated
+    harness = HarnessClient(yaml.safe_load(cell.read_text())["arm"]["host"])
+    task = make_task("pick_place")
+    robot = open_robot("real", task, cell=cell, emulated=True)
+    configs = [task.sample_config(np.random.default_rng(seed), "OOD") for seed in (0, 1)]
+    try:
+        robot.reset(configs[0])
+        harness.fault("speed_slider_20")
+        robot.unwrapped.start_q = robot.unwrapped.start_q + np.array([0.3, 0, 0, 0, 0, 0])
+        start = time.monotonic()
+        robot.reset(configs[1])  # 0.3 rad at a fifth of the reset speed: about 3 s
+        assert time.monotonic() - start > 2.5
+        assert np.abs(robot.unwrapped.measured_q() - robot.unwrapped.start_q).max() < 2e-3
+        harness.fault("speed_slider_0")
+        robot.unwrapped.start_q = robot.unwrapped.start_q - np.array([0.3, 0, 0, 0, 0, 0])
+        start = time.monotonic()
+        with pytest.raises(
+            RobotStopped, match=r"stopped (29|30)\d\.\d mrad short of the start"
+        ) as err:
+            robot.reset(configs[1])
+        assert time.monotonic() - start < 5.0 and "\n" not in str(err.value)
+        assert harness.reading()["safety_mode"] == 1  # normal: no stop was needed
+    finally:
+        harness.fault("speed_slider_100")
+        robot.close()
+        harness.close()
+
+
 def session_file(folder: Path) -> Path:
     (episode,) = sorted((folder / "session").rglob("*.mcap"))
     return episode

@@ -51,6 +51,7 @@ CONNECT_TIMEOUT = 3.0  # s to reach the controller before saying it is unreachab
 RESET_SPEED, RESET_ACCELERATION = 0.6, 1.2  # rad/s, rad/s^2 of the move to a start pose
 SERVO_STOP_DECELERATION = 10.0  # rad/s^2
 ARRIVED = 2e-3  # rad from a move's goal that counts as there
+MOVE_STALL = 2.0  # s without getting ARRIVED nearer its goal that ends a move
 RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
 EMERGENCY_STOP = (
     "the emergency stop is pressed; release it, power the arm on and release the brakes on "
@@ -178,21 +179,24 @@ class URArm:
         return self.observe()
 
     def _move_to(self, q: np.ndarray) -> None:
-        """moveJ to ``q``, asynchronously (the stream's thread keeps kicking the watchdog)."""
+        """moveJ to ``q``, asynchronously (the stream's thread keeps kicking the watchdog).
+        A slow move is waited for (the pendant's speed slider, a controller behind real
+        time); one that stops getting nearer for :data:`MOVE_STALL` s is stopped."""
         if not self._control.moveJ(q.tolist(), RESET_SPEED, RESET_ACCELERATION, True):
             self._check(refused="the controller refused the move to the start pose")
-        distance = float(np.abs(q - self.measured_q()).max())
-        deadline = time.monotonic() + 3.0 + 2.0 * distance / RESET_SPEED
+        nearest, progressed = np.inf, time.monotonic()
         while True:
             self._check()
-            arrived = np.abs(self.measured_q() - q).max() < ARRIVED
-            if arrived and np.abs(self._receive.getActualQd()).max() < 1e-2:
+            remaining = float(np.abs(self.measured_q() - q).max())
+            if remaining < ARRIVED and np.abs(self._receive.getActualQd()).max() < 1e-2:
                 return
-            if time.monotonic() > deadline:
+            if remaining < nearest - ARRIVED:
+                nearest, progressed = remaining, time.monotonic()
+            elif time.monotonic() - progressed > MOVE_STALL:
                 self._control.stopJ(SERVO_STOP_DECELERATION)
                 raise RobotStopped(
-                    "the arm did not reach the start pose in time; check for an "
-                    "obstacle or a speed limit set on the pendant"
+                    f"the arm stopped {1000 * remaining:.1f} mrad short of the start pose "
+                    f"(no nearer for {MOVE_STALL:g} s); check for an obstacle in its way"
                 )
             time.sleep(0.01)
 

@@ -73,6 +73,7 @@ class ArmReading:
     gripper_position: float  # 0 open .. 1 closed (commanded)
     gripper_opening: float  # m, measured
     digital_out: int
+    speed_fraction: float  # the pendant's speed slider, 0..1
 
 
 @dataclass
@@ -129,6 +130,7 @@ class EmulatedArm:
         self.gripper_output = gripper_output
         self.robot_mode = RobotMode.RUNNING
         self.safety_mode = SafetyMode.NORMAL
+        self.speed_fraction = 1.0  # the pendant's speed slider: scales moves' speed
         self.program_running = False
         self.digital_out = 0
         self.gripper_position = 0.0
@@ -186,6 +188,11 @@ class EmulatedArm:
         """Whether nothing is commanded and the joints have come to rest."""
         speed = float(np.abs(self.cell.data.qvel[self.cell.arm_dof]).max())
         return self._motion.kind == "idle" and speed < 1e-2
+
+    def set_speed_fraction(self, fraction: float) -> None:
+        """The pendant's speed slider (0..1): moves run at that share of their speed."""
+        with self.lock:
+            self.speed_fraction = float(fraction)
 
     def set_digital_outputs(self, mask: int, bits: int) -> None:
         """The standard digital outputs under ``mask`` take ``bits`` (RTDE's I/O recipe)."""
@@ -319,10 +326,15 @@ class EmulatedArm:
         if distance < 1e-6:
             self._motion = _Motion("idle")
             return motion.target.copy()
+        # The speed slider slows the move's time: speeds by it, accelerations by its square.
+        fraction = self.speed_fraction
+        if fraction <= 0.0:
+            return self._reference.copy()
+        acceleration = motion.acceleration * fraction**2
         current = float(np.max(np.abs(self._reference_velocity)))
-        braking = np.sqrt(2.0 * motion.acceleration * distance)
-        speed = min(motion.speed, current + motion.acceleration * dt, braking)
-        step = min(distance, max(speed, motion.acceleration * dt) * dt)
+        braking = np.sqrt(2.0 * acceleration * distance)
+        speed = min(motion.speed * fraction, current + acceleration * dt, braking)
+        step = min(distance, max(speed, acceleration * dt) * dt)
         return self._reference + remaining * (step / distance)
 
     def _hits_table(self) -> bool:
@@ -369,6 +381,7 @@ class EmulatedArm:
                 gripper_position=self.gripper_position,
                 gripper_opening=cell.gripper_opening,
                 digital_out=self.digital_out,
+                speed_fraction=self.speed_fraction,
             )
 
     def _tcp_pose(self) -> np.ndarray:

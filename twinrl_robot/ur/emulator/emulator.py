@@ -24,6 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from twinrl_robot.cell_file import CellFile
@@ -37,6 +38,7 @@ from twinrl_robot.ur.gripper import STROKES
 from twinrl_sim.tasks import Task
 
 STOP_TIMEOUT = 5.0  # s for the emulator to close its ports when told to stop
+SLIDER_PERCENTS = (0, 20, 100)  # the pendant's speed slider settings the harness can set
 
 
 @dataclass(frozen=True)
@@ -207,6 +209,12 @@ class Emulator:
             "local_mode": local_mode,
             "remote_mode": remote_mode,
             "drop_connection": drop,
+            **{
+                f"speed_slider_{percent}": partial(
+                    setattr, self.arm, "speed_fraction", percent / 100
+                )
+                for percent in SLIDER_PERCENTS
+            },
         }
 
 

@@ -62,7 +62,8 @@ class HarnessClient:
 
     def fault(self, kind: str) -> None:
         """``protective_stop``, ``emergency_stop``, ``release_emergency_stop``,
-        ``local_mode``, ``remote_mode`` or ``drop_connection``."""
+        ``local_mode``, ``remote_mode``, ``drop_connection``, or ``speed_slider_0``,
+        ``speed_slider_20``, ``speed_slider_100`` (the pendant's speed slider)."""
         self.request(kind)
 
     def reading(self) -> dict[str, Any]:
