@@ -171,14 +171,11 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
         quat=yaw_quat(table.yaw).tolist(),
     )
     material = ""
-    if table.image is not None:
+    if table.image is not None:  # the picture once over the top
         spec.add_texture(
-            name="table_image", type=mujoco.mjtTexture.mjTEXTURE_2D, file=str(table.image)
+            name="table_texture", type=mujoco.mjtTexture.mjTEXTURE_2D, file=str(table.image)
         )
-        material_spec = spec.add_material(name="table_material", texrepeat=[1, 1])
-        material_spec.texuniform = False
-        material_spec.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "table_image"
-        material = "table_material"
+        repeat = [1, 1]
     elif table.texture != "plain":
         builtin = {
             "checker": mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
@@ -193,7 +190,9 @@ def _add_room(spec: mujoco.MjSpec, scene: SceneSpec) -> None:
             width=256,
             height=256,
         )
-        material_spec = spec.add_material(name="table_material", texrepeat=[4, 4])
+        repeat = [4, 4]
+    if table.image is not None or table.texture != "plain":
+        material_spec = spec.add_material(name="table_material", texrepeat=repeat)
         material_spec.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "table_texture"
         material = "table_material"
     body.add_geom(

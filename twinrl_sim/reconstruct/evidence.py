@@ -52,11 +52,8 @@ def weigh_evidence(
     reconstruction's frame to it) in the registered frames of the walk."""
     centre = np.asarray(cluster.center, float)
     centre_sfm = to_cell.invert(centre[None])
-    photos = set(model.fixed_images.values())  # the fixed cameras' photos: not the walk
     directions = []
-    for image in model.reconstruction.images.values():
-        if not image.has_pose or image.name in photos:
-            continue
+    for image in model.walk_images():
         _, _, visible = project(image, model.reconstruction.cameras[image.camera_id], centre_sfm)
         if visible[0]:
             directions.append(image.projection_center())

@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import open3d as o3d
+import pycolmap
 from PIL import Image
 
 from twinrl_sim.cubemap import cube_directions
@@ -61,34 +62,19 @@ class FrameView:
 
 
 def frame_views(model: SparseModel, image_dir: Path, to_cell: Similarity) -> list[FrameView]:
-    """The walk's registered frames (fixed cameras' photos left out), by name, each
-    undistorted to a centred pinhole at most :data:`MAX_WIDTH` wide."""
-    fixed = set(model.fixed_images.values())
-    images = sorted(
-        (i for i in model.reconstruction.images.values() if i.has_pose and i.name not in fixed),
-        key=lambda image: image.name,
-    )
+    """The walk's registered frames, by name, each undistorted to a centred pinhole at
+    most :data:`MAX_WIDTH` wide."""
+    undistortions: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     views = []
-    for image in images:
-        camera = model.reconstruction.cameras[image.camera_id]
-        scale = min(1.0, MAX_WIDTH / camera.width)
-        width, height = round(camera.width * scale), round(camera.height * scale)
-        focal = camera.mean_focal_length() * scale
-        intrinsics = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
-        columns, rows = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
-        rays = np.c_[
-            (columns.ravel() - width / 2) / focal,
-            (rows.ravel() - height / 2) / focal,
-            np.ones(columns.size),
-        ]
-        source = camera.img_from_cam(rays).reshape(height, width, 2) - 0.5
+    for image in model.walk_images():
+        if image.camera_id not in undistortions:  # the walk's frames share one camera
+            undistortions[image.camera_id] = _undistortion(
+                model.reconstruction.cameras[image.camera_id]
+            )
+        intrinsics, map_x, map_y = undistortions[image.camera_id]
         frame = cv2.imread(str(image_dir / image.name))[:, :, ::-1]
         undistorted = cv2.remap(
-            frame,
-            np.nan_to_num(source[..., 0], nan=-1).astype(np.float32),
-            np.nan_to_num(source[..., 1], nan=-1).astype(np.float32),
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_REPLICATE,
+            frame, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
         )
         rotation = image.cam_from_world().rotation.matrix() @ to_cell.rotation.T
         centre = to_cell.apply(image.projection_center()[None])[0]
@@ -98,11 +84,29 @@ def frame_views(model: SparseModel, image_dir: Path, to_cell: Similarity) -> lis
     return views
 
 
+def _undistortion(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The centred pinhole (3, 3) a frame of ``camera`` is undistorted into, at most
+    :data:`MAX_WIDTH` wide, and the source pixel maps (x, y) ``cv2.remap`` takes."""
+    scale = min(1.0, MAX_WIDTH / camera.width)
+    width, height = round(camera.width * scale), round(camera.height * scale)
+    focal = camera.mean_focal_length() * scale
+    intrinsics = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    columns, rows = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays = np.c_[
+        (columns.ravel() - width / 2) / focal,
+        (rows.ravel() - height / 2) / focal,
+        np.ones(columns.size),
+    ]
+    source = np.nan_to_num(camera.img_from_cam(rays).reshape(height, width, 2) - 0.5, nan=-1)
+    return intrinsics, source[..., 0].astype(np.float32), source[..., 1].astype(np.float32)
+
+
 def split_views(views: list[FrameView]) -> tuple[list[FrameView], list[FrameView]]:
     """(painters, judges): every :data:`HELD_OUT_EVERY`-th frame judges, the rest
     (thinned to :data:`MAX_PAINTERS`, evenly) paint."""
-    judges = views[HELD_OUT_EVERY // 2 :: HELD_OUT_EVERY]
-    rest = [v for v in views if v not in judges]
+    judging = HELD_OUT_EVERY // 2
+    judges = views[judging::HELD_OUT_EVERY]
+    rest = [v for k, v in enumerate(views) if k % HELD_OUT_EVERY != judging]
     keep = np.unique(np.linspace(0, len(rest) - 1, min(MAX_PAINTERS, len(rest))).round())
     return [rest[int(k)] for k in keep], judges
 
@@ -158,10 +162,14 @@ class CellLook:
         return paths
 
 
-def paint_cell(views: list[FrameView], table: TablePlane, objects: list[TwinObject]) -> CellLook:
-    """Project the painting frames onto the table's top, each object's surface and the
-    backdrop; held-out frames are not used."""
-    painters, judges = split_views(views)
+def paint_cell(
+    painters: list[FrameView],
+    judges: list[FrameView],
+    table: TablePlane,
+    objects: list[TwinObject],
+) -> CellLook:
+    """Project the ``painters`` (:func:`split_views`) onto the table's top, each
+    object's surface and the backdrop; the ``judges`` are only named."""
     occluders = o3d.t.geometry.RaycastingScene()
     for obj in objects:
         occluders.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(_placed(obj, table)))

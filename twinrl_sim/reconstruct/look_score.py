@@ -13,11 +13,12 @@ import numpy as np
 from PIL import Image
 from skimage.metrics import structural_similarity
 
-from twinrl_sim.build import compile_scene
+from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct.look import FrameView, Lighting
-from twinrl_sim.spec import SceneSpec
+from twinrl_sim.spec import CameraSpec, SceneSpec
 
 HIDDEN_GROUP = 5  # the arm's geoms while judging
+JUDGE_CAMERA = "look_judge"  # the camera added to a judged scene, moved to each frame
 MIN_PIXELS = 100  # a held-out frame showing fewer of the twin's pixels is not judged
 GAIN_VIEWS = 6  # frames the twin's lighting is measured from
 PROBE_GREYS = (0.2, 0.6)  # flat greys rendered to measure it (bright ones would clip)
@@ -39,10 +40,15 @@ class LookScore:
 
 def flat_colours(scene: SceneSpec) -> SceneSpec:
     """``scene`` without its pictures: table, objects and room in plain colours."""
+    return _restyled(scene, {"image": None}, {"look": None})
+
+
+def _restyled(scene: SceneSpec, table: dict, objects: dict) -> SceneSpec:
+    """``scene`` with ``table`` and every object's fields updated, and no backdrop."""
     return scene.model_copy(
         update={
-            "table": scene.table.model_copy(update={"image": None}),
-            "objects": [o.model_copy(update={"look": None}) for o in scene.objects],
+            "table": scene.table.model_copy(update=table),
+            "objects": [o.model_copy(update=objects) for o in scene.objects],
             "backdrop": None,
         }
     )
@@ -112,14 +118,7 @@ def _grey_renders(
         plain = (grey, grey, grey, 1.0)
         table = {"image": picture} if dressed else {"image": None, "rgba": plain}
         objects = {"look": picture} if dressed else {"look": None, "rgba": plain}
-        probe = scene.model_copy(
-            update={
-                "table": scene.table.model_copy(update=table),
-                "objects": [o.model_copy(update=objects) for o in scene.objects],
-                "backdrop": None,
-            }
-        )
-        renders = _Renders(probe)
+        renders = _Renders(_restyled(scene, table, objects))
     seen: dict[str, list[float]] = {}
     try:
         for view in views[:: max(1, len(views) // GAIN_VIEWS)]:
@@ -143,10 +142,11 @@ def _similarity(frame: np.ndarray, render: np.ndarray, mask: np.ndarray) -> tupl
 
 
 class _Renders:
-    """One scene rendered from frames' poses through its first world camera, moved."""
+    """One scene rendered from frames' poses, through a camera of its own moved to each."""
 
     def __init__(self, scene: SceneSpec) -> None:
-        compiled = compile_scene(scene)
+        judge = CameraSpec(name=JUDGE_CAMERA, pos=(0.0, 0.0, 1.0))  # placed per frame
+        compiled = compile_scene(scene.model_copy(update={"cameras": [*scene.cameras, judge]}))
         self.model = model = compiled.model
         self.data = mujoco.MjData(model)
         mujoco.mj_forward(model, self.data)
@@ -162,10 +162,7 @@ class _Renders:
         self.judged = self.owner != ""
         self.option = mujoco.MjvOption()
         self.option.geomgroup[HIDDEN_GROUP] = 0
-        cameras = [c for c in range(model.ncam) if model.cam_bodyid[c] == 0]
-        if not cameras:
-            raise ValueError(f"scene '{scene.name}' has no world camera to render from")
-        self.camera = cameras[0]
+        self.camera = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, JUDGE_CAMERA)
         self.renderers: dict[tuple[int, int], mujoco.Renderer] = {}
 
     def render(self, view: FrameView) -> tuple[np.ndarray, np.ndarray]:
@@ -175,11 +172,10 @@ class _Renders:
             self.renderers[height, width] = mujoco.Renderer(self.model, height, width)
         renderer = self.renderers[height, width]
         rotation = view.world_to_camera[:3, :3]  # rows: the camera's x right, y down, z ahead
-        axes = np.stack([rotation[0], -rotation[1], -rotation[2]], axis=1)  # MuJoCo's camera
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, axes.ravel())
         self.model.cam_pos[self.camera] = view.centre
-        self.model.cam_quat[self.camera] = quat
+        self.model.cam_quat[self.camera] = look_at_quat(
+            view.centre, view.centre + rotation[2], -rotation[1]
+        )
         self.model.cam_fovy[self.camera] = np.degrees(
             2 * np.arctan(height / 2 / view.intrinsics[1, 1])
         )

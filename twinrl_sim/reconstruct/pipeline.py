@@ -32,7 +32,7 @@ from twinrl_sim.reconstruct.align import (
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
 from twinrl_sim.reconstruct.evidence import ObjectEvidence, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
-from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell
+from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell, split_views
 from twinrl_sim.reconstruct.look_score import score_look, twin_lighting
 from twinrl_sim.reconstruct.objects import (
     DEFAULT_DENSITY,
@@ -221,12 +221,7 @@ def build_twin(
                 settings.tag_family,
             )
         pivot = alignment.pivot
-        walk = [
-            image
-            for image in model.reconstruction.images.values()
-            if image.has_pose and image.name not in model.fixed_images.values()
-        ]
-        walk.sort(key=lambda image: image.name)
+        walk = model.walk_images()
         path = alignment.to_base.apply(np.array([i.projection_center() for i in walk]))
         _check_scale(path, pivot, settings)
         stage("table")
@@ -280,13 +275,11 @@ def build_twin(
         )
         look, judges, pictures, lighting = None, [], {}, {}
         if settings.look:
-            views = frame_views(model, work / "frames", to_cell)
-            look = paint_cell(views, table, objects)
-            painters = [view for view in views if view.name in look.painters]
+            painters, judges = split_views(frame_views(model, work / "frames", to_cell))
+            look = paint_cell(painters, judges, table, objects)
             plain = resolve_files(scene_of(camera), out)
             look.relight(twin_lighting(plain, painters, dressed=True))
             lighting = twin_lighting(plain, painters, dressed=False)  # of the plain colours
-            judges = [view for view in views if view.name in look.judges]
             pictures = look.write(out)
         stage("scene")
         scene_path = out / "scene.yaml"

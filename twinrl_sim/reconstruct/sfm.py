@@ -52,6 +52,13 @@ class SparseModel:
         name = self.fixed_images[camera]
         return next(i for i in self.reconstruction.images.values() if i.name == name)
 
+    def walk_images(self) -> list[pycolmap.Image]:
+        """The walk's registered frames by name, the fixed cameras' photos left out."""
+        photos = set(self.fixed_images.values())
+        registered = self.reconstruction.images.values()
+        walk = [i for i in registered if i.has_pose and i.name not in photos]
+        return sorted(walk, key=lambda image: image.name)
+
 
 def run_sfm(
     image_dir: Path,

@@ -210,9 +210,7 @@ class Emulator:
             "remote_mode": remote_mode,
             "drop_connection": drop,
             **{
-                f"speed_slider_{percent}": partial(
-                    setattr, self.arm, "speed_fraction", percent / 100
-                )
+                f"speed_slider_{percent}": partial(self.arm.set_speed_fraction, percent / 100)
                 for percent in SLIDER_PERCENTS
             },
         }
