@@ -57,6 +57,7 @@ META_COLUMNS = (
     "created_at",
     "operator",
     "aborted",
+    "note",
 )
 FILTERS = ("task", "source", "world", "region")
 

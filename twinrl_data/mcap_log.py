@@ -284,10 +284,11 @@ class EpisodeWriter:
         success: bool | None = None,
         aborted: str | None = None,
         sensors: Mapping[str, Any] | None = None,
+        note: str | None = None,
     ) -> contract.EpisodeMeta:
         """Finish the file; ``success`` defaults to the last step's ``next.success``;
         ``aborted`` says why the episode ended early (kept with its data); ``sensors``
-        what the cell's sensors delivered."""
+        what the cell's sensors delivered; ``note`` a person's words about it."""
         if self._closed:
             return self.meta
         final_success = self.last_success if success is None else bool(success)
@@ -296,6 +297,7 @@ class EpisodeWriter:
             num_interventions=self.interventions,
             aborted=aborted,
             sensors=dict(sensors or {}),
+            note=note,
         )
         end = {
             "success": final_success,
@@ -303,6 +305,7 @@ class EpisodeWriter:
             "length": self.steps,
             "aborted": aborted,
             "sensors": dict(sensors or {}),
+            "note": note,
         }
         self._guarded(lambda: self._finish(end))
         self._closed = True
@@ -444,6 +447,7 @@ def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.Ep
             num_interventions=end["num_interventions"],
             aborted=end.get("aborted"),
             sensors=end.get("sensors", {}),
+            note=end.get("note"),
         )
     return meta
 

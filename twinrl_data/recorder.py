@@ -55,6 +55,7 @@ class Recorder:
         self.writer_options = writer_options
         self._writer: EpisodeWriter | None = None
         self.saved: EpisodeMeta | None = None  # the last saved episode's final metadata
+        self.saved_path: Path | None = None  # and its file
 
     @property
     def recording(self) -> bool:
@@ -84,13 +85,15 @@ class Recorder:
         success: bool | None = None,
         aborted: str | None = None,
         sensors: Mapping[str, Any] | None = None,
+        note: str | None = None,
     ) -> Path:
         """Close the episode (``success`` defaults to the last frame's ``next.success``;
-        ``aborted``: why it ended early; ``sensors``: what the cell's sensors delivered)
-        and return its file."""
+        ``aborted``: why it ended early; ``sensors``: what the cell's sensors delivered;
+        ``note``: a person's words about it) and return its file."""
         writer = self._require_open()
         self._writer = None
-        self.saved = writer.close(success=success, aborted=aborted, sensors=sensors)
+        self.saved = writer.close(success=success, aborted=aborted, sensors=sensors, note=note)
+        self.saved_path = writer.path
         return writer.path
 
     def _require_open(self) -> EpisodeWriter:

@@ -89,7 +89,8 @@ class EpisodeMeta:
     filled in when the episode ends, and ``aborted`` says why it ended early (the arm
     stopped, the connection was lost, the run was interrupted); ``None``: it ran its course.
     ``sensors`` says what a real cell's sensors delivered during it (per camera: frames,
-    dropped, and stale, the control steps that got no new frame).
+    dropped, and stale, the control steps that got no new frame); ``note`` is what the
+    person recording it typed about it.
     """
 
     task: str
@@ -109,6 +110,7 @@ class EpisodeMeta:
     randomization: dict[str, Any] = field(default_factory=dict)
     aborted: str | None = None
     sensors: dict[str, Any] = field(default_factory=dict)
+    note: str | None = None
     episode_id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
     created_at: str = field(default_factory=now_iso)
 

@@ -284,6 +284,22 @@ class Session:
 
         return self._change(drop)
 
+    def discard(self, path: Path) -> Path:
+        """Take one episode out of the session (a person discarded it to record it
+        again): its file moves to ``discarded/`` and its entry leaves the manifest;
+        nothing is deleted. Returns where the file went."""
+        relative = f"{EPISODES}/{Path(path).name}"
+
+        def drop(episodes: list[dict]) -> Path:
+            (self.path / "discarded").mkdir(exist_ok=True)
+            moved = (self.path / relative).replace(self.path / "discarded" / Path(path).name)
+            episodes[:] = [e for e in episodes if e["file"] != relative]
+            return moved
+
+        if not (self.path / relative).is_file():
+            raise DataError(f"{relative} is not an episode file of session {self.path}")
+        return self._change(drop)
+
     def _closed(self, meta: EpisodeMeta, length: int, status: str) -> None:
         def close(episodes: list[dict]) -> None:
             for entry in episodes:

@@ -26,6 +26,8 @@ between every action source and the arm, and which twin the cell corresponds to.
       max_joint_speed: 1.0            # rad/s
       max_joint_acceleration: 4.0     # rad/s^2
       watchdog_ms: 100                # the arm stops when no command came for this long
+    teleop:                           # optional: each device's scaling, axes, buttons
+      spacemouse: {translation: 0.02, deadband: 0.1, axes: [y, -x, z, pitch, -roll, yaw]}
 
 Validated like scene specs: every number finite and within physical bounds, unknown
 keys named with the nearest valid one, every problem in one line.
@@ -40,6 +42,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from twinrl_robot.errors import RobotError
+from twinrl_robot.teleop.settings import TeleopSpec
 from twinrl_sim.spec import WorkspaceSpec, read_yaml, validate_model
 
 ARM_MODELS = {
@@ -139,6 +142,7 @@ class CellFile(_Strict):
     gripper: GripperSpec = GripperSpec()
     cameras: list[CameraSpec] = []
     safety: SafetySpec = SafetySpec()
+    teleop: TeleopSpec = TeleopSpec()
 
     @model_validator(mode="after")
     def _unique_cameras(self) -> CellFile:

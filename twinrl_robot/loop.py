@@ -88,18 +88,28 @@ def run_episode(
     recorder: Recorder | None = None,
     meta: EpisodeMeta | None = None,
     on_step: Callable[[int, Sent], None] | None = None,
+    until: Callable[[], bool] | None = None,
+    ready: Callable[[dict[str, np.ndarray]], None] | None = None,
+    note: Callable[[], str | None] | None = None,
 ) -> EpisodeResult:
     """Run one episode of ``task`` from ``config``; record it when ``recorder`` is given.
 
     ``judge`` ends the episode on success (the sparse reward follows it); ``None`` judges
     nothing (excitation: reward 0, never done early). ``max_steps`` defaults to the
-    task's. A simulated cell steps as fast as it can and counts its own time; a real
+    task's. ``until`` ends the episode after a step without success when it says so (a
+    person's failure or discard key). ``ready`` is called with the first observation
+    after the reset, before anything is recorded (a person sets the cell up and starts);
+    ``note`` gives the words kept with the episode when it is saved. A simulated cell
+    steps as fast as it can and counts its own time (``on_step`` may pace it); a real
     backend keeps the control rate itself (its servo loop).
     """
     if (recorder is None) != (meta is None):
         raise RobotError("give both a recorder and the episode's metadata, or neither")
     limit = task.max_steps if max_steps is None else max_steps
     observation = robot.reset(config)
+    if ready is not None:
+        ready(observation)
+        observation = robot.observe()
     source.reset(task, config)
     if recorder is not None and meta is not None:
         recorder.start_episode(meta)
@@ -119,7 +129,8 @@ def run_episode(
                 source.interrupted()
                 interventions += 1
             success = judge() if judge is not None else False
-            done = success or t == limit - 1
+            stopped = not success and until is not None and until()
+            done = success or stopped or t == limit - 1
             steps = t + 1
             if recorder is not None:
                 recorder.add_frame(
@@ -137,16 +148,18 @@ def run_episode(
             if on_step is not None:
                 on_step(t, sent)
             observation = robot.observe()
-            if success:
+            if success or stopped:
                 break
     except BaseException as err:
         if recorder is not None and recorder.recording:  # keep what was recorded, and why
             reason = str(err) or type(err).__name__
-            recorder.save_episode(success=False, aborted=reason, sensors=_sensors(robot))
+            recorder.save_episode(
+                success=False, aborted=reason, sensors=_sensors(robot), note=note and note()
+            )
         raise
     path = None
     if recorder is not None:
-        path = recorder.save_episode(success=success, sensors=_sensors(robot))
+        path = recorder.save_episode(success=success, sensors=_sensors(robot), note=note and note())
     return EpisodeResult(
         success=success,
         steps=steps,

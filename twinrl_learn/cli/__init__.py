@@ -21,6 +21,7 @@ from twinrl_data.errors import DataWarning, TwinrlError
 from twinrl_data.settings_cli import describe
 from twinrl_learn.cli import bench, demo, evaluation, mine, train
 from twinrl_robot import cli as robot_cli
+from twinrl_robot import record_cli
 from twinrl_robot import robot_cli as robot_commands
 from twinrl_sim import cli as sim_cli
 
@@ -39,6 +40,7 @@ app.add_typer(robot_cli.cell_app, name="cell")
 app.add_typer(robot_commands.robot_app, name="robot")
 data_cli.app.command("import-csv")(sim_cli.import_csv_command)  # needs the twin for FK
 app.add_typer(data_cli.app, name="data")
+app.command("record")(record_cli.record)
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)
 app.add_typer(train.app, name="train")

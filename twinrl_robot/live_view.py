@@ -1,0 +1,176 @@
+"""The live view of a recording: Rerun, spawned, connected to, or saved to a file.
+
+Per episode it shows the **reset guidance** (the configuration to set up, rendered
+from the twin, and the objects' outlines where they should go drawn over the live
+camera of the same name, when the twin has that camera), then every step's camera
+images, the TCP's path in 3D, joint positions and targets, the action and who chose
+it. One blueprint lays it out: cameras and guidance, the scene, the plots.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from twinrl_data.schema import STATE, image_field
+from twinrl_robot.robot import Sent
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.tasks import Task, TaskConfig
+
+OUTLINE_COLOUR = [255, 200, 0]
+GUIDE_WIDTH = 480  # px of the twin's guidance renders
+
+
+class TwinGuide:
+    """Renders a task configuration from the twin's cameras, with each object's outline."""
+
+    def __init__(self, task: Task) -> None:
+        self.task = task
+        self.cell = Cell(compile_scene(task.scene))
+        model = self.cell.model
+        roots = {model.body(o.name).id for o in task.scene.objects}
+        self._object_geoms = np.isin(model.body_rootid[model.geom_bodyid], list(roots))
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        return tuple(self.cell.layout.cameras)
+
+    def render(self, config: TaskConfig, camera: str) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The twin's picture of ``config`` from ``camera`` and the objects' outlines in
+        it (each an (n, 2) array of pixel x, y), at :data:`GUIDE_WIDTH` px wide."""
+        from skimage.measure import find_contours
+
+        self.task.start(self.cell, config)
+        model = self.cell.model
+        cam = model.camera(camera)
+        width, height = (int(v) for v in model.cam_resolution[cam.id])
+        scale = GUIDE_WIDTH / width
+        size = (GUIDE_WIDTH, max(1, round(height * scale)))
+        image = self.cell.render(camera, width=size[0], height=size[1])
+        with mujoco.Renderer(model, height=size[1], width=size[0]) as renderer:
+            renderer.enable_segmentation_rendering()
+            renderer.update_scene(self.cell.data, camera=cam.id)
+            segmentation = renderer.render()
+        ids, kinds = segmentation[..., 0], segmentation[..., 1]
+        is_geom = kinds == int(mujoco.mjtObj.mjOBJ_GEOM)
+        mask = is_geom & self._object_geoms[np.clip(ids, 0, model.ngeom - 1)]
+        outlines = [c[:, ::-1] for c in find_contours(mask.astype(float), 0.5) if len(c) > 8]
+        return image, outlines
+
+    def close(self) -> None:
+        self.cell.close()
+
+
+class LiveView:
+    """A Rerun recording of the session as it is recorded (see the module docstring).
+
+    ``target``: ``"spawn"`` (start a viewer), a ``rerun+http://`` URL (connect to a
+    running one), or a ``.rrd`` path (save, to open later).
+    """
+
+    def __init__(self, target: str, task: Task, cameras: tuple[str, ...]) -> None:
+        self.stream = rr.RecordingStream("twinrl record")
+        self.guide = TwinGuide(task)
+        self.cameras = cameras
+        blueprint = self._blueprint()
+        if target == "spawn":
+            self.stream.spawn(default_blueprint=blueprint)
+        elif target.endswith(".rrd"):
+            self.stream.save(str(Path(target)), default_blueprint=blueprint)
+        else:
+            self.stream.connect_grpc(target, default_blueprint=blueprint)
+        self._path: list[list[float]] = []
+        self._step = 0
+        self._names: list[str] = []
+
+    def _blueprint(self) -> rrb.Blueprint:
+        views = [rrb.Spatial2DView(origin=f"cameras/{c}", name=f"{c} (live)") for c in self.cameras]
+        views += [
+            rrb.Spatial2DView(origin=f"guidance/{c}", name=f"{c}: set up like this")
+            for c in self.guide.cameras
+            if c in self.cameras or not self.cameras
+        ]
+        plots = rrb.Vertical(
+            rrb.TimeSeriesView(origin="signals/joints", name="joints and targets (rad)"),
+            rrb.TimeSeriesView(origin="signals/actions", name="action"),
+            rrb.TimeSeriesView(origin="signals/intervention", name="person in control"),
+        )
+        columns = [rrb.Spatial3DView(origin="world", name="TCP path"), plots]
+        if views:
+            columns.insert(0, rrb.Vertical(*views))
+        return rrb.Blueprint(rrb.Horizontal(*columns), rrb.TimePanel(expanded=False))
+
+    def guidance(
+        self,
+        episode: int,
+        config: TaskConfig,
+        names: list[str],
+        observation: Mapping[str, np.ndarray],
+    ) -> None:
+        """Show where the next episode starts: the twin's renders, the outlines over the
+        live cameras the twin also has (``observation``: the cell at its start pose)."""
+        self.stream.set_time("step", sequence=self._step)
+        self._path, self._names = [], names
+        self.note(f"episode {episode}: set up {config.to_dict()}")
+        for camera in self.guide.cameras:
+            if self.cameras and camera not in self.cameras:
+                continue
+            image, outlines = self.guide.render(config, camera)
+            rr.log(f"guidance/{camera}", rr.Image(image), recording=self.stream)
+            rr.log(
+                f"guidance/{camera}/outline",
+                rr.LineStrips2D(outlines, colors=[OUTLINE_COLOUR]),
+                recording=self.stream,
+            )
+            live = observation.get(image_field(camera))
+            if live is not None:  # the twin's camera at the live image's size
+                scale = live.shape[1] / image.shape[1]
+                rr.log(
+                    f"cameras/{camera}/target",
+                    rr.LineStrips2D([o * scale for o in outlines], colors=[OUTLINE_COLOUR]),
+                    recording=self.stream,
+                )
+        self.live(observation)
+
+    def live(self, observation: Mapping[str, np.ndarray]) -> None:
+        """The cameras now (while the person sets the cell up)."""
+        for camera in self.cameras:
+            image = observation.get(image_field(camera))
+            if image is not None:
+                self.stream.log(f"cameras/{camera}", rr.Image(image))
+
+    def step(self, observation: Mapping[str, np.ndarray], sent: Sent) -> None:
+        self._step += 1
+        self.stream.set_time("step", sequence=self._step)
+        self.live(observation)
+        log = self.stream.log
+        state = observation[STATE]
+        joints = [i for i, n in enumerate(self._names) if n.startswith("q.")]
+        for j, i in enumerate(joints):
+            log(f"signals/joints/{self._names[i]}", rr.Scalars(float(state[i])))
+            if j < len(sent.joint_target):
+                log(
+                    f"signals/joints/{self._names[i]}_target",
+                    rr.Scalars(float(sent.joint_target[j])),
+                )
+        for j, value in enumerate(sent.action):
+            log(f"signals/actions/{j}", rr.Scalars(float(value)))
+        log("signals/intervention", rr.Scalars(float(sent.intervention)))
+        tcp = [i for i, n in enumerate(self._names) if n.startswith("tcp.")][:3]
+        if len(tcp) == 3:
+            self._path.append([float(state[i]) for i in tcp])
+            log("world/tcp_path", rr.LineStrips3D([self._path]))
+
+    def note(self, text: str) -> None:
+        self.stream.log("events", rr.TextLog(text))
+
+    def close(self) -> None:
+        self.guide.close()
+        self.stream.flush()
+        self.stream.disconnect()

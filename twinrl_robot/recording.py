@@ -1,0 +1,407 @@
+"""Recording sessions with a person at a teleop device: ``twinrl record``.
+
+Per episode: the configuration to set up comes from the reset plan and is shown in the
+live view (the twin's render, the objects' outlines over the live camera); the arm goes
+to its start pose (the plant and the emulator set the objects up themselves); the
+person starts the episode (Enter, or the device's ``start`` button), drives, and marks
+it: **success**, **failure**, or **discard** (the episode leaves the session for
+``discarded/`` and the same configuration is recorded again); ``n`` types a note kept
+with the episode; ``q`` stops the session (the episode so far is kept, marked as
+stopped). An episode that reaches the task's step limit ends as a failure.
+
+Nothing recorded is lost to a crash: frames stream into the episode's MCAP file (a
+killed recorder loses at most the last second), the session's manifest is updated when
+each episode starts and ends, and recording again into the same folder first recovers
+an episode a crash left open, then goes on numbering after it.
+"""
+
+from __future__ import annotations
+
+import queue
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_data.recorder import Recorder
+from twinrl_data.repair import repair_session
+from twinrl_data.schema import STATE
+from twinrl_data.session import Session
+from twinrl_robot.errors import RobotError
+from twinrl_robot.live_view import LiveView
+from twinrl_robot.loop import run_episode
+from twinrl_robot.reset_plan import ResetPlan
+from twinrl_robot.robot import Robot, Sent
+from twinrl_robot.teleop.device import TeleopError
+from twinrl_robot.teleop.teleop import Teleop, TeleopSource
+from twinrl_robot.teleop.terminal import TerminalKeys
+from twinrl_robot.wrappers.base import layers
+from twinrl_sim.tasks import Task, TaskConfig
+
+MARK_KEYS = {
+    "enter": "start",
+    "s": "success",
+    "f": "failure",
+    "d": "discard",
+    "n": "note",
+    "q": "quit",
+}
+"""The terminal's keys for the recording's marks, whatever the device."""
+WAIT_PERIOD = 0.1  # s between looks at the device and the cameras while the cell is set up
+
+
+class RecordingStopped(RobotError):
+    """The person stopped the session (``q``)."""
+
+
+@dataclass
+class RecordStatus:
+    """What the status line shows."""
+
+    episode: int  # 1-based, of this session's run
+    episodes: int
+    state: str  # "set up the cell, then start", "recording", "typing a note: ..."
+    elapsed: float = 0.0  # s of the current episode
+    frames: int = 0
+    dropped: int = 0  # camera frames dropped this episode
+    disk_free: int = 0  # bytes
+    saved: int = 0  # episodes kept so far in this run
+    discarded: int = 0
+    last: str = ""  # how the last episode ended
+
+
+@dataclass(frozen=True)
+class RecordedEpisode:
+    path: str
+    outcome: str  # success, failure, stopped
+    steps: int
+    note: str | None
+
+
+@dataclass(frozen=True)
+class RecordReport:
+    episodes: tuple[RecordedEpisode, ...]
+    discarded: tuple[str, ...]
+    recovered: tuple[str, ...]  # episodes a crash had left open, recovered first
+    first_number: int  # episodes the session held before this run
+
+
+@dataclass
+class Marks:
+    """The person's marks from the device's buttons and the terminal's keys; ``n``
+    starts a note, typed until Enter."""
+
+    keys: queue.SimpleQueue[tuple[str, float]] | None
+    terminal: TerminalKeys | None
+    pending: list[str] = field(default_factory=list)
+    note: str | None = None
+    typing: str | None = None  # the note being typed
+
+    def add(self, events: list[str]) -> None:
+        self.pending += [e for e in events if e in MARK_KEYS.values()]
+
+    def poll(self) -> None:
+        while self.keys is not None:
+            try:
+                key, _ = self.keys.get_nowait()
+            except queue.Empty:
+                return
+            if self.typing is not None:
+                self._type(key)
+            elif key in MARK_KEYS:
+                self.pending.append(MARK_KEYS[key])
+
+    def _type(self, key: str) -> None:
+        assert self.typing is not None
+        if key == "enter":
+            self.note = " ".join(filter(None, [self.note, self.typing.strip()])) or None
+            self.typing = None
+        elif key == "backspace":
+            self.typing = self.typing[:-1]
+        elif key == "esc":
+            self.typing = None
+        elif len(key) == 1:
+            self.typing += key
+        else:
+            return
+        if self.terminal is not None:
+            self.terminal.typing = self.typing is not None
+
+    def take(self) -> str | None:
+        """The next mark (a note is handled here and not returned)."""
+        self.poll()
+        while self.pending:
+            mark = self.pending.pop(0)
+            if mark == "note":
+                self.typing = ""
+                if self.terminal is not None:
+                    self.terminal.typing = True
+                continue
+            return mark
+        return None
+
+
+def record_session(
+    robot: Robot,
+    task: Task,
+    teleop: Teleop,
+    session: Session,
+    *,
+    episodes: int,
+    plan: ResetPlan,
+    terminal: TerminalKeys | None = None,
+    view: LiveView | None = None,
+    on_status: Callable[[RecordStatus], None] | None = None,
+    operator: str | None = None,
+    max_steps: int | None = None,
+) -> RecordReport:
+    """Record ``episodes`` kept episodes of ``task`` driven by ``teleop`` into ``session``
+    (see the module docstring). A simulated ``robot`` is paced at its control rate, as
+    a person drives it; a real one keeps its rate itself."""
+    if episodes < 1:
+        raise RobotError(f"episodes must be at least 1, got {episodes}")
+    recovered = tuple(str(p) for p in repair_session(session.path).recovered)
+    session.refresh()
+    first = len(session.entries)
+    plan.skip(first)
+    take = _EpisodeTaker(robot, task, teleop, terminal, view, on_status, session)
+    recorder = Recorder(session)
+    kept: list[RecordedEpisode] = []
+    discarded: list[str] = []
+    index = first
+    while len(kept) < episodes:
+        planned = plan.reset(index)
+        take.begin(len(kept) + 1, episodes, planned.config)
+        meta = task.episode_meta(
+            source="teleop",
+            world=robot.world,
+            names=robot.names,
+            config=planned.config,
+            region=planned.region,
+            operator=operator or teleop.kind,
+        )
+        try:
+            result = run_episode(
+                robot,
+                take.source,
+                task,
+                planned.config,
+                judge=take.judge,
+                recorder=recorder,
+                meta=meta,
+                max_steps=max_steps,
+                on_step=take.on_step,
+                until=take.until,
+                ready=take.ready,
+                note=lambda: take.marks.note,
+            )
+        except RecordingStopped:
+            if take.recording and recorder.saved_path is not None:
+                path, note = str(recorder.saved_path), take.marks.note
+                kept.append(RecordedEpisode(path, "stopped", take.status.frames, note))
+            break
+        note, take.marks.note = take.marks.note, None
+        assert result.path is not None
+        if take.mark == "discard":
+            discarded.append(str(session.discard(result.path)))
+            take.show(discarded=len(discarded), last="discarded: recording it again")
+            continue
+        label = "success" if result.success else "failure"
+        kept.append(RecordedEpisode(str(result.path), label, result.steps, note))
+        index += 1
+        take.show(saved=len(kept), last=f"episode {len(kept)}: {label}, {result.steps} steps")
+    return RecordReport(tuple(kept), tuple(discarded), recovered, first)
+
+
+class _EpisodeTaker:
+    """The hooks one recorded episode runs with: the person's start, marks, pacing,
+    the live view and the status line."""
+
+    def __init__(
+        self,
+        robot: Robot,
+        task: Task,
+        teleop: Teleop,
+        terminal: TerminalKeys | None,
+        view: LiveView | None,
+        on_status: Callable[[RecordStatus], None] | None,
+        session: Session,
+    ) -> None:
+        self.robot, self.task, self.teleop, self.view = robot, task, teleop, view
+        self.on_status, self.session = on_status, session
+        self.source = TeleopSource(teleop)
+        self.marks = Marks(terminal.subscribe() if terminal is not None else None, terminal)
+        self.simulated = robot.world in ("plant", "twin")
+        self.period = 1.0 / robot.control_hz
+        self.status = RecordStatus(0, 0, "")
+        self.mark: str | None = None
+        self.recording = False
+
+    def begin(self, episode: int, episodes: int, config: TaskConfig) -> None:
+        self.config, self.mark, self.recording = config, None, False
+        self.show(
+            episode=episode,
+            episodes=episodes,
+            elapsed=0.0,
+            frames=0,
+            dropped=0,
+            state="the arm goes to its start pose",
+        )
+
+    def show(self, **changes: Any) -> None:
+        self.status = replace(
+            self.status, disk_free=shutil.disk_usage(self.session.path).free, **changes
+        )
+        if self.marks.typing is not None:
+            self.status.state = f"typing a note (Enter keeps it): {self.marks.typing}"
+        elif self.recording:
+            self.status.state = "recording"
+        if self.on_status is not None:
+            self.on_status(self.status)
+
+    def ready(self, observation: dict[str, np.ndarray]) -> None:
+        """Show the guidance and wait for the person to start."""
+        if self.view is not None:
+            names = self.robot.names.get(STATE, [])
+            self.view.guidance(self.status.episode, self.config, names, observation)
+        waiting = "set up the cell as shown, then start (Enter)"
+        while True:
+            _check_device(self.teleop)
+            self.marks.add(list(self.teleop.step(None).events))
+            mark = self.marks.take()
+            if mark == "start":
+                break
+            if mark == "quit":
+                raise RecordingStopped("stopped by the person before the episode started")
+            self.show(state=waiting)
+            if self.view is not None:
+                self.view.live(self.robot.observe())
+            time.sleep(WAIT_PERIOD)
+        self.started = self.paced = time.monotonic()
+        self.recording = True
+        self.show()
+
+    def judge(self) -> bool:
+        self.marks.add(self.source.take_events())
+        mark = self.marks.take()
+        if mark == "quit":
+            raise RecordingStopped("stopped by the person (q)")
+        if mark in ("success", "failure", "discard"):
+            self.mark = mark
+        return mark == "success"
+
+    def until(self) -> bool:
+        _check_device(self.teleop)
+        return self.mark in ("failure", "discard")
+
+    def on_step(self, t: int, sent: Sent) -> None:
+        if self.view is not None and self.source.observation is not None:
+            self.view.step(self.source.observation, sent)
+        if self.simulated:  # a person drives at the control rate
+            self.paced += self.period
+            time.sleep(max(0.0, self.paced - time.monotonic()))
+        self.show(
+            elapsed=time.monotonic() - self.started, frames=t + 1, dropped=_dropped(self.robot)
+        )
+
+
+def _check_device(teleop: Teleop) -> None:
+    if teleop.lost is not None:
+        raise TeleopError(teleop.lost)
+
+
+def _dropped(robot: Robot) -> int:
+    counts = getattr(list(layers(robot))[-1], "sensor_counts", None)
+    if not callable(counts):
+        return 0
+    return int(sum(c.get("dropped", 0) for c in counts().values()))
+
+
+def run_recording(
+    task_name: str,
+    out: str | Path,
+    *,
+    robot: str = "plant",
+    teleop: str = "spacemouse",
+    episodes: int = 10,
+    plan: str | None = None,
+    cell: str | Path | None = None,
+    emulated: bool = False,
+    effects: str | Path | None = None,
+    view: str | None = None,
+    keys: bool = True,
+    seed: int = 0,
+    marks: tuple[str, ...] = (),
+    max_steps: int | None = None,
+    on_status: Callable[[RecordStatus], None] | None = None,
+) -> RecordReport:
+    """``twinrl record``: open the cell (``robot``: ``plant``, or ``ur`` with its ``cell``
+    file, ``emulated`` for the emulator), the session folder ``out`` (continued when it
+    exists), the terminal's keys (``keys``, when standard input is a terminal), the
+    ``teleop`` device and the live ``view`` (``spawn``, a URL, or an ``.rrd`` path), and
+    record (see :func:`record_session`). ``marks``: the scripted person's marks."""
+    from twinrl_robot.backends import open_robot, recorded_cameras
+    from twinrl_robot.cell_file import CellFile, load_cell
+    from twinrl_robot.teleop import open_teleop
+    from twinrl_sim.tasks import make_task, task_on_twin
+
+    worlds = {"plant": "plant", "ur": "real"}
+    if robot not in worlds:
+        raise RobotError(f"unknown robot '{robot}'; record on plant or ur (with its cell file)")
+    world = worlds[robot]
+    cell_file: CellFile | None = None
+    if world == "real":
+        if cell is None:
+            raise RobotError("recording on a UR arm needs its cell file (`cell`)")
+        cell_file = load_cell(cell)
+        task = make_task(task_name, task_on_twin(task_name, cell_file.twin))
+    else:
+        if cell is not None or emulated:
+            raise RobotError("a cell file describes a UR arm; record on it with robot `ur`")
+        task = make_task(task_name)
+    reset_plan = ResetPlan(task, plan, seed=seed)
+    session = Session.create(out, exist_ok=True)
+    terminal = TerminalKeys() if keys and sys.stdin.isatty() else None
+    opened: list[Any] = [terminal] if terminal is not None else []
+    try:
+        arm = open_robot(
+            world,
+            task,
+            effects=effects if world == "plant" else None,
+            seed=seed,
+            cameras=recorded_cameras(world, cell_file),
+            effort=True,
+            object_poses=world == "plant" or emulated,
+            cell=cell_file,
+            emulated=emulated,
+        )
+        opened.append(arm)
+        spec = cell_file.teleop if cell_file is not None else None
+        device = open_teleop(
+            teleop, spec, terminal=terminal, privileged=arm.privileged, seed=seed, marks=marks
+        )
+        opened.append(device)
+        live = None
+        if view is not None:
+            live = LiveView(view, task, recorded_cameras(world, cell_file))
+            opened.append(live)
+        return record_session(
+            arm,
+            task,
+            device,
+            session,
+            episodes=episodes,
+            plan=reset_plan,
+            terminal=terminal,
+            view=live,
+            on_status=on_status,
+            max_steps=max_steps,
+        )
+    finally:
+        for thing in reversed(opened):
+            thing.close()
