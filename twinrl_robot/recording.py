@@ -103,7 +103,11 @@ class Marks:
     typing: str | None = None  # the note being typed
 
     def add(self, events: list[str]) -> None:
-        self.pending += [e for e in events if e in MARK_KEYS.values()]
+        for event in events:
+            if event == "note":
+                self._start_note()
+            elif event in MARK_KEYS.values():
+                self.pending.append(event)
 
     def poll(self) -> None:
         while self.keys is not None:
@@ -114,7 +118,12 @@ class Marks:
             if self.typing is not None:
                 self._type(key)
             elif key in MARK_KEYS:
-                self.pending.append(MARK_KEYS[key])
+                self.add([MARK_KEYS[key]])
+
+    def _start_note(self) -> None:
+        self.typing = ""
+        if self.terminal is not None:
+            self.terminal.typing = True
 
     def _type(self, key: str) -> None:
         assert self.typing is not None
@@ -125,6 +134,8 @@ class Marks:
             self.typing = self.typing[:-1]
         elif key == "esc":
             self.typing = None
+        elif key == "space":
+            self.typing += " "
         elif len(key) == 1:
             self.typing += key
         else:
@@ -135,15 +146,7 @@ class Marks:
     def take(self) -> str | None:
         """The next mark (a note is handled here and not returned)."""
         self.poll()
-        while self.pending:
-            mark = self.pending.pop(0)
-            if mark == "note":
-                self.typing = ""
-                if self.terminal is not None:
-                    self.terminal.typing = True
-                continue
-            return mark
-        return None
+        return self.pending.pop(0) if self.pending else None
 
 
 def record_session(

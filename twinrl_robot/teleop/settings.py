@@ -101,7 +101,9 @@ DEFAULT_MAPS: dict[str, DeviceMap] = {
         },
     ),
     # Keys in the terminal (see teleop.terminal): motion keys give full deflection.
-    "keyboard": DeviceMap(deadband=0.0, translation=0.01, rotation=0.05),
+    "keyboard": DeviceMap(
+        deadband=0.0, translation=0.01, rotation=0.05, buttons={"gripper": "space", "takeover": "t"}
+    ),
     # The scripted person (plant and emulator): its device reports the expert's motion.
     "scripted": DeviceMap(
         deadband=0.0, translation=0.05, rotation=0.5, buttons={e: e for e in EVENTS}
