@@ -171,7 +171,6 @@ def record_session(
     recovered = tuple(str(p) for p in repair_session(session.path).recovered)
     session.refresh()
     first = len(session.entries)
-    plan.skip(first)
     take = _EpisodeTaker(robot, task, teleop, terminal, view, on_status, session)
     recorder = Recorder(session)
     kept: list[RecordedEpisode] = []

@@ -32,6 +32,7 @@ class ResetPlan:
         self.task, self.description = task, plan or "ID"
         self._rng = np.random.default_rng(seed)
         self._listed: list[PlannedReset] = []
+        self._drawn: list[PlannedReset] = []
         self._region: str | None = None
         if plan is None or plan in REGION_NAMES:
             self._region = plan or "ID"
@@ -44,17 +45,14 @@ class ResetPlan:
             )
 
     def reset(self, index: int) -> PlannedReset:
-        """The ``index``-th episode's start (a region's samples are drawn in order)."""
+        """The ``index``-th episode's start: the same for the same index (an episode
+        recorded again), a region's samples drawn in order, seeded."""
         if self._listed:
             return self._listed[index % len(self._listed)]
-        config = self.task.sample_config(self._rng, self._region)
-        return PlannedReset(config, self._region)
-
-    def skip(self, count: int) -> None:
-        """Advance past ``count`` episodes already recorded (a session continued)."""
-        if not self._listed:
-            for _ in range(count):
-                self.task.sample_config(self._rng, self._region)
+        while len(self._drawn) <= index:
+            config = self.task.sample_config(self._rng, self._region)
+            self._drawn.append(PlannedReset(config, self._region))
+        return self._drawn[index]
 
 
 def _read_list(path: Path, task: Task) -> list[PlannedReset]:
