@@ -364,7 +364,7 @@ def run_recording(
         task = make_task(task_name, task_on_twin(task_name, cell_file.twin))
     else:
         if cell is not None or emulated:
-            raise RobotError("a cell file describes a UR arm; record on it with robot `ur`")
+            raise RobotError("a cell file describes a UR arm; record on it with `robot` ur")
         task = make_task(task_name)
     reset_plan = ResetPlan(task, plan, seed=seed)
     session = Session.create(out, exist_ok=True)

@@ -47,7 +47,7 @@ def open_teleop(
         if terminal is None:
             raise TeleopError(
                 "the keyboard device reads the terminal's keys; run in a terminal, or choose "
-                "another --teleop"
+                "another `teleop`"
             )
         device = Keyboard(terminal)
     elif name == "scripted":

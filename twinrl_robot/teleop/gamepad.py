@@ -52,7 +52,7 @@ class EvdevSource:
         except OSError as err:
             raise TeleopError(
                 f"cannot open the gamepad at {path} ({err.strerror or err}); add your user to "
-                "the `input` group or choose another --teleop"
+                "the input group or choose another `teleop`"
             ) from None
         self.name = self._device.name
 
@@ -182,5 +182,5 @@ def open_gamepad(path: str | None = None) -> Gamepad:
             return Gamepad(EvdevSource(candidate))
     raise TeleopError(
         "no gamepad found among /dev/input/event* (none plugged in, or your user cannot read "
-        "them: add it to the `input` group); plug one in or choose another --teleop"
+        "them: add it to the input group); plug one in or choose another `teleop`"
     )

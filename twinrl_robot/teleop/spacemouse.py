@@ -189,5 +189,5 @@ def open_spacemouse() -> SpaceMouse:
             return SpaceMouse(HidPort(device["path"]), model)
     raise TeleopError(
         "no SpaceMouse is plugged in (no HID device with a 3Dconnexion model's ids); plug it "
-        "in, or choose another --teleop (gamepad, keyboard)"
+        "in, or choose another `teleop` (gamepad, keyboard)"
     )

@@ -93,7 +93,7 @@ class TerminalKeys:
         if not os.isatty(self.fd):
             raise TeleopError(
                 "the keyboard is read from a terminal, and standard input is not one; run the "
-                "recording in a terminal (not piped), or choose another --teleop"
+                "recording in a terminal (not piped), or choose another `teleop`"
             )
         self._saved = termios.tcgetattr(self.fd)
         tty.setcbreak(self.fd)
