@@ -9,6 +9,7 @@ import typer
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
 from twinrl_robot.cli import CellOption, EmulatedOption, PlantEffects
 from twinrl_sim.tasks import TASKS
@@ -101,7 +102,9 @@ def record(
             keys=keys,
             seed=seed,
             max_steps=max_steps,
-            on_status=lambda status: live.update(_status_line(status), refresh=True),
+            on_status=lambda status: live.update(
+                Text.from_markup(_status_line(status)), refresh=True
+            ),
         )
     table = Table("episode", "outcome", "steps", "note", title=f"recorded into {out}")
     for episode in report.episodes:

@@ -5,6 +5,8 @@ most a second and its session continues; bad input is one line and loses nothing
 from __future__ import annotations
 
 import json
+import os
+import re
 import signal
 import subprocess
 import sys
@@ -197,3 +199,43 @@ def test_a_full_disk_refuses_the_episode_before_it_starts(tmp_path: Path) -> Non
     finally:
         robot.close()
     assert not list((session.path / "episodes").iterdir())
+
+
+def _read_until(fd: int, text: str, seen: bytearray, timeout: float = 120.0) -> None:
+    """Read the pseudo-terminal until ``text`` has been printed."""
+    import select
+
+    deadline = time.monotonic() + timeout
+    while text not in re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", seen.decode(errors="replace")):
+        assert time.monotonic() < deadline, f"{text!r} never showed: {seen[-400:]!r}"
+        ready, _, _ = select.select([fd], [], [], 0.1)
+        if ready:
+            seen += os.read(fd, 4096)
+
+
+def test_the_terminal_keys_mark_and_annotate_episodes(tmp_path: Path) -> None:
+    import pty
+
+    out = tmp_path / "keys"
+    leader, follower = pty.openpty()
+    recorder = subprocess.Popen(
+        [*TWINRL, "record", "--out", str(out), "--teleop", "scripted", "--episodes", "2"],
+        stdin=follower,
+        stdout=follower,
+        stderr=follower,
+        close_fds=True,
+    )
+    os.close(follower)
+    seen = bytearray()
+    try:
+        _read_until(leader, "episode 1/2 | recording", seen)
+        os.write(leader, b"nfirst try\r")  # a note, typed while the arm moves
+        _read_until(leader, "episode 2/2 | recording", seen)
+        os.write(leader, b"f")  # failure, before the person's success
+        assert recorder.wait(timeout=120) == 0, seen[-2000:]
+    finally:
+        recorder.kill()
+        os.close(leader)
+    first, second = (read_summary(p).meta for p in Session(out).episode_paths())
+    assert first.note == "first try" and first.success
+    assert second.note is None and second.success is False
