@@ -110,3 +110,32 @@ class LatestState:
             buttons = frozenset(self._buttons | self._pressed)
             self._pressed = set()
             return DeviceState(dict(self._axes), buttons, self._stamp)
+
+
+class ThreadedDevice:
+    """A device whose reader thread polls it into a :class:`LatestState`: subclasses set
+    ``kind`` and ``continuous``, call :meth:`_start`, and give ``_poll`` and ``_release``."""
+
+    kind: str
+    continuous: bool
+
+    def _start(self, name: str, gone: str) -> None:
+        self._state = LatestState()
+        self._reader = ReaderThread(name, self._poll, lambda err: gone)
+
+    def _poll(self) -> None:
+        raise NotImplementedError
+
+    def _release(self) -> None:
+        raise NotImplementedError
+
+    def read(self, observation: Mapping[str, np.ndarray] | None = None) -> DeviceState:
+        self._reader.check()
+        return self._state.snapshot()
+
+    def episode(self, task: Task, config: TaskConfig) -> None:
+        """A device plans nothing."""
+
+    def close(self) -> None:
+        self._reader.stop()
+        self._release()

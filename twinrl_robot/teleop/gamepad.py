@@ -15,10 +15,7 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
-import numpy as np
-
-from twinrl_robot.teleop.device import DeviceState, LatestState, ReaderThread, TeleopError
-from twinrl_sim.tasks import Task, TaskConfig
+from twinrl_robot.teleop.device import TeleopError, ThreadedDevice
 
 READ_TIMEOUT = 0.05  # s, one wait for events
 TRIGGERS = ("ABS_Z", "ABS_RZ", "ABS_GAS", "ABS_BRAKE")
@@ -111,7 +108,7 @@ class RecordedEvents:
         self._next = len(self.events)
 
 
-class Gamepad:
+class Gamepad(ThreadedDevice):
     """A gamepad as an :class:`~twinrl_robot.teleop.device.InputDevice`."""
 
     kind = "gamepad"
@@ -122,8 +119,7 @@ class Gamepad:
 
         self.source, self._ecodes = source, ecodes
         self._ranges: dict[int, tuple[int, int]] = {}
-        self._state = LatestState()
-        self._reader = ReaderThread("gamepad", self._poll, lambda err: UNPLUGGED)
+        self._start("gamepad", UNPLUGGED)
 
     def _poll(self) -> None:
         ecodes = self._ecodes
@@ -150,15 +146,7 @@ class Gamepad:
             return (value - low) / (high - low)
         return 2.0 * (value - low) / (high - low) - 1.0
 
-    def read(self, observation: Mapping[str, np.ndarray] | None = None) -> DeviceState:
-        self._reader.check()
-        return self._state.snapshot()
-
-    def episode(self, task: Task, config: TaskConfig) -> None:
-        """A device plans nothing."""
-
-    def close(self) -> None:
-        self._reader.stop()
+    def _release(self) -> None:
         self.source.close()
 
 

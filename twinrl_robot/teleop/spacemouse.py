@@ -14,14 +14,11 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from twinrl_robot.teleop.device import DeviceState, LatestState, ReaderThread, TeleopError
-from twinrl_sim.tasks import Task, TaskConfig
+from twinrl_robot.teleop.device import TeleopError, ThreadedDevice
 
 READ_TIMEOUT_MS = 50  # one blocking read; the reader thread checks for close between reads
 UNPLUGGED = (
@@ -121,7 +118,7 @@ class RecordedReports:
         self._next = len(self.reports)
 
 
-class SpaceMouse:
+class SpaceMouse(ThreadedDevice):
     """A SpaceMouse as an :class:`~twinrl_robot.teleop.device.InputDevice`: axes ``x y z
     roll pitch yaw`` (pyspacemouse's Z-up frame), buttons by pyspacemouse's names
     (``LEFT``, ``RIGHT``, ``BTN_1`` ...)."""
@@ -148,10 +145,9 @@ class SpaceMouse:
                 f"cannot open the {model} ({err}); on Linux give your user read access to "
                 "its /dev/hidraw* node (a udev rule, see the recording guide)"
             ) from None
-        self._state = LatestState()
         self._held: frozenset[str] = frozenset()
         self._last_report = -1.0
-        self._reader = ReaderThread("spacemouse", self._poll, lambda err: UNPLUGGED)
+        self._start("spacemouse", UNPLUGGED)
 
     def _poll(self) -> None:
         state = self._mouse.read()
@@ -165,15 +161,7 @@ class SpaceMouse:
         self._state.update(axes, pressed=buttons - self._held, released=self._held - buttons)
         self._held = buttons
 
-    def read(self, observation: Mapping[str, np.ndarray] | None = None) -> DeviceState:
-        self._reader.check()
-        return self._state.snapshot()
-
-    def episode(self, task: Task, config: TaskConfig) -> None:
-        """A device plans nothing."""
-
-    def close(self) -> None:
-        self._reader.stop()
+    def _release(self) -> None:
         self._mouse.close()
 
 
