@@ -74,10 +74,14 @@ class LiveView:
     running one), or a ``.rrd`` path (save, to open later).
     """
 
-    def __init__(self, target: str, task: Task, cameras: tuple[str, ...]) -> None:
+    def __init__(
+        self, target: str, task: Task, cameras: tuple[str, ...], state_names: list[str]
+    ) -> None:
         self.stream = rr.RecordingStream("twinrl record")
         self.guide = TwinGuide(task)
         self.cameras = cameras
+        self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]
+        self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
         blueprint = self._blueprint()
         if target == "spawn":
             self.stream.spawn(default_blueprint=blueprint)
@@ -87,7 +91,6 @@ class LiveView:
             self.stream.connect_grpc(target, default_blueprint=blueprint)
         self._path: list[list[float]] = []
         self._step = 0
-        self._names: list[str] = []
 
     def _blueprint(self) -> rrb.Blueprint:
         views = [rrb.Spatial2DView(origin=f"cameras/{c}", name=f"{c} (live)") for c in self.cameras]
@@ -110,13 +113,12 @@ class LiveView:
         self,
         episode: int,
         config: TaskConfig,
-        names: list[str],
         observation: Mapping[str, np.ndarray],
     ) -> None:
         """Show where the next episode starts: the twin's renders, the outlines over the
         live cameras the twin also has (``observation``: the cell at its start pose)."""
         self.stream.set_time("step", sequence=self._step)
-        self._path, self._names = [], names
+        self._path = []
         self.note(f"episode {episode}: set up {config.to_dict()}")
         for camera in self.guide.cameras:
             if self.cameras and camera not in self.cameras:
@@ -151,20 +153,15 @@ class LiveView:
         self.live(observation)
         log = self.stream.log
         state = observation[STATE]
-        joints = [i for i, n in enumerate(self._names) if n.startswith("q.")]
-        for j, i in enumerate(joints):
-            log(f"signals/joints/{self._names[i]}", rr.Scalars(float(state[i])))
+        for j, (i, name) in enumerate(self._joints):
+            log(f"signals/joints/{name}", rr.Scalars(float(state[i])))
             if j < len(sent.joint_target):
-                log(
-                    f"signals/joints/{self._names[i]}_target",
-                    rr.Scalars(float(sent.joint_target[j])),
-                )
+                log(f"signals/joints/{name}_target", rr.Scalars(float(sent.joint_target[j])))
         for j, value in enumerate(sent.action):
             log(f"signals/actions/{j}", rr.Scalars(float(value)))
         log("signals/intervention", rr.Scalars(float(sent.intervention)))
-        tcp = [i for i, n in enumerate(self._names) if n.startswith("tcp.")][:3]
-        if len(tcp) == 3:
-            self._path.append([float(state[i]) for i in tcp])
+        if len(self._tcp) == 3:
+            self._path.append([float(state[i]) for i in self._tcp])
             log("world/tcp_path", rr.LineStrips3D([self._path]))
 
     def note(self, text: str) -> None:

@@ -64,7 +64,7 @@ class EpisodeResult:
     periods: tuple[float, ...] = ()  # s between consecutive control steps (wall clock)
 
 
-def _sensors(robot: Robot) -> dict:
+def sensor_counts(robot: Robot) -> dict:
     """What the backend's sensors delivered this episode (a real cell's cameras), if it says."""
     backend = list(layers(robot))[-1]
     counts = getattr(backend, "sensor_counts", None)
@@ -154,12 +154,14 @@ def run_episode(
         if recorder is not None and recorder.recording:  # keep what was recorded, and why
             reason = str(err) or type(err).__name__
             recorder.save_episode(
-                success=False, aborted=reason, sensors=_sensors(robot), note=note and note()
+                success=False, aborted=reason, sensors=sensor_counts(robot), note=note and note()
             )
         raise
     path = None
     if recorder is not None:
-        path = recorder.save_episode(success=success, sensors=_sensors(robot), note=note and note())
+        path = recorder.save_episode(
+            success=success, sensors=sensor_counts(robot), note=note and note()
+        )
     return EpisodeResult(
         success=success,
         steps=steps,

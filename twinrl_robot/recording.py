@@ -34,13 +34,12 @@ from twinrl_data.schema import STATE
 from twinrl_data.session import Session
 from twinrl_robot.errors import RobotError
 from twinrl_robot.live_view import LiveView
-from twinrl_robot.loop import run_episode
+from twinrl_robot.loop import run_episode, sensor_counts
 from twinrl_robot.reset_plan import ResetPlan
 from twinrl_robot.robot import Robot, Sent
 from twinrl_robot.teleop.device import TeleopError
 from twinrl_robot.teleop.teleop import Teleop, TeleopSource
 from twinrl_robot.teleop.terminal import TerminalKeys
-from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import Task, TaskConfig
 
 MARK_KEYS = {
@@ -53,6 +52,7 @@ MARK_KEYS = {
 }
 """The terminal's keys for the recording's marks, whatever the device."""
 WAIT_PERIOD = 0.1  # s between looks at the device and the cameras while the cell is set up
+DISK_PERIOD = 1.0  # s between looks at the free disk space for the status line
 
 
 class RecordingStopped(RobotError):
@@ -88,7 +88,6 @@ class RecordReport:
     episodes: tuple[RecordedEpisode, ...]
     discarded: tuple[str, ...]
     recovered: tuple[str, ...]  # episodes a crash had left open, recovered first
-    first_number: int  # episodes the session held before this run
 
 
 @dataclass
@@ -96,11 +95,13 @@ class Marks:
     """The person's marks from the device's buttons and the terminal's keys; ``n``
     starts a note, typed until Enter."""
 
-    keys: queue.SimpleQueue[tuple[str, float]] | None
     terminal: TerminalKeys | None
     pending: list[str] = field(default_factory=list)
     note: str | None = None
     typing: str | None = None  # the note being typed
+
+    def __post_init__(self) -> None:
+        self.keys = self.terminal.subscribe() if self.terminal is not None else None
 
     def add(self, events: list[str]) -> None:
         for event in events:
@@ -170,12 +171,11 @@ def record_session(
         raise RobotError(f"episodes must be at least 1, got {episodes}")
     recovered = tuple(str(p) for p in repair_session(session.path).recovered)
     session.refresh()
-    first = len(session.entries)
     take = _EpisodeTaker(robot, task, teleop, terminal, view, on_status, session)
     recorder = Recorder(session)
     kept: list[RecordedEpisode] = []
     discarded: list[str] = []
-    index = first
+    index = len(session.entries)  # a continued session's plan goes on after its episodes
     while len(kept) < episodes:
         planned = plan.reset(index)
         take.begin(len(kept) + 1, episodes, planned.config)
@@ -217,7 +217,7 @@ def record_session(
         kept.append(RecordedEpisode(str(result.path), label, result.steps, note))
         index += 1
         take.show(saved=len(kept), last=f"episode {len(kept)}: {label}, {result.steps} steps")
-    return RecordReport(tuple(kept), tuple(discarded), recovered, first)
+    return RecordReport(tuple(kept), tuple(discarded), recovered)
 
 
 class _EpisodeTaker:
@@ -237,12 +237,13 @@ class _EpisodeTaker:
         self.robot, self.task, self.teleop, self.view = robot, task, teleop, view
         self.on_status, self.session = on_status, session
         self.source = TeleopSource(teleop)
-        self.marks = Marks(terminal.subscribe() if terminal is not None else None, terminal)
+        self.marks = Marks(terminal)
         self.simulated = robot.world in ("plant", "twin")
         self.period = 1.0 / robot.control_hz
         self.status = RecordStatus(0, 0, "")
         self.mark: str | None = None
         self.recording = False
+        self._disk_checked = -np.inf
 
     def begin(self, episode: int, episodes: int, config: TaskConfig) -> None:
         self.config, self.mark, self.recording = config, None, False
@@ -256,9 +257,11 @@ class _EpisodeTaker:
         )
 
     def show(self, **changes: Any) -> None:
-        self.status = replace(
-            self.status, disk_free=shutil.disk_usage(self.session.path).free, **changes
-        )
+        now = time.monotonic()
+        if now - self._disk_checked >= DISK_PERIOD:
+            changes["disk_free"] = shutil.disk_usage(self.session.path).free
+            self._disk_checked = now
+        self.status = replace(self.status, **changes)
         if self.marks.typing is not None:
             self.status.state = f"typing a note (Enter keeps it): {self.marks.typing}"
         elif self.recording:
@@ -269,8 +272,7 @@ class _EpisodeTaker:
     def ready(self, observation: dict[str, np.ndarray]) -> None:
         """Show the guidance and wait for the person to start."""
         if self.view is not None:
-            names = self.robot.names.get(STATE, [])
-            self.view.guidance(self.status.episode, self.config, names, observation)
+            self.view.guidance(self.status.episode, self.config, observation)
         waiting = "set up the cell as shown, then start (Enter)"
         while True:
             _check_device(self.teleop)
@@ -318,10 +320,7 @@ def _check_device(teleop: Teleop) -> None:
 
 
 def _dropped(robot: Robot) -> int:
-    counts = getattr(list(layers(robot))[-1], "sensor_counts", None)
-    if not callable(counts):
-        return 0
-    return int(sum(c.get("dropped", 0) for c in counts().values()))
+    return int(sum(c.get("dropped", 0) for c in sensor_counts(robot).values()))
 
 
 def run_recording(
@@ -367,6 +366,7 @@ def run_recording(
             raise RobotError("a cell file describes a UR arm; record on it with `robot` ur")
         task = make_task(task_name)
     reset_plan = ResetPlan(task, plan, seed=seed)
+    cameras = recorded_cameras(world, cell_file)
     session = Session.create(out, exist_ok=True)
     terminal = TerminalKeys() if keys and sys.stdin.isatty() else None
     opened: list[Any] = [terminal] if terminal is not None else []
@@ -376,7 +376,7 @@ def run_recording(
             task,
             effects=effects if world == "plant" else None,
             seed=seed,
-            cameras=recorded_cameras(world, cell_file),
+            cameras=cameras,
             effort=True,
             object_poses=world == "plant" or emulated,
             cell=cell_file,
@@ -390,7 +390,7 @@ def run_recording(
         opened.append(device)
         live = None
         if view is not None:
-            live = LiveView(view, task, recorded_cameras(world, cell_file))
+            live = LiveView(view, task, cameras, arm.names.get(STATE, []))
             opened.append(live)
         return record_session(
             arm,

@@ -204,7 +204,7 @@ def test_keyboard_keys_hold_while_repeating_and_stop_when_released(terminal) -> 
 
 def test_marks_and_a_typed_note_come_from_the_terminal(terminal) -> None:
     leader, keys = terminal
-    marks = Marks(keys.subscribe(), keys)
+    marks = Marks(keys)
     os.write(leader, b"nslow grip\x7f\x7fip\rs")
     time.sleep(0.2)
     assert marks.take() == "success"

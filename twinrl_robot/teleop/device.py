@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -112,9 +113,10 @@ class LatestState:
             return DeviceState(dict(self._axes), buttons, self._stamp)
 
 
-class ThreadedDevice:
+class ThreadedDevice(ABC):
     """A device whose reader thread polls it into a :class:`LatestState`: subclasses set
-    ``kind`` and ``continuous``, call :meth:`_start`, and give ``_poll`` and ``_release``."""
+    ``kind`` and ``continuous``, call :meth:`_start`, and give ``_poll`` (one read of the
+    device) and ``_release`` (close it)."""
 
     kind: str
     continuous: bool
@@ -123,17 +125,17 @@ class ThreadedDevice:
         self._state = LatestState()
         self._reader = ReaderThread(name, self._poll, lambda err: gone)
 
-    def _poll(self) -> None:
-        raise NotImplementedError
+    @abstractmethod
+    def _poll(self) -> None: ...
 
-    def _release(self) -> None:
-        raise NotImplementedError
+    @abstractmethod
+    def _release(self) -> None: ...
 
     def read(self, observation: Mapping[str, np.ndarray] | None = None) -> DeviceState:
         self._reader.check()
         return self._state.snapshot()
 
-    def episode(self, task: Task, config: TaskConfig) -> None:
+    def episode(self, task: Task, config: TaskConfig) -> None:  # noqa: B027 (a real no-op)
         """A device plans nothing."""
 
     def close(self) -> None:
