@@ -3,7 +3,9 @@
 tag36h11 tags printed alike, 12.7 cm; the camera's intrinsics in the set's
 ``calibration/calib.txt``). With one tag's size given (the tag seen most), every other
 tag's edges must come out at 12.7 cm: median error <= 1 %, worst <= 3 %. The photos
-were taken around the room and back, so they are matched exhaustively.
+were taken around the room and back, so they are matched exhaustively. The calibration
+gives no lens distortion, which an iPhone has: it is refined while mapping
+(``refine_distortion``, as ``twin build --refine-distortion`` does).
 
 The photos are not in this repository. Get them with::
 
@@ -16,19 +18,12 @@ before it starts.
 
 from __future__ import annotations
 
-import hashlib
-import shutil
-import sys
-import tempfile
-import time
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import typer
-
-from twinrl_sim.reconstruct.align import locate_tags
-from twinrl_sim.reconstruct.sfm import run_sfm
+from published_set import checked_files, map_and_locate
 
 MANIFEST = Path(__file__).parent / "data" / "apriltag_mapping_feb_2014.sha256"
 INTRINSICS = (765.00, 764.18, 393.72, 304.66)  # calibration/calib.txt of the set
@@ -36,40 +31,27 @@ TAG_EDGE = 0.127  # m, every tag of the set
 TARGET_MEDIAN, TARGET_WORST = 0.01, 0.03
 
 
-def _checked_photos(folder: Path) -> list[Path]:
-    """The set's photos in ``folder``, each matching the manifest; exits with one line
-    naming what is missing or different."""
-    expected = dict(line.split()[::-1] for line in MANIFEST.read_text().splitlines())
-    missing = [name for name in expected if not (folder / name).is_file()]
-    if missing:
-        sys.exit(
-            f"{folder}: {len(missing)} of the set's {len(expected)} photos are missing "
-            f"(e.g. {missing[0]}); give the images/mapping_feb_2014 folder of a clone of "
-            "https://github.com/swatbotics/apriltag"
-        )
-    for name, digest in expected.items():
-        if hashlib.sha256((folder / name).read_bytes()).hexdigest() != digest:
-            sys.exit(f"{folder / name} differs from the published photo (SHA-256); re-clone")
-    return [folder / name for name in sorted(expected)]
-
-
 def main(
     folder: Annotated[Path, typer.Argument(help="The set's folder, images/mapping_feb_2014.")],
     seed: Annotated[int, typer.Option(help="Seeds structure from motion.")] = 0,
+    refine_distortion: Annotated[
+        bool,
+        typer.Option(
+            help="Estimate the iPhone's lens distortion, which the set's calibration leaves "
+            "out (the focal length and principal point held)."
+        ),
+    ] = True,
 ) -> None:
-    photos = _checked_photos(folder)
-    with tempfile.TemporaryDirectory() as tmp:
-        frames = Path(tmp) / "frames"
-        frames.mkdir()
-        for photo in photos:
-            shutil.copy(photo, frames / photo.name)
-        start = time.perf_counter()
-        model = run_sfm(
-            frames, Path(tmp) / "sfm", seed=seed, intrinsics=INTRINSICS, matching="exhaustive"
+    photos = sorted(
+        checked_files(
+            folder,
+            MANIFEST,
+            "the images/mapping_feb_2014 folder of a clone of https://github.com/swatbotics/apriltag",
         )
-        mapped = time.perf_counter() - start
-        tags = locate_tags(model, frames, "tag36h11")
-        seconds = time.perf_counter() - start
+    )
+    model, tags, mapped, seconds = map_and_locate(
+        photos, "tag36h11", INTRINSICS, seed=seed, refine_distortion=refine_distortion
+    )
     edges = {
         tag_id: float(
             np.mean(np.linalg.norm(np.roll(s.corners_sfm, -1, 0) - s.corners_sfm, axis=1))

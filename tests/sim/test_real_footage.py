@@ -182,3 +182,23 @@ def test_evidence_weighs_views_arc_and_points():
     assert clear.confidence == "high"
     assert ObjectEvidence(90, 50.0, 400, True, ("one side",)).confidence == "medium"
     assert ObjectEvidence(5, 300.0, 400, True, ("seen in only 5 frames",)).confidence == "low"
+
+
+def test_a_calibration_without_the_lens_has_its_distortion_refined(footage, tmp_path):
+    """Intrinsics given as fx fy cx cy of a distorting lens: held, the lens taken as
+    none; with ``refine_distortion`` mapping estimates it, focal length held."""
+    subset = tmp_path / "frames"
+    subset.mkdir()
+    for frame in sorted(footage.video.glob("*.jpg"))[::2]:
+        shutil.copy(frame, subset / frame.name)
+    pinhole = tuple(footage.intrinsics[:4])
+    model = run_sfm(subset, tmp_path / "sfm", seed=0, intrinsics=pinhole, refine_distortion=True)
+    camera = model.walk_camera()
+    assert camera.model.name == "OPENCV"
+    np.testing.assert_allclose(camera.params[:4], pinhole)  # held as given
+    # The lens's radial terms come back (0.132 and -0.272 for 0.12 and -0.25 here).
+    k1, k2 = footage.intrinsics[4:6]
+    assert abs(camera.params[4] - k1) < 0.2 * abs(k1)
+    assert abs(camera.params[5] - k2) < 0.3 * abs(k2)
+    held = run_sfm(subset, tmp_path / "held", seed=0, intrinsics=pinhole)
+    assert held.walk_camera().model.name == "PINHOLE"  # without it, nothing is refined

@@ -319,6 +319,7 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
         ([*TAG, "--tag-family", "qr"], "--tag-family 'qr' is not one of tag36h11, tag36h10"),
         ([*TAG, "--intrinsics", "600 600 320"], "--intrinsics needs 4 numbers 'fx fy cx cy'"),
         ([*TAG, "--intrinsics", "600 -600 320 240"], "--intrinsics fx fy cx cy must be positive"),
+        ([*TAG, "--refine-distortion"], "--refine-distortion refines the lens of known"),
         ([*TAG, "--workspace", "0 -1 -0.1 1 1"], "--workspace needs 6 numbers"),
         ([*TAG, "--matching", "vocab"], "--matching 'vocab' is not one of sequential"),
         ([*TAG, "--workspace", "1 -1 -0.1 0 1 0.5"], "each minimum must be below its maximum"),

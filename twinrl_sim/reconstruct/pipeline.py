@@ -110,6 +110,12 @@ def check_settings(settings: BuildSettings, out: Path) -> None:
             )
     if settings.intrinsics is not None and settings.calibration is not None:
         raise TwinError("give the camera's `intrinsics` or its `calibration` file, not both")
+    if settings.refine_distortion and settings.intrinsics is None and settings.calibration is None:
+        raise SettingError(
+            "refine_distortion",
+            "refines the lens of known intrinsics; give `intrinsics` or a `calibration` "
+            "(without them the whole lens is estimated anyway)",
+        )
     if settings.calibration is not None and not Path(settings.calibration).is_file():
         raise SettingError("calibration", f"{settings.calibration} is not a file")
     if settings.workspace is not None:
@@ -203,6 +209,7 @@ def build_twin(
             fixed_cameras=settings.camera_images,
             seed=settings.seed,
             intrinsics=camera.intrinsics,
+            refine_distortion=settings.refine_distortion,
             focal_prior=camera.focal_prior,
             matching=settings.matching,
         )
@@ -522,6 +529,11 @@ def _scene_spec(
             "frames_registered": f"{model.registered}/{model.frames}",
             "tag_family": settings.tag_family,
             "intrinsics": camera.describe(),
+            **(
+                {"lens_refined": [float(v) for v in model.walk_camera().params]}
+                if settings.refine_distortion
+                else {}
+            ),
             **(
                 {"tag_points": {i: [float(v) for v in p] for i, p in settings.tag_points.items()}}
                 if settings.tag_points

@@ -63,6 +63,10 @@ class BuildSettings:
     """The filming camera's intrinsics, when known: 'fx fy cx cy' in pixels of the clip's
     frames, optionally followed by OpenCV's distortion 'k1 k2 p1 p2'; held fixed while
     the walk is mapped (default: estimated from the frames)."""
+    refine_distortion: bool = False
+    """With known `intrinsics` or a `calibration`: estimate the lens distortion (k1 k2 p1
+    p2) while mapping, the focal length and principal point held; for a calibration
+    that gives no distortion, though the lens has some (a phone's often does)."""
     calibration: Path | None = None
     """The filming camera's calibration file instead of `intrinsics`: OpenCV's YAML, XML
     or JSON (as `twinrl twin calibrate` writes) or a COLMAP cameras.txt; scaled to the

@@ -59,6 +59,10 @@ class SparseModel:
         walk = [i for i in registered if i.has_pose and i.name not in photos]
         return sorted(walk, key=lambda image: image.name)
 
+    def walk_camera(self) -> pycolmap.Camera:
+        """The camera the walk's frames share, as mapping left it."""
+        return self.reconstruction.cameras[self.walk_images()[0].camera_id]
+
 
 def run_sfm(
     image_dir: Path,
@@ -68,6 +72,7 @@ def run_sfm(
     seed: int = 0,
     overlap: int = 10,
     intrinsics: tuple[float, ...] | None = None,
+    refine_distortion: bool = False,
     focal_prior: float | None = None,
     matching: str = "sequential",
 ) -> SparseModel:
@@ -76,7 +81,9 @@ def run_sfm(
 
     ``intrinsics`` (fx, fy, cx, cy in pixels, then optionally OpenCV's k1, k2, p1, p2)
     are the filming camera's, when known: the walk is mapped with them held fixed
-    instead of estimating its focal length and principal point. Without them,
+    instead of estimating its focal length and principal point; ``refine_distortion``
+    estimates the lens distortion with them (starting from none where only fx, fy, cx,
+    cy are given: a calibration that left the lens out). Without them,
     ``focal_prior`` (px, e.g. from EXIF) is the focal length the mapper starts from.
     ``matching``: "sequential" pairs each frame with the next ``overlap`` (a walk),
     "exhaustive" every pair (photos in no order, or a walk that closes its loop)."""
@@ -106,6 +113,8 @@ def run_sfm(
         )
 
     if intrinsics is not None:
+        if refine_distortion and len(intrinsics) == 4:
+            intrinsics = (*intrinsics, 0.0, 0.0, 0.0, 0.0)  # OpenCV's lens, from none
         extract(frame_names, _known_camera(intrinsics))
     elif focal_prior is not None:
         extract(frame_names, _focal_prior(focal_prior, image_dir / frame_names[0]))
@@ -154,7 +163,8 @@ def run_sfm(
     options.image_names = frame_names
     estimated = (options.ba_refine_focal_length, options.ba_refine_extra_params)
     if intrinsics is not None:  # held as given (the principal point never is refined)
-        options.ba_refine_focal_length = options.ba_refine_extra_params = False
+        options.ba_refine_focal_length = False
+        options.ba_refine_extra_params = refine_distortion
     needed = max(MIN_REGISTERED, math.ceil(MIN_REGISTERED_FRACTION * frames))
     models, attempts = _map_walk(database, image_dir, work_dir, options, needed)
     walk_models = len(models)
