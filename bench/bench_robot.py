@@ -7,11 +7,12 @@ rate, measured side by side in one run:
   until the measured joints have moved 1 mrad toward it (the arm's response as well);
 - **servo period**: the interval between consecutive servoJ targets while a 10 Hz episode
   of small random actions runs (p50 / p99 / max; the ideal is 1/servo rate);
-- **CPU share**: CPU seconds per wall second of the driver's process during that episode
-  (its servo thread and the receive interface's), and of the emulator's.
+- **CPU share**: CPU seconds per wall second of the driver during that episode (the
+  host's process, and the child that holds ur_rtde and the servo thread), and of the
+  emulator's.
 
 The emulator runs in its own process, as it must (ur_rtde holds the interpreter while it
-waits); on this 2-core machine both share the cores. Usage::
+waits); on this 2-core machine all three share the cores. Usage::
 
     python bench/bench_robot.py --seconds 5 --out bench/results/robot.json
 """
@@ -84,8 +85,10 @@ def measure(servo_hz: float, seconds: float, trials: int, folder: Path) -> dict:
             arm.reset(task.sample_config(np.random.default_rng(0)))
             echoes, responses = latency(arm, trials)
             rng = np.random.default_rng(0)
-            arm.stream.periods.clear()
-            driver_cpu, emulator_cpu = cpu_seconds(), cpu_seconds(emulator.process.pid)
+            link = arm._link.pid
+            sent_before = len(arm.stream.periods)
+            driver_cpu = cpu_seconds() + cpu_seconds(link)
+            emulator_cpu = cpu_seconds(emulator.process.pid)
             began = time.perf_counter()
             while time.perf_counter() - began < seconds:
                 action = np.zeros(7, np.float32)
@@ -93,9 +96,9 @@ def measure(servo_hz: float, seconds: float, trials: int, folder: Path) -> dict:
                 arm.act(action)
                 arm.observe()
             wall = time.perf_counter() - began
-            driver_share = (cpu_seconds() - driver_cpu) / wall
+            driver_share = (cpu_seconds() + cpu_seconds(link) - driver_cpu) / wall
             emulator_share = (cpu_seconds(emulator.process.pid) - emulator_cpu) / wall
-            periods = np.array(arm.stream.periods[1:]) * 1000.0
+            periods = np.array(arm.stream.periods[sent_before + 1 :]) * 1000.0
         finally:
             arm.close()
     echo_ms, response_ms = np.array(echoes) * 1000.0, np.array(responses) * 1000.0

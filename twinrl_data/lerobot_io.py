@@ -301,8 +301,8 @@ def iter_dataset_episodes(
                     values = values.reshape(len(rows)).astype(
                         np.float32 if key == contract.REWARD else bool
                     )
-                else:
-                    values = values.astype(np.float32)
+                else:  # (n, width), a width-1 vector too, which the columns flatten
+                    values = values.reshape(len(rows), -1).astype(np.float32)
                 data[key] = values
         timestamps = [float(t) for t in np.asarray(part["timestamp"])]
         images = {}

@@ -56,6 +56,8 @@ TOPICS = {
     contract.ENVIRONMENT_STATE: "/observation/environment_state",
     contract.EFFORT: "/observation/effort",
     contract.WRENCH: "/observation/wrench",
+    contract.CONTROLLER_TIME: "/observation/controller_time",
+    contract.CONTROLLER_TARGET: "/observation/controller_target",
     contract.ACTION: "/action",
     contract.ACTION_POLICY: "/action/policy",
     contract.JOINT_TARGET: "/command/joint_target",

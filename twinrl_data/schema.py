@@ -39,6 +39,8 @@ STATE = "observation.state"
 ENVIRONMENT_STATE = "observation.environment_state"
 EFFORT = "observation.effort"
 WRENCH = "observation.wrench"
+CONTROLLER_TIME = "observation.controller_time"
+CONTROLLER_TARGET = "observation.controller_target"
 IMAGES_PREFIX = "observation.images."
 ACTION = "action"
 ACTION_POLICY = "action.policy"
@@ -48,9 +50,25 @@ REWARD = "next.reward"
 DONE = "next.done"
 SUCCESS = "next.success"
 
-VECTOR_FIELDS = (STATE, ENVIRONMENT_STATE, EFFORT, WRENCH, ACTION, ACTION_POLICY, JOINT_TARGET)
+VECTOR_FIELDS = (
+    STATE,
+    ENVIRONMENT_STATE,
+    EFFORT,
+    WRENCH,
+    CONTROLLER_TIME,
+    CONTROLLER_TARGET,
+    ACTION,
+    ACTION_POLICY,
+    JOINT_TARGET,
+)
 WRENCH_NAMES = ["force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z"]
 """Names of ``observation.wrench``'s entries."""
+CONTROLLER_TIME_NAMES = ["controller.t"]
+"""Names of ``observation.controller_time``'s entry: seconds since the episode's start,
+on the robot controller's own clock."""
+# observation.controller_target: the joint targets (rad) the controller's servo was
+# tracking when the step was measured (a UR's RTDE target_q, from the same packet as the
+# joints), named like action.joint_target: how far the command stream had got.
 SCALAR_FIELDS = (INTERVENTION, REWARD, DONE, SUCCESS)
 # Every recorder of twinrl writes all fields; data imported from elsewhere may lack
 # all but these two, and a missing field stays missing (it is never invented).

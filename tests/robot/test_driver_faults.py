@@ -67,3 +67,28 @@ def test_a_failed_connection_is_not_asked_of_the_dashboard(monkeypatch) -> None:
     arm.stream.fault = "the connection to the controller failed (broken pipe)"
     with pytest.raises(RobotStopped, match="connection to the controller failed"):
         arm._check()
+
+
+@pytest.mark.parametrize("ended_before_asked", [False, True])
+def test_a_link_whose_process_dies_while_connecting_says_so_in_one_line(
+    monkeypatch, ended_before_asked: bool
+) -> None:
+    import subprocess
+
+    from twinrl_robot.ur import controller_link
+    from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused
+
+    monkeypatch.setattr(controller_link.sys, "executable", "/bin/false")  # exits at once
+    if ended_before_asked:  # the child is gone before the host sends it the controller
+
+        class EndsAtOnce(subprocess.Popen):
+            def __init__(self, *args, **kwargs) -> None:
+                super().__init__(*args, **kwargs)
+                self.wait()
+
+        monkeypatch.setattr(controller_link.subprocess, "Popen", EndsAtOnce)
+    link = ControllerLink("192.0.2.1", 500.0)
+    with pytest.raises(ControllerRefused, match="ended while connecting") as refused:
+        link.open()
+    assert "exit status 1" in str(refused.value) and "\n" not in str(refused.value)
+    assert link.pid is None  # nothing left running

@@ -210,6 +210,10 @@ def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) ->
         assert stopped_after <= 0.1, f"the arm took {stopped_after * 1000:.0f} ms to stop"
         time.sleep(0.2)
         assert not harness.reading()["program_running"], "the watchdog should end the program"
+        driver.send_signal(signal.SIGCONT)  # the host comes back and is told, in one line
+        printed, _ = driver.communicate(timeout=30)
+        said = [line for line in printed.splitlines() if line.startswith("stopped: ")]
+        assert said and "watchdog" in said[0], printed
     finally:
         driver.send_signal(signal.SIGKILL)
         driver.wait()
@@ -219,15 +223,20 @@ def test_a_frozen_host_lets_the_watchdog_stop_the_arm_within_100_ms(emulated) ->
 _STREAMING_HOST = """
 import sys, numpy as np
 from twinrl_robot.backends import open_robot
+from twinrl_robot.errors import RobotError
 from twinrl_sim.tasks import make_task
 task = make_task("pick_place")
 robot = open_robot("real", task, cell=sys.argv[1], emulated=True)
 robot.reset(task.sample_config(np.random.default_rng(0)))
 print("moving", flush=True)
-while True:
-    for sign in (1, -1):
-        for _ in range(10):
-            robot.act(np.array([0, sign * 0.03, 0, 0, 0, 0, 0], np.float32))
+try:
+    while True:
+        for sign in (1, -1):
+            for _ in range(10):
+                robot.act(np.array([0, sign * 0.03, 0, 0, 0, 0, 0], np.float32))
+except RobotError as stop:
+    print("stopped:", stop, flush=True)
+robot.close()
 """
 
 

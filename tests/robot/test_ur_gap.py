@@ -1,11 +1,13 @@
 """Excitation through the UR driver (ur_rtde against the emulator) gives logs the gap
 workflow diagnoses like the plant's own: the servo model a twin lacks is named, and a
-twin with a UR's tracking servos names the arm's hidden delay."""
+twin with a UR's tracking servos names the arm's hidden delay within 15 %, once the
+command link's lag (measured from the targets the controller echoes) is set apart."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -15,6 +17,7 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.ur.emulator.harness import EmulatorProcess
 from twinrl_sim.gap.diagnose import diagnose
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
 from twinrl_sim.tasks import make_task
 
 pytestmark = [
@@ -63,10 +66,25 @@ def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Pa
     tracking = diagnose(delayed, _twin("track"), allowed=ALLOWED)
     assert tracking.gap_before < 0.75 * holding.gap_before
     assert [s["effect"] for s in tracking.selected] == ["actuator_delay"]
-    # The named delay is the arm's plus what the link and the controller chain add
-    # (RTDE, the host loop, the stream's start): from 0 to 20 ms in runs here.
-    assert HIDDEN_DELAY <= tracking.effects["actuator_delay"]["seconds"] <= HIDDEN_DELAY + 0.02
-    # What stays is mostly the link's jitter (when each step lands on a loaded host),
-    # which no twin predicts: the held-out gap shrank by 0.45-0.6 in runs here and by 0.36
-    # in one fresh-clone CI run, against none without the named delay.
-    assert tracking.heldout_reduction >= 0.25
+    # The named delay is the arm's plus the command link's lag (the host's timing, RTDE,
+    # the controller's servo period), which the log measures from the echoed targets:
+    # 2.0-2.2 ms in runs here. Set apart, the arm's own delay is named within 15 %
+    # (31.9-32.2 ms in runs here, on a host doing nothing else).
+    assert 0.0 < tracking.command_lag < 0.01
+    named = tracking.effects["actuator_delay"]["seconds"]
+    assert tracking.arm_delay == pytest.approx(named - tracking.command_lag)
+    assert tracking.arm_delay == pytest.approx(HIDDEN_DELAY, rel=0.15)
+    # What stays is mostly the link's jitter (when each step lands on a loaded host), which
+    # no twin predicts, so how far the held-out gap shrinks depends on the host's load
+    # (0.45-0.6 in runs here, 0.15-0.36 in fresh-clone CI runs). Held against a twin given
+    # the true delay (the arm's plus the link's measured lag), the named one explains the
+    # held-out episodes as well (42.04 against 42.13 in a run here; 72.3 with no delay).
+    oracle = {"actuator_delay": {"seconds": HIDDEN_DELAY + tracking.command_lag}}
+    assert tracking.gap_after < tracking.gap_before
+    assert _heldout_error(tracking, tracking.effects) <= 1.05 * _heldout_error(tracking, oracle)
+
+
+def _heldout_error(diagnosis, effects: dict) -> float:
+    """RMS held-out residual (noise units) of the tracking twin with ``effects``."""
+    replay = WindowReplay(_twin("track"), diagnosis.heldout, NoiseFloor(), fixed=effects)
+    return float(np.sqrt(np.mean(replay.residuals() ** 2)))

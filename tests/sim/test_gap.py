@@ -128,3 +128,59 @@ def test_a_large_gap_nothing_explains_is_reported_as_far_off_and_where() -> None
     assert "far off" in verdict(300.0, 40.0, True, rows)
     assert "explains the held-out data" in verdict(30.0, 1.1, True, rows)
     assert "Close, not exact" in verdict(30.0, 1.8, True, rows)
+
+
+def _at_rate(rate: float):
+    """The pick_place cell logged as a UR controller logs: at ``rate``, tracking servos."""
+    physics = SCENE.physics.model_copy(update={"control_hz": rate, "servo": "track"})
+    return SCENE.model_copy(update={"physics": physics})
+
+
+def test_a_window_is_two_seconds_of_the_log_at_any_rate(tmp_path):
+    from twinrl_robot.excitation import ExcitationSettings
+    from twinrl_sim.build import compile_scene
+    from twinrl_sim.gap.windows import cut_windows
+
+    for rate, rows in ((10.0, 20), (125.0, 250)):
+        scene = _at_rate(rate)
+        session = Session.create(tmp_path / f"s{rate:g}")
+        (path,) = run_excitation(
+            "pick_place",
+            scene=scene,
+            world="twin",
+            episodes=1,
+            settings=ExcitationSettings(duration=6.0),
+            session=session,
+        )
+        episode = read_episode(path, images=False)
+        layout = compile_scene(scene).layout
+        windows = cut_windows([episode], layout, [])
+        assert windows.measured.shape[1] == rows and len(windows) == (len(episode) - 1) // rows
+        assert cut_windows([episode], layout, [], window=7).measured.shape[1] == 7  # as given
+
+
+@pytest.mark.slow  # six 10 s episodes at 125 Hz, three candidates on 2 s windows: ~2 min
+def test_a_125_hz_log_names_its_delay_and_payload_not_a_servo_gain(tmp_path):
+    """At 125 Hz, windows of 20 rows (0.16 s) took a hidden delay and payload for a
+    softer servo gain; windows of 2 s tell them apart."""
+    from twinrl_robot.excitation import ExcitationSettings
+    from twinrl_sim.gap.diagnose import diagnose
+
+    scene = _at_rate(125.0)
+    session = Session.create(tmp_path / "s")
+    hidden = {"actuator_delay": {"seconds": 0.03}, "payload": {"mass": 2.0}}
+    run_excitation(
+        "pick_place",
+        scene=scene,
+        world="plant",
+        effects=hidden,
+        episodes=6,
+        settings=ExcitationSettings(duration=10.0),
+        session=session,
+    )
+    episodes = [read_episode(p, images=False) for p in session.episode_paths()]
+    allowed = ["actuator_delay", "servo_gain", "payload"]
+    diagnosis = diagnose(episodes, scene, allowed=allowed)
+    assert sorted(s["effect"] for s in diagnosis.selected) == ["actuator_delay", "payload"]
+    assert diagnosis.effects["actuator_delay"]["seconds"] == pytest.approx(0.03, rel=0.15)
+    assert diagnosis.effects["payload"]["mass"] == pytest.approx(2.0, rel=0.15)

@@ -1,7 +1,9 @@
 """A Universal Robots arm behind the :class:`~twinrl_robot.robot.Robot` protocol.
 
 It talks to the controller through ur_rtde's own ``RTDEControlInterface`` and
-``RTDEReceiveInterface`` (and ``DashboardClient`` to explain a stop). An episode's 7-D
+``RTDEReceiveInterface``, held in a process of their own by a
+:class:`~twinrl_robot.ur.controller_link.ControllerLink` (and ``DashboardClient`` to
+explain a stop). An episode's 7-D
 action goes through the twin's IK (the same :class:`~twinrl_sim.control.EndEffectorController`
 the twin and the plant use, so the twin and the arm execute the same joint targets),
 then the :class:`~twinrl_robot.guard.JointGuard`, then the
@@ -14,7 +16,7 @@ Faults are checked at every step and by the stream at every servo period: a prot
 stop, an emergency stop, a program that stopped (the watchdog, the pendant, the
 controller leaving remote control) or a lost connection raises :class:`RobotStopped`
 with one line saying what happened and how to recover; from then on nothing is sent
-until :meth:`URArm.acknowledge`.
+until :meth:`URArm.acknowledge`, which after a lost connection connects afresh.
 
 What is real-cell honest here: observations are the controller's measured joints, the
 TCP from the twin's kinematics of those joints (the contract's frame), the gripper's own
@@ -25,21 +27,31 @@ its ground truth (:mod:`.emulator.harness`) for tests and scripted experts, and 
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import time
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
-from twinrl_data.schema import EFFORT, ENVIRONMENT_STATE, WRENCH, WRENCH_NAMES, effort_names
+from twinrl_data.schema import (
+    CONTROLLER_TARGET,
+    CONTROLLER_TIME,
+    CONTROLLER_TIME_NAMES,
+    EFFORT,
+    ENVIRONMENT_STATE,
+    JOINT_TARGET,
+    WRENCH,
+    WRENCH_NAMES,
+    effort_names,
+)
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.guard import GuardLimits, JointGuard
 from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.ur.cameras import CameraRig
+from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused, LinkLost
 from twinrl_robot.ur.gripper import Gripper, NoGripper
-from twinrl_robot.ur.servo import ServoStream, SharedControl
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -145,17 +157,24 @@ class URArm:
         if effort:  # what the controller reports of forces: joint torques, the TCP wrench
             self.names[EFFORT] = effort_names(twin.layout.arm_joints)
             self.names[WRENCH] = list(WRENCH_NAMES)
+        self.names[CONTROLLER_TIME] = list(CONTROLLER_TIME_NAMES)
+        self.names[CONTROLLER_TARGET] = list(self.names[JOINT_TARGET])
         self.start_q = np.array(twin.layout.home_qpos, float)
         self.fault: str | None = None
+        self._clock_at_reset = 0.0  # s, the controller's clock when the episode began
         self._counts_at_reset: dict[str, dict[str, int]] = {}
-        self._receive, control = _connect(self.host, self.servo_hz)
-        self._control = SharedControl(control)
         tool = ToolFrame(
             twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
         )
-        servo_pose = tool.pose if cell.arm.servo == "servol" else None
-        self.stream = ServoStream(self._control, self.servo_hz, servo_pose)
-        self.stream.open()  # kicks the watchdog from here on, whatever the host does
+        self._link = ControllerLink(
+            self.host, self.servo_hz, tool if cell.arm.servo == "servol" else None
+        )
+        self._receive, self._control, self.stream = (
+            self._link.receive,
+            self._link.control,
+            self._link.stream,
+        )
+        _connect(self._link)  # the stream kicks the watchdog from here on
         self._apply_cell_settings()
         self._next_step: float | None = None
 
@@ -174,6 +193,7 @@ class URArm:
         self.guard.reset(q)
         self.kinematics.reset(q)
         self._counts_at_reset = self.cameras.counts()
+        self._clock_at_reset = float(self._receive.getTimestamp())
         self.stream.start(q)
         self._next_step = time.monotonic() + 1.0 / self.control_hz
         return self.observe()
@@ -221,15 +241,21 @@ class URArm:
 
     def observe(self) -> dict[str, np.ndarray]:
         self._check()
-        receive = self._receive
-        q = np.array(receive.getActualQ())
-        qd = np.array(receive.getActualQd())
+        getters = ("getTimestamp", "getActualQ", "getActualQd", "getTargetQ")
+        if self.effort:  # the torques the controller applies (RTDE target_moment)
+            getters += ("getTargetMoment", "getActualTCPForce")
+        clock, q, qd, target, *forces = self._link.snapshot(getters)
+        q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
         state = np.concatenate([q, qd, position, quat, [self.gripper.opening()]])
-        observation = {"observation.state": state.astype(np.float32)}
-        if self.effort:  # the torques the controller applies (RTDE target_moment)
-            observation[EFFORT] = np.array(receive.getTargetMoment(), np.float32)
-            observation[WRENCH] = np.array(receive.getActualTCPForce(), np.float32)
+        observation = {
+            "observation.state": state.astype(np.float32),
+            CONTROLLER_TIME: np.array([clock - self._clock_at_reset], np.float32),
+            CONTROLLER_TARGET: np.array(target, np.float32),
+        }
+        if self.effort:
+            observation[EFFORT] = np.array(forces[0], np.float32)
+            observation[WRENCH] = np.array(forces[1], np.float32)
         observation.update(self.cameras.images())
         return observation
 
@@ -245,12 +271,12 @@ class URArm:
     def close(self) -> None:
         self.stream.close()
         try:
-            if self._control.isProgramRunning():
-                self._control.servoStop(SERVO_STOP_DECELERATION)
-                self._control.stopScript()
+            with contextlib.suppress(LinkLost, RuntimeError):  # gone: nothing left to stop
+                if self._control.isProgramRunning():
+                    self._control.servoStop(SERVO_STOP_DECELERATION)
+                    self._control.stopScript()
         finally:
-            self._control.disconnect()
-            self._receive.disconnect()
+            self._link.close()
             self.gripper.close()
             self.cameras.close()
             close_truth = getattr(self.privileged, "close", None)
@@ -260,7 +286,15 @@ class URArm:
     # ------------------------------------------------------------------ faults
     def acknowledge(self) -> None:
         """The person has cleared the stop: check the arm is ready and restart the
-        control program; until then every command raises :class:`RobotStopped`."""
+        control program; until then every command raises :class:`RobotStopped`. After a
+        lost connection it connects afresh (:class:`RobotConnectionError` while the
+        controller cannot be reached)."""
+        if self._lost():
+            self._link.close()
+            _connect(self._link)
+            self._apply_cell_settings()
+            self.fault = None
+            return
         deadline = time.monotonic() + RELEASE_TIMEOUT  # a released stop takes a moment
         while (reason := self._stop_reason()) and "program" not in reason:
             if time.monotonic() > deadline:
@@ -297,14 +331,21 @@ class URArm:
         if self.fault is not None:
             raise RobotStopped(self.fault)
 
+    def _lost(self) -> bool:
+        """Whether the connection to the controller is gone."""
+        try:
+            return not self._receive.isConnected()
+        except LinkLost:
+            return True
+
     def _stop_reason(self) -> str:
         """Why the arm cannot be commanded now, in one line, or ``""``."""
-        receive = self._receive
-        if not receive.isConnected():
+        if self._lost():
             return (
                 f"lost the connection to the controller at {self.host}; check the network "
-                "cable and the controller, then reconnect"
+                "cable and the controller, then acknowledge to reconnect"
             )
+        receive = self._receive
         if receive.isEmergencyStopped():
             return EMERGENCY_STOP
         if receive.isProtectiveStopped():
@@ -384,22 +425,13 @@ def require_reachable(host: str) -> None:
         ) from None
 
 
-def _connect(host: str, servo_hz: float) -> tuple[Any, Any]:
-    """ur_rtde's receive and control interfaces, or one line on why not."""
-    require_reachable(host)
-    import rtde_control
-    import rtde_receive
-
+def _connect(link: ControllerLink) -> None:
+    """Open ``link`` (ur_rtde's interfaces and the servo stream), or one line on why not."""
+    require_reachable(link.host)
     try:
-        receive = rtde_receive.RTDEReceiveInterface(host, servo_hz)
-        control = rtde_control.RTDEControlInterface(host, servo_hz)
-    except RuntimeError as err:
-        message = str(err).splitlines()[0].removeprefix("ur_rtde: ")
-        raise RobotConnectionError(
-            f"the UR controller at {host} refused the connection: {message}; put the pendant "
-            "in Remote Control and check that no other program drives the arm"
-        ) from None
-    return receive, control
+        link.open()
+    except ControllerRefused as err:
+        raise RobotConnectionError(str(err)) from None
 
 
 def _dashboard_status(host: str) -> tuple[bool, str] | None:

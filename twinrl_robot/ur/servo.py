@@ -74,8 +74,10 @@ class ServoStream:
     Targets are joint positions; ``servo_pose`` (e.g. the controller TCP's forward
     kinematics) turns each into a TCP pose sent with servoL instead of servoJ. ``fault``
     is set, with a reason, when the controller refuses a command (its program stopped)
-    or the connection fails; the thread then falls silent and the driver reports the
-    fault at the next control step.
+    or the connection fails, or when ``host_alive`` says the host has stopped (the stream
+    then runs in a process of its own); the thread then falls silent, the
+    watchdog stops the controller's program, and the driver reports the fault at the
+    next control step.
     """
 
     def __init__(
@@ -83,9 +85,10 @@ class ServoStream:
         control: SharedControl,
         servo_hz: float,
         servo_pose: Callable[[np.ndarray], np.ndarray] | None = None,
+        host_alive: Callable[[], bool] | None = None,
     ) -> None:
         self.control, self.servo_period = control, 1.0 / servo_hz
-        self.servo_pose = servo_pose
+        self.servo_pose, self.host_alive = servo_pose, host_alive
         self.fault: str | None = None
         self.connection_failed = False  # the fault is the connection's, not a refusal
         self.periods: list[float] = []  # s between consecutive targets sent (newest last)
@@ -176,6 +179,12 @@ class ServoStream:
             began = control.initPeriod()
             if mode == SILENT:
                 last = None
+            elif self.host_alive is not None and not self.host_alive():
+                self._fail(
+                    "the host process was stopped (Ctrl-Z, a signal or a debugger), so the "
+                    "arm was left to the controller's watchdog; acknowledge to go on"
+                )
+                continue
             else:
                 try:
                     sent = self._send_target() if mode == SERVO else control.kickWatchdog()

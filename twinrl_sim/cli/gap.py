@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import Annotated
 
 import numpy as np
 import typer
@@ -20,8 +20,14 @@ from twinrl_sim.cli.common import console
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.tasks import TASKS, twin_scene
 
-if TYPE_CHECKING:
-    pass
+WindowOption = Annotated[
+    int | None,
+    typer.Option(
+        help="Control steps per shooting window (default: 2 s of the log: 20 at 10 Hz, 250 at "
+        "125 Hz).",
+        min=2,
+    ),
+]
 
 
 gap_app = typer.Typer(
@@ -39,7 +45,7 @@ def localize_command(
     twin: Annotated[
         str, typer.Option(help=f"Built-in cell ({', '.join(TASKS)}) or a scene spec file.")
     ] = "pick_place",
-    window: Annotated[int, typer.Option(help="Steps per shooting window.", min=2)] = 20,
+    window: WindowOption = None,
 ) -> None:
     """Replay measured episodes in the twin (restarting from the measurement every
     --window steps) and show where they disagree: RMS, bias, gain and lag per signal,
@@ -63,7 +69,11 @@ def localize_command(
     write_text_atomic(
         out / "localization.json",
         json.dumps(
-            {"episodes": len(episodes), "window": window, "rows": [r.to_dict() for r in rows]},
+            {
+                "episodes": len(episodes),
+                "window": int(max(r.step_in_window.max() for r in replays)),
+                "rows": [r.to_dict() for r in rows],
+            },
             indent=1,
         ),
     )
@@ -113,7 +123,7 @@ def diagnose_command(
             f"{', '.join(CANDIDATES)}, and {' and '.join(IMAGE_EFFECTS)} when images are logged)."
         ),
     ] = None,
-    window: Annotated[int, typer.Option(help="Control steps per shooting window.", min=2)] = 20,
+    window: WindowOption = None,
     noise: Annotated[
         str,
         typer.Option(
@@ -132,7 +142,7 @@ def diagnose_command(
     from twinrl_sim.gap.diagnose import diagnose
     from twinrl_sim.gap.identify import NoiseFloor
     from twinrl_sim.gap.localize import localize
-    from twinrl_sim.gap.report import format_params, write_report
+    from twinrl_sim.gap.report import command_lag_line, format_params, write_report
     from twinrl_sim.gap.shooting import replay_windows
 
     scene = twin_scene(twin)
@@ -177,6 +187,8 @@ def diagnose_command(
         f"named: {named}; held-out error {diagnosis.gap_before:.3g} -> {diagnosis.gap_after:.3g} "
         f"({100 * diagnosis.heldout_reduction:.1f} % smaller, noise floor 1)"
     )
+    if diagnosis.command_lag is not None:
+        console.print(command_lag_line(diagnosis))
     if diagnosis.inverse_dynamics:
         before, after = (
             float(np.sqrt(np.mean([g[k] ** 2 for g in diagnosis.inverse_dynamics.values()])))

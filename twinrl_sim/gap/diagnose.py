@@ -46,6 +46,7 @@ from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
+from twinrl_sim.gap.command_lag import command_lag
 from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.gap.windows import Windows, cut_windows
@@ -119,6 +120,18 @@ class Diagnosis:
     heldout: Windows = field(repr=False)
     predicted_before: np.ndarray = field(repr=False)  # (n, W, n_signals) held-out
     predicted_after: np.ndarray = field(repr=False)
+    # s the controller's servo targets trailed the logged joint targets (measured from a
+    # real cell's echoed targets, :mod:`twinrl_sim.gap.command_lag`); None: not logged
+    command_lag: float | None = None
+
+    @property
+    def arm_delay(self) -> float | None:
+        """The named actuator delay less the command link's measured lag: the arm's own
+        (None when no delay was named or the log has no controller targets)."""
+        delay = self.effects.get("actuator_delay", {}).get("seconds")
+        if delay is None or self.command_lag is None:
+            return None
+        return float(delay) - self.command_lag
 
     @property
     def heldout_reduction(self) -> float:
@@ -246,7 +259,7 @@ def diagnose(
     *,
     heldout: float = 0.3,
     allowed: Sequence[str] | None = None,
-    window: int = 20,
+    window: int | None = None,
     noise: NoiseFloor | None = None,
     seed: int = 0,
     fit_windows: int = FIT_WINDOWS,
@@ -399,6 +412,7 @@ def diagnose(
         heldout=held,
         predicted_before=predicted_before,
         predicted_after=predicted_after,
+        command_lag=command_lag(episodes),
     )
 
 

@@ -59,6 +59,8 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
         "gap_before": d.gap_before,
         "gap_after": d.gap_after,
         "heldout_reduction": d.heldout_reduction,
+        "command_lag": d.command_lag,
+        "arm_delay": d.arm_delay,
         "baseline": d.baseline,
         "rounds": [[r.to_dict() for r in rnd] for rnd in d.rounds],
         "signals": [
@@ -289,6 +291,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
             lines.append(f"| {i} | {s['effect']} | {params} | {ci} |")
     else:
         lines.append("None: no candidate beats the twin as it is on held-out data.")
+    if d.command_lag is not None:
+        lines += ["", command_lag_line(d)]
     lines += ["", verdict(d.gap_before, d.gap_after, bool(d.selected), localization)]
     lines += [
         "",
@@ -413,6 +417,23 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
         )
     lines += ["", "![localization](localization.png)", ""]
     write_text_atomic(path, "\n".join(lines))
+
+
+def command_lag_line(diagnosis: Diagnosis) -> str:
+    """The command link's measured lag, and the arm's own delay where one was named."""
+    lag = 1000 * diagnosis.command_lag
+    line = (
+        f"The controller's servo targets trailed the logged joint targets by {lag:.1f} ms "
+        "(measured from the targets it echoed: host, network, servo period, servoJ)"
+    )
+    if diagnosis.arm_delay is None:
+        return line + "."
+    total = 1000 * diagnosis.effects["actuator_delay"]["seconds"]
+    return (
+        f"{line}; of the named {total:.1f} ms actuator delay, the arm's own is "
+        f"{1000 * diagnosis.arm_delay:.1f} ms. The fitted twin keeps the whole delay: it is "
+        "driven by the host's commands."
+    )
 
 
 def format_params(params: dict) -> str:

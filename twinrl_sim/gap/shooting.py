@@ -51,10 +51,11 @@ def replay_windows(
     scene: SceneSpec,
     *,
     effects: dict | None = None,
-    window: int = 20,
+    window: int | None = None,
 ) -> ShootingReplay:
     """Replay ``episode`` in the twin built from ``scene`` (plus ``effects``), restarting
-    from the measurement every ``window`` steps; the last window ends at the last row."""
+    from the measurement every ``window`` steps (default: 2 s of the log, see
+    :func:`~twinrl_sim.gap.windows.cut_windows`); the last window ends at the last row."""
     compiled = compile_scene(scene, extra_effects=effects or None)
     objects = [o.name for o in scene.objects]
     windows = cut_windows([episode], compiled.layout, objects, window=window, cover_tail=True)

@@ -27,6 +27,7 @@ from twinrl_sim.servo import servo_lead, tracking_setpoints
 from twinrl_sim.windowed import INPUTS, STATE, Starts, WindowedReplay, control_substeps
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
+WINDOW_SECONDS = 2.0  # a shooting window's default length: 20 steps at 10 Hz, 250 at 125 Hz
 
 
 @dataclass
@@ -97,11 +98,14 @@ def cut_windows(
     layout: CellLayout,
     objects: Sequence[str],
     *,
-    window: int = 20,
+    window: int | None = None,
     cover_tail: bool = False,
 ) -> Windows:
-    """Cut every episode into consecutive windows of ``window`` compared rows, at the
-    episodes' own control rate (one rate for all).
+    """Cut every episode into consecutive windows of ``window`` compared rows (default:
+    :data:`WINDOW_SECONDS` of the log), at the episodes' own control rate (one rate for
+    all). The default is a duration, not a count of rows: the same 20 rows are 2 s at
+    10 Hz but 0.16 s at 125 Hz, too short for a delay and a soft servo to look
+    different (a 125 Hz log's hidden delay was then taken for a servo gain).
 
     A tail shorter than a window is left out, or, with ``cover_tail``, compared by one
     more window that ends at the episode's last row (its first rows repeat the previous
@@ -109,8 +113,6 @@ def cut_windows(
     TCP position always; joint torques when all episodes log ``observation.effort``;
     object positions when all log them.
     """
-    if window < 2:
-        raise TwinError(f"a shooting window needs at least 2 control steps, got {window}")
     arm = layout.arm_joints
     for episode in episodes:
         _check_episode(episode, arm)
@@ -121,6 +123,10 @@ def cut_windows(
             "Hz); compare episodes of one rate at a time"
         )
     control_hz = rates[0] if rates else 1.0
+    if window is None:
+        window = max(2, round(WINDOW_SECONDS * control_hz))
+    if window < 2:
+        raise TwinError(f"a shooting window needs at least 2 control steps, got {window}")
     with_tau = all(contract.EFFORT in e.data for e in episodes)
     object_cols = [_object_columns(e, objects) for e in episodes]
     with_objects = bool(objects) and all(c is not None for c in object_cols)
