@@ -27,8 +27,9 @@ from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.runners import Runner, RunnerSource
 from twinrl_robot.backends import open_robot
+from twinrl_robot.cell_file import load_cell
 from twinrl_robot.loop import privileged_success, run_episode
-from twinrl_sim.tasks import REGION_NAMES, TaskConfig, make_task
+from twinrl_sim.tasks import REGION_NAMES, TaskConfig, make_task, task_on_twin
 
 
 @dataclass
@@ -120,15 +121,20 @@ def evaluate(
     on_episode: Callable[[Cell, bool], None] | None = None,
     cell_file: str | Path | None = None,
     emulated: bool = False,
+    twin: str | None = None,
 ) -> EvalReport:
     """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``.
 
     ``world`` ``real`` is the arm of ``cell_file``; success is judged from the task's
-    ground truth, which only an ``emulated`` cell lends (a real cell refuses it)."""
+    ground truth, which only an ``emulated`` cell lends (a real cell refuses it). The task
+    runs on ``twin`` (a built-in cell or a scene spec file; default: the cell file's twin,
+    else the task's own scene), whose kinematics and limits a cell's arm runs with."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} exists and is not empty; choose another output folder")
-    task = make_task(task_name)
+    if twin is None and cell_file is not None:
+        twin = load_cell(cell_file).twin
+    task = make_task(task_name, task_on_twin(task_name, twin) if twin is not None else None)
     robot = open_robot(
         world,
         task,

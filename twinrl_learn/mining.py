@@ -172,9 +172,11 @@ def mine(
     k: int = 20,
     seed: int = 0,
     catalog: str | Path | None = None,
+    twin: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate (or look up) ``runner`` in the twin and write the target list to ``out``
-    (a ``.json`` file; the evaluation, when run, goes beside it)."""
+    (a ``.json`` file; the evaluation, when run, goes beside it). ``twin``: the cell's
+    twin to mine in (a built-in cell or a scene spec file; default: the task's scene)."""
     out = Path(out)
     if out.suffix != ".json":
         raise SettingError("out", f"must be a .json file, got {out}")
@@ -186,7 +188,14 @@ def mine(
     else:
         evaluation = out.with_suffix("")
         evaluate(
-            runner, task, world="twin", grid=grid, episodes=episodes, seed=seed, out=evaluation
+            runner,
+            task,
+            world="twin",
+            grid=grid,
+            episodes=episodes,
+            seed=seed,
+            out=evaluation,
+            twin=twin,
         )
         outcomes = session_outcomes(Session(evaluation / "session"))
     cells, targets = select_targets(outcomes, task, grid, tau=tau, k=k)

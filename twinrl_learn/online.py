@@ -18,7 +18,7 @@ Folder layout::
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -193,17 +193,24 @@ class OnlineRun:
 
     def success_rates(self, last_episodes: int) -> dict[str, float]:
         """Success per region over (about) the last ``last_episodes`` episodes."""
-        totals: dict[str, list[int]] = {}
-        seen = 0
+        taken, seen = [], 0
         for record in reversed(self.history):
-            for region, (wins, count) in record.successes.items():
-                pair = totals.setdefault(region, [0, 0])
-                pair[0] += wins
-                pair[1] += count
+            taken.append(record)
             seen += record.episodes
             if seen >= last_episodes:
                 break
-        return {region: wins / count for region, (wins, count) in totals.items() if count}
+        return region_success(taken)
+
+
+def region_success(records: Iterable[RoundRecord]) -> dict[str, float]:
+    """Success per region over the episodes of ``records``."""
+    totals: dict[str, list[int]] = {}
+    for record in records:
+        for region, (wins, count) in record.successes.items():
+            pair = totals.setdefault(region, [0, 0])
+            pair[0] += wins
+            pair[1] += count
+    return {region: wins / count for region, (wins, count) in totals.items() if count}
 
 
 def _has_interventions(episode: Episode) -> bool:

@@ -1,4 +1,4 @@
-"""Stage III: RL on the real robot (the plant here) with a human in the loop.
+"""Stage III: RL on the robot (the plant, or a UR cell) with a human in the loop.
 
 One episode at a time on the robot, each reset drawn by a :class:`ResetPlanner`:
 with probability ``target_ratio`` from the current failure-mining targets (S_target,
@@ -6,17 +6,22 @@ sampled in proportion to their mining score), otherwise uniformly over the regio
 Every ``refresh_every`` episodes the targets are mined again in the twin with the
 latest weights (:func:`twinrl_learn.mining.mine`). Each reset configuration is
 rendered from the twin and logged to a Rerun recording, which shows an operator of a
-real cell where to put the object; the plant resets programmatically.
+real cell where to put the object (they press Enter once it is set up); the plant and
+the emulator reset programmatically.
 
 Each episode runs the robot loop (:func:`twinrl_robot.loop.run_episode`): the actor
 samples the policy's action chunks, and the robot is wrapped in an operator's takeover
 (:class:`~twinrl_robot.wrappers.OperatorTakeover`: the plant's
-:class:`~twinrl_robot.operator.SimulatedOperator`, a teleop device on a real cell) and,
+:class:`~twinrl_robot.operator.SimulatedOperator`, or a person's teleop device through
+:class:`~twinrl_robot.person_in_loop.PersonInLoop`) and,
 when the policy's ``grasp_hold`` says so, the grasp hold. The operator's steps are
 flagged ``intervention`` and the episode joins the demo buffer; a takeover ends the
 policy's stretch for the critic (see :mod:`twinrl_learn.replay`). The replay buffer
 starts as the twin buffer (D_real <- D_twin), the demo buffer as the real demos, and,
-with ``keep_critic``, the critic as Stage II's.
+with ``keep_critic``, the critic as Stage II's. An episode's success is judged by the
+cell's ground truth (plant, emulator), the person's key, or a reward classifier
+(:mod:`twinrl_learn.reward_classifier`); the person's ``q`` pauses the run after the
+episode, and :meth:`RealRL.resume` goes on.
 
 The loop never waits for learning: each robot step grants the :class:`Learner` ``utd``
 updates, which it runs in its own thread while the arm moves; between episodes the
@@ -25,13 +30,17 @@ actor takes the new weights (after the learner has caught up, with ``learner_syn
 Plant time counts robot steps only (10 Hz: 600 steps = 1 min). Progress is measured
 every ``eval_every`` robot steps by evaluating the deterministic policy on a fixed
 grid of configurations in a separate plant (an evaluation session, not training
-time: it does not count as interaction and its episodes never enter a buffer).
+time: it does not count as interaction and its episodes never enter a buffer); on a UR
+cell, by the success of the run's own episodes since the last point.
 
 Outputs (besides :mod:`twinrl_learn.online`'s)::
 
     out/evaluations/<steps>/   eval.json, heatmap.png, session/ (source eval)
     out/mining/<episode>.json  the targets used from that episode on (and the evaluation)
-    out/resets-<episode>.rrd   each episode's reset configuration rendered from the twin
+    out/live-<episode>.rrd     the live view from that episode on (unless ``view`` names
+                               another place): each reset rendered from the cell's twin,
+                               its outlines over the live cameras, then the cameras,
+                               joints and actions as they run
     out/evaluations.json       [{"plant_steps", "plant_minutes", "success_rate"}, ...]
     out/curve.png              evaluation success per region against plant minutes
     out/timing.json            the control loop's period (p50 / p99 / max, s) this session
@@ -43,51 +52,50 @@ import json
 import shutil
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-import rerun as rr
 import torch
 
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
+from twinrl_data.schema import STATE
 from twinrl_learn.agent import Agent
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
-from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord
+from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord, region_success
 from twinrl_learn.policy import Policy
+from twinrl_learn.real_rl_progress import (
+    EVALUATIONS_FILE,
+    EvalPoint,
+    loop_timing,
+    plot_evaluations,
+)
 from twinrl_learn.replay import ReplayBuffer
+from twinrl_learn.reward_classifier import RewardClassifier
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.settings import RealRLSettings, RLConfig
-from twinrl_robot.backends import open_robot
-from twinrl_robot.loop import privileged_success, run_episode
+from twinrl_robot.backends import ROBOTS, open_robot
+from twinrl_robot.cell_file import load_cell
+from twinrl_robot.live_view import LiveView
+from twinrl_robot.loop import Judge, privileged_success, run_episode
 from twinrl_robot.operator import Operator, SimulatedOperator
-from twinrl_robot.robot import Robot
+from twinrl_robot.person_in_loop import PersonInLoop, RunPaused
+from twinrl_robot.robot import Robot, Sent
+from twinrl_robot.teleop import TerminalKeys, open_teleop
 from twinrl_robot.wrappers import (
     GraspHold,
     OperatorTakeover,
     random_states,
     restore_random_states,
 )
-from twinrl_sim.env import TwinEnv
-from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
+from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task, task_class, task_on_twin
 
-EVALUATIONS_FILE = "evaluations.json"
 TIMING_FILE = "timing.json"
-
-
-@dataclass
-class EvalPoint:
-    """One evaluation of the policy during real RL."""
-
-    plant_steps: int
-    plant_minutes: float
-    success_rate: dict[str, float]
-    episodes: int
 
 
 class ResetPlanner:
@@ -125,11 +133,13 @@ class PolicySource:
         self.policy, self.exploration, self.generator = policy, exploration, generator
         self._instruction = ""
         self._queue: list[np.ndarray] = []
+        self.observation: dict[str, np.ndarray] | None = None  # the last one acted on
 
     def reset(self, task: Task, config: TaskConfig) -> None:
         self._instruction, self._queue = task.instruction, []
 
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        self.observation = observation
         if not self._queue:
             batch = {k: np.asarray(v)[None] for k, v in observation.items()}
             chunks = self.policy.act_chunks(
@@ -149,13 +159,25 @@ class PolicySource:
 class RealRL:
     """A Stage III run; build with :meth:`start` or :meth:`resume`, then :meth:`run`."""
 
-    def __init__(self, settings: RealRLSettings, run: OnlineRun, operator: Operator | None):
+    def __init__(
+        self,
+        settings: RealRLSettings,
+        run: OnlineRun,
+        operator: Operator | None,
+        terminal: TerminalKeys | None = None,
+        on_wait: Callable[[str], None] | None = None,
+        classifier: RewardClassifier | None = None,
+    ):
         self.settings, self.run_state = settings, run
-        self.task = make_task(settings.task)
+        self.cell = load_cell(settings.cell) if settings.cell is not None else None
+        twin = None if self.cell is None else task_on_twin(settings.task, self.cell.twin)
+        self.task = make_task(settings.task, twin)
         self.out = Path(settings.out)
-        self.operator = operator
+        self.classifier = classifier
         policy = run.agent.policy
-        self.robot = self._open_robot(policy, operator)
+        self.person: PersonInLoop | None = None
+        self.robot = self._open_robot(policy, operator, terminal, on_wait)
+        self.judge = self._judge()
         seed = settings.rl.seed
         self.rng = np.random.default_rng([seed, 1])  # the actor's: resets
         self.actor = actor_copy(policy)
@@ -174,27 +196,98 @@ class RealRL:
         self.evaluations = [EvalPoint(**p) for p in extra.get("evaluations", [])]
         self.periods: list[float] = []  # the control loop's, this session (s)
         self._learner: Learner | None = None
-        self._render_env: TwinEnv | None = None
-        self._recording: rr.RecordingStream | None = None
+        self.view: LiveView | None = None
+        if settings.show_resets:
+            self.view = LiveView(
+                # a file per session: a resumed run keeps the earlier sessions' views
+                settings.view or str(self.out / f"live-{len(run.history):05d}.rrd"),
+                self.task,
+                self._cameras,
+                self.robot.names.get(STATE, []),
+                name="twinrl real-rl",
+            )
 
-    def _open_robot(self, policy: Policy, operator: Operator | None) -> Robot:
-        """The cell, with the operator's takeover under the policy's grasp hold."""
+    def _open_robot(
+        self,
+        policy: Policy,
+        operator: Operator | None,
+        terminal: TerminalKeys | None,
+        on_wait: Callable[[str], None] | None,
+    ) -> Robot:
+        """The cell, with the operator's takeover (the person's device, or the simulated
+        operator) under the policy's grasp hold."""
         s = self.settings
-        cameras = tuple(policy.config.cameras) if policy.needs_images else ()
-        robot = open_robot(s.robot, self.task, effects=s.effects, seed=s.rl.seed, cameras=cameras)
-        if operator is not None:
-            robot = OperatorTakeover(robot, operator, self.task)
+        cameras = list(policy.config.cameras) if policy.needs_images else []
+        if self.classifier is not None:
+            cameras += [c for c in self.classifier.settings.cameras if c not in cameras]
+        self._cameras = tuple(cameras)
+        real = s.robot == "ur"
+        if real and not s.emulated and policy.config.kind == "state":
+            raise SettingError(
+                "init", "is a state policy, which reads object poses a real cell does not "
+                "measure; start from an image policy"
+            )  # fmt: skip
+        robot = open_robot(
+            ROBOTS[s.robot],
+            self.task,
+            effects=s.effects,
+            seed=s.rl.seed,
+            cameras=tuple(cameras),
+            object_poses=not real or s.emulated,
+            cell=self.cell,
+            emulated=s.emulated,
+        )
+        try:
+            device = None
+            if s.teleop is not None:
+                device = open_teleop(
+                    s.teleop,
+                    self.cell.teleop if self.cell is not None else None,
+                    terminal=terminal,
+                    privileged=robot.privileged,
+                    seed=s.rl.seed + 7,
+                    watch=s.operator,
+                )
+            sets_up = real and not s.emulated  # a person sets a real cell up
+            if device is not None or terminal is not None or sets_up:
+                self.person = PersonInLoop(device, terminal, sets_up=sets_up, on_wait=on_wait)
+                operator = self.person.operator or operator
+            self.operator = operator
+            if operator is not None:
+                robot = OperatorTakeover(robot, operator, self.task)
+        except BaseException:
+            robot.close()
+            raise
         if policy.config.grasp_hold:
             robot = GraspHold(robot)
         return robot
 
+    def _judge(self) -> Judge:
+        """The episode's success: ground truth, the person's key, or the classifier."""
+        if self.settings.success == "key":
+            assert self.person is not None  # checked_classifier: a terminal or a device
+            return self.person.key_judge
+        judge = (
+            self.classifier.judge if self.classifier is not None else privileged_success(self.robot)
+        )
+        return self.person.watching(judge) if self.person is not None else judge
+
     # ------------------------------------------------------------ lifecycle
     @classmethod
-    def start(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+    def start(
+        cls,
+        settings: RealRLSettings,
+        operator: Operator | None = None,
+        terminal: TerminalKeys | None = None,
+        on_wait: Callable[[str], None] | None = None,
+    ) -> RealRL:
+        """Start a run (``terminal``: the person's keys; ``on_wait``: told what the
+        person is waited for, on a real cell)."""
         if not settings.init:
             raise SettingError(
                 "init", "is needed to start a run: a policy checkpoint to start from"
             )
+        classifier = checked_classifier(settings, terminal)  # fail before anything is written
         if settings.targets:
             load_targets(settings.targets)  # fail before anything is written
         policy = Policy.from_pretrained(settings.init)
@@ -211,10 +304,16 @@ class RealRL:
             shutil.copyfile(settings.targets, kept)
             run.extra["targets"] = str(kept)
         write_text_atomic(run.out / "settings.json", json.dumps(asdict(settings), indent=1))
-        return cls(settings, run, _operator(settings, operator))
+        return cls(settings, run, _operator(settings, operator), terminal, on_wait, classifier)
 
     @classmethod
-    def resume(cls, settings: RealRLSettings, operator: Operator | None = None) -> RealRL:
+    def resume(
+        cls,
+        settings: RealRLSettings,
+        operator: Operator | None = None,
+        terminal: TerminalKeys | None = None,
+        on_wait: Callable[[str], None] | None = None,
+    ) -> RealRL:
         """Continue the run in ``settings.out`` with the RL settings it started with."""
         out = Path(settings.out)
         if not (out / RUN_FILE).is_file():
@@ -222,8 +321,9 @@ class RealRL:
         policy = Policy.from_pretrained(out / "agent")
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)
+        classifier = checked_classifier(settings, terminal)
         run = OnlineRun.resume(out, demo, twin)
-        return cls(settings, run, _operator(settings, operator))
+        return cls(settings, run, _operator(settings, operator), terminal, on_wait, classifier)
 
     def checkpoint(self) -> None:
         """Save everything :meth:`resume` needs (between episodes, no update running)."""
@@ -256,40 +356,53 @@ class RealRL:
                 self.evaluate()
                 self.checkpoint()
             while run.agent.env_steps < settings.plant_steps:
+                if self.person is not None:
+                    self.person.poll()  # a pause pressed between episodes
+                if self.paused:
+                    break
                 episode_index = len(run.history)
                 if self._refresh_due(episode_index):
                     self.refresh_targets(episode_index)
                 config, region, origin = self.resets.next(self.rng)
-                self._show_reset(episode_index, config, region, origin)
-                record = self.episode(config, region, origin)
+                try:
+                    record = self.episode(config, region, origin)
+                except RunPaused:
+                    break  # nothing of the episode was recorded; its reset is drawn again
                 if self._evaluation_due():
                     self.evaluate()
                 self.checkpoint()
                 if on_episode is not None:
                     on_episode(record, self)
+            if self.paused:
+                return run
             if self.evaluations[-1].plant_steps != run.agent.env_steps:
                 self.evaluate()
                 self.checkpoint()
         finally:
             self.close()
+            write_text_atomic(
+                self.out / TIMING_FILE, json.dumps(loop_timing(self.periods), indent=1)
+            )
         plot_evaluations(
             self.evaluations, self.out / "curve.png", title=f"real RL: {self.task.name}"
         )
-        write_text_atomic(self.out / TIMING_FILE, json.dumps(loop_timing(self.periods), indent=1))
         return run
+
+    @property
+    def paused(self) -> bool:
+        """Whether the person paused the run (it stops after the episode; resume goes on)."""
+        return self.person is not None and self.person.pause_requested
 
     def close(self) -> None:
         if self._learner is not None:
             self._learner.close()
             self._learner = None
         self.robot.close()
-        if self._render_env is not None:
-            self._render_env.close()
-            self._render_env = None
-        if self._recording is not None:
-            self._recording.flush()
-            self._recording.disconnect()
-            self._recording = None
+        if self.person is not None:
+            self.person.close()
+        if self.view is not None:
+            self.view.close()
+            self.view = None
 
     # -------------------------------------------------------------- episodes
     def episode(self, config: TaskConfig, region: str, origin: str) -> RoundRecord:
@@ -306,17 +419,37 @@ class RealRL:
             config=config,
             region=region,
             policy=f"rl:{run.agent.config.method}",
-            operator="simulated" if isinstance(self.operator, SimulatedOperator) else None,
+            operator=self._operator_name(),
         )
+        person, view = self.person, self.view
+        if person is not None:
+            person.begin()
+
+        def ready(observation: dict[str, np.ndarray]) -> None:
+            """The reset's guidance, then (a real cell) the person sets it up and starts."""
+            if view is not None:
+                view.guidance(len(run.history), config, observation)
+                view.note(f"{origin} reset in {region}")
+            if person is not None:
+                showing = None if view is None else lambda: view.live(self.robot.observe())
+                person.ready(observation, showing)
+
+        def on_step(_t: int, sent: Sent) -> None:
+            learner.grant(1)
+            if view is not None and self.source.observation is not None:
+                view.step(self.source.observation, sent)
+
         outcome = run_episode(
             self.robot,
             self.source,
             self.task,
             config,
-            judge=privileged_success(self.robot),
+            judge=self.judge,
             recorder=Recorder(run.session),
             meta=meta,
-            on_step=lambda _t, _sent: learner.grant(1),
+            on_step=on_step,
+            until=person.until if person is not None else None,
+            ready=ready,
         )
         self.periods.extend(outcome.periods)
         if self.settings.learner_sync:
@@ -326,6 +459,13 @@ class RealRL:
         self.actor.load_state_dict(learner.weights())
         run.extra.setdefault("reset_origins", []).append(origin)
         return run.record_round(episodes, learner.metrics)
+
+    def _operator_name(self) -> str | None:
+        if isinstance(self.operator, SimulatedOperator):
+            return "simulated"
+        if self.person is not None and self.person.teleop is not None:
+            return self.person.teleop.kind
+        return None
 
     def _refresh_due(self, episode_index: int) -> bool:
         every = self.settings.refresh_every
@@ -351,6 +491,7 @@ class RealRL:
                 tau=s.tau,
                 k=s.k,
                 seed=s.rl.seed + episode_index,
+                twin=self.cell.twin if self.cell is not None else None,  # the cell's own
             )
         self.resets.targets = load_targets(path)
         self.run_state.extra["targets"] = str(path)
@@ -371,8 +512,14 @@ class RealRL:
         return every > 0 and self.run_state.agent.env_steps - last >= every
 
     def evaluate(self) -> EvalPoint:
-        """Evaluate the deterministic policy on the fixed grid in a separate plant."""
+        """Evaluate the deterministic policy on the fixed grid in a separate plant; on a
+        UR cell, the success of the run's own episodes since the last point instead (a
+        grid of evaluation episodes on the arm would cost the person's time)."""
         s, steps = self.settings, self.run_state.agent.env_steps
+        if s.robot == "ur":
+            last = self.evaluations[-1].plant_steps if self.evaluations else -1
+            since = [r for r in self.run_state.history if r.env_steps > last]
+            return self._add_point(steps, region_success(since), 0)
         folder = self.out / "evaluations" / f"{steps:06d}"
         shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
         runner = TwinrlRunner(self.actor, name=f"rl@{steps}")
@@ -387,90 +534,42 @@ class RealRL:
                 seed=10_000 + s.rl.seed,
                 out=folder,
             )
+        return self._add_point(steps, report.success_rate(), report.episodes)
+
+    def _add_point(self, steps: int, rates: dict[str, float], episodes: int) -> EvalPoint:
         point = EvalPoint(
             plant_steps=steps,
             plant_minutes=steps / self.robot.control_hz / 60,
-            success_rate=report.success_rate(),
-            episodes=report.episodes,
+            success_rate=rates,
+            episodes=episodes,
         )
         self.evaluations.append(point)
         evaluations = [asdict(p) for p in self.evaluations]
         write_text_atomic(self.out / EVALUATIONS_FILE, json.dumps(evaluations, indent=1))
         return point
 
-    def _show_reset(self, index: int, config: TaskConfig, region: str, origin: str) -> None:
-        """Render the reset configuration from the twin into the run's Rerun recording
-        (on a real cell the operator places the object to match it)."""
-        if not self.settings.show_resets:
-            return
-        if self._render_env is None:
-            self._render_env = TwinEnv(self.task, cameras=("front",))
-            self._recording = rr.RecordingStream("twinrl_resets")
-            self._recording.save(str(self.out / f"resets-{index:05d}.rrd"))
-        obs, _ = self._render_env.reset(options={"config": config})
-        rec = self._recording
-        rec.set_time("episode", sequence=index)
-        rec.log("reset/front", rr.Image(obs["observation.images.front"]))
-        target = np.asarray(config.target[:2])
-        rec.log(
-            "reset/config",
-            rr.TextLog(f"episode {index}: {origin} reset in {region}, target at {target.round(3)}"),
-        )
+
+def checked_classifier(
+    settings: RealRLSettings, terminal: TerminalKeys | None
+) -> RewardClassifier | None:
+    """The reward classifier that judges success, if any; a judge that cannot work is
+    refused before anything is written (a key judge without keys or a device, a
+    classifier of another task)."""
+    if settings.success == "key" and settings.teleop is None and terminal is None:
+        raise SettingError("success", "key needs the person's keys or device; run in a terminal")
+    if settings.classifier is None:
+        return None
+    classifier = RewardClassifier.load(settings.classifier)
+    task = task_class(settings.task).name
+    if classifier.task != task:
+        raise SettingError("classifier", f"judges {classifier.task}, not {task}")
+    return classifier
 
 
 def _operator(settings: RealRLSettings, operator: Operator | None) -> Operator | None:
-    if operator is not None or settings.operator is None:
+    """The operator given, else the simulated one where the cell lends it the ground
+    truth and no person's device is named (a device's operator is opened with it)."""
+    simulated = settings.robot == "plant" or settings.emulated
+    if operator is not None or settings.operator is None or settings.teleop or not simulated:
         return operator
     return SimulatedOperator(settings.operator, seed=settings.rl.seed + 7)
-
-
-def loop_timing(periods: list[float]) -> dict[str, float | int]:
-    """The control loop's period (s) over ``periods``: median, 99th percentile, worst."""
-    if not periods:
-        return {"steps": 0}
-    values = np.asarray(periods)
-    return {
-        "steps": len(values),
-        "p50_s": float(np.percentile(values, 50)),
-        "p99_s": float(np.percentile(values, 99)),
-        "max_s": float(values.max()),
-    }
-
-
-def minutes_to(evaluations: list[EvalPoint], region: str, level: float = 0.95) -> float | None:
-    """Plant minutes at the first evaluation with ``region`` success >= ``level``."""
-    for point in evaluations:
-        if point.success_rate.get(region, 0.0) >= level:
-            return point.plant_minutes
-    return None
-
-
-def load_evaluations(folder: str | Path) -> list[EvalPoint]:
-    path = Path(folder) / EVALUATIONS_FILE
-    if not path.is_file():
-        raise LearnError(f"{folder} holds no {EVALUATIONS_FILE}; it is not a real-RL run")
-    return [EvalPoint(**p) for p in json.loads(path.read_text())]
-
-
-def plot_evaluations(evaluations: list[EvalPoint], path: Path, *, title: str = "") -> None:
-    """Evaluation success per region against plant minutes."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=120)
-    for region in REGION_NAMES:
-        xs = [p.plant_minutes for p in evaluations if region in p.success_rate]
-        ys = [p.success_rate[region] for p in evaluations if region in p.success_rate]
-        ax.plot(xs, ys, marker="o", ms=3, lw=1.6, label=region)
-    ax.axhline(0.95, color="grey", lw=0.8, ls="--")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_xlabel("plant minutes (10 Hz robot steps)")
-    ax.set_ylabel("evaluation success")
-    ax.set_title(title, fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)

@@ -261,7 +261,8 @@ class TwinRLSettings:
             raise SettingError("failures", f"must be >= 0, got {self.failures}")
 
 
-ROBOTS = ("plant",)
+LEARNING_ROBOTS = ("plant", "ur")  # real RL learns on these (not the ideal twin)
+SUCCESS_JUDGES = ("truth", "key", "classifier")
 
 
 @dataclass
@@ -279,7 +280,21 @@ class RealRLSettings:
     """Keep the critic of the twin-rl agent given as init (default: a new critic, which
     measured better: docs/results/defaults.md)."""
     robot: str = "plant"
-    """Robot to learn on: plant."""
+    """Robot to learn on: plant, or ur (the UR arm of `cell`)."""
+    cell: str | None = None
+    """The UR cell's file (robot ur)."""
+    emulated: bool = False
+    """The UR cell is the emulator (`twinrl robot emulate`), which sets each reset up itself."""
+    teleop: str | None = None
+    """The person's device, to take over from the policy and hand back: spacemouse,
+    gamepad[:/dev/input/eventN], keyboard, or scripted (the operator rule at a virtual
+    device: plant and emulator only). Default: the simulated operator (plant and
+    emulator), nobody on a real cell."""
+    success: str = "truth"
+    """Who judges an episode's success: truth (the plant's or emulator's ground truth),
+    key (the person's s and f keys or device buttons) or classifier (`classifier`)."""
+    classifier: str | None = None
+    """A reward classifier from `twinrl train reward-classifier` (success classifier)."""
     effects: str | None = None
     """The plant's hidden effects (YAML; default: the built-in plant)."""
     demos: list[str] = field(default_factory=list)
@@ -312,7 +327,11 @@ class RealRLSettings:
     operator: OperatorRule | None = field(default_factory=OperatorRule)
     """When the simulated operator takes the controls (None: nobody does)."""
     show_resets: bool = True
-    """Render each reset configuration from the twin to a Rerun recording."""
+    """Keep a live view in Rerun: each reset rendered from the cell's twin, with its
+    outlines over the live cameras, then the cameras, joints and actions as they run."""
+    view: str | None = None
+    """Where the live view goes: ``spawn`` (a viewer), a ``rerun+http://`` URL, or an
+    ``.rrd`` path (default: ``live-<first episode>.rrd`` in the run's folder)."""
     learner_sync: bool = True
     """Between episodes, wait for the learner (its own thread) to run every update the
     episode bought, so a seed gives the same run; off, take the weights it has reached.
@@ -322,12 +341,39 @@ class RealRLSettings:
 
     def __post_init__(self) -> None:
         task_class(self.task)  # an unknown task: the nearest name
-        if self.robot not in ROBOTS:
+        if self.robot not in LEARNING_ROBOTS:
             raise SettingError(
                 "robot",
-                f"{self.robot} is not available; use one of {', '.join(ROBOTS)} (a real UR arm "
-                "needs its driver behind twinrl_robot.Robot)",
+                f"{self.robot} is not available; use one of {', '.join(LEARNING_ROBOTS)}",
             )
+        if self.robot == "ur" and self.cell is None:
+            raise SettingError("cell", "a UR arm needs its cell file")
+        if self.robot == "plant" and (self.cell is not None or self.emulated):
+            raise SettingError("cell", "describes a UR arm; learn on it with `robot` ur")
+        if self.robot == "ur" and self.effects is not None:
+            raise SettingError("effects", "apply to the plant only; a UR cell has its own physics")
+        if self.success not in SUCCESS_JUDGES:
+            raise SettingError(
+                "success", f"must be one of {', '.join(SUCCESS_JUDGES)}, got {self.success}"
+            )
+        if self.view is not None and not (
+            self.view == "spawn" or self.view.endswith(".rrd") or "://" in self.view
+        ):
+            raise SettingError(
+                "view", f"must be spawn, a rerun+http:// URL or an .rrd path, got {self.view}"
+            )
+        if self.success == "truth" and self.robot == "ur" and not self.emulated:
+            raise SettingError(
+                "success",
+                "truth needs ground truth, which a real cell lacks; use key or classifier",
+            )
+        if self.success == "classifier" and self.classifier is None:
+            raise SettingError(
+                "classifier", "is needed to judge success by it: train one with twinrl train "
+                "reward-classifier"
+            )  # fmt: skip
+        if self.success != "classifier" and self.classifier is not None:
+            raise SettingError("classifier", "is read only when `success` is classifier")
         if not 0 <= self.target_ratio <= 1:
             raise SettingError("target_ratio", f"must be in [0, 1], got {self.target_ratio}")
         for name in ("refresh_every", "eval_every"):

@@ -25,6 +25,8 @@ from twinrl_sim.cell import environment_names
 from twinrl_sim.tasks import Task, make_task
 
 WORLDS: tuple[str, ...] = ("twin", "plant", "real")
+ROBOTS: dict[str, str] = {"ur": "real", "plant": "plant", "twin": "twin"}
+"""The commands' ``--robot`` names, each with the world it opens."""
 
 
 def open_robot(

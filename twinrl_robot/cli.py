@@ -74,6 +74,14 @@ def expert(
         typer.Option(help="Record every episode (MCAP, both cameras) into this session folder."),
     ] = None,
     append: Annotated[bool, typer.Option(help="Add to an existing --out session.")] = False,
+    settle: Annotated[
+        int,
+        typer.Option(
+            help="Steps recorded after a success with the arm held, so the last frames show "
+            "the success (what 'twinrl train reward-classifier' learns from), e.g. 3.",
+            min=0,
+        ),
+    ] = 0,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print one JSON object per task and world.")
     ] = False,
@@ -118,6 +126,7 @@ def expert(
                     scene=scene,
                     cell=cell if place == "real" else None,
                     emulated=emulated and place == "real",
+                    settle=settle,
                 )
                 reports.append(report)
                 if as_json:

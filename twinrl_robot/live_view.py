@@ -75,9 +75,14 @@ class LiveView:
     """
 
     def __init__(
-        self, target: str, task: Task, cameras: tuple[str, ...], state_names: list[str]
+        self,
+        target: str,
+        task: Task,
+        cameras: tuple[str, ...],
+        state_names: list[str],
+        name: str = "twinrl record",
     ) -> None:
-        self.stream = rr.RecordingStream("twinrl record")
+        self.stream = rr.RecordingStream(name)
         self.guide = TwinGuide(task)
         self.cameras = cameras
         self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]

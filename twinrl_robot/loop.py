@@ -24,9 +24,10 @@ from twinrl_robot.robot import Robot, Sent, require_privileged
 from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 
-Judge = Callable[[], bool]
-"""Whether the task has succeeded after the last step (the privileged success in a
-simulated cell; a person's key or a reward classifier on a real one)."""
+Judge = Callable[[dict[str, np.ndarray]], bool]
+"""Whether the task has succeeded, given the observation after the last step (the
+privileged success in a simulated cell; a person's key or a reward classifier on a
+real one)."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,14 @@ def sensor_counts(robot: Robot) -> dict:
 def privileged_success(robot: Robot) -> Judge:
     """The judge of a simulated cell: its ground-truth success."""
     channel = require_privileged(robot, "judging success from the task's ground truth")
-    return lambda: channel.success
+    return lambda _observation: channel.success
+
+
+def hold_action(action: np.ndarray) -> np.ndarray:
+    """The end-effector action that keeps the arm still and the gripper as ``action`` left it."""
+    held = np.zeros_like(np.asarray(action, dtype=np.float32))
+    held[6] = action[6]
+    return held
 
 
 def run_episode(
@@ -91,6 +99,7 @@ def run_episode(
     until: Callable[[], bool] | None = None,
     ready: Callable[[dict[str, np.ndarray]], None] | None = None,
     note: Callable[[], str | None] | None = None,
+    settle: int = 0,
 ) -> EpisodeResult:
     """Run one episode of ``task`` from ``config``; record it when ``recorder`` is given.
 
@@ -99,7 +108,10 @@ def run_episode(
     task's. ``until`` ends the episode after a step without success when it says so (a
     person's failure or discard key). ``ready`` is called with the first observation
     after the reset, before anything is recorded (a person sets the cell up and starts);
-    ``note`` gives the words kept with the episode when it is saved. A simulated cell
+    ``note`` gives the words kept with the episode when it is saved. ``settle`` steps
+    follow a success with the arm held still, recorded as successes too: the last frames
+    then show the success itself (a person's key comes a moment after it too), which a
+    reward classifier learns from. A simulated cell
     steps as fast as it can and counts its own time (``on_step`` may pace it); a real
     backend keeps the control rate itself (its servo loop).
     """
@@ -113,12 +125,13 @@ def run_episode(
     source.reset(task, config)
     if recorder is not None and meta is not None:
         recorder.start_episode(meta)
-    success, interventions, steps = False, 0, 0
+    success, interventions, steps, settled = False, 0, 0, 0
+    executed = np.zeros(7, np.float32)  # the last step's action (held while settling)
     stamps: list[float] = []
     try:
-        for t in range(limit):
+        for t in range(limit + settle):
             stamps.append(time.perf_counter())
-            chosen = source.act(observation)
+            chosen = hold_action(executed) if success else source.act(observation)
             if isinstance(chosen, JointCommand):
                 sent = robot.servo_joints(chosen.joint_target, chosen.gripper)
                 executed, proposed = chosen.action, chosen.action
@@ -128,10 +141,14 @@ def run_episode(
             if sent.intervention:
                 source.interrupted()
                 interventions += 1
-            success = judge() if judge is not None else False
+            following = robot.observe()
+            if success:
+                settled += 1
+            else:
+                success = judge(following) if judge is not None else False
+                steps = t + 1
             stopped = not success and until is not None and until()
-            done = success or stopped or t == limit - 1
-            steps = t + 1
+            done = stopped or (settled == settle if success else t == limit - 1)
             if recorder is not None:
                 recorder.add_frame(
                     step_record(
@@ -147,8 +164,8 @@ def run_episode(
                 )
             if on_step is not None:
                 on_step(t, sent)
-            observation = robot.observe()
-            if success or stopped:
+            observation = following
+            if done:
                 break
     except BaseException as err:
         if recorder is not None and recorder.recording:  # keep what was recorded, and why

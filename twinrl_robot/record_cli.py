@@ -39,7 +39,8 @@ def record(
     teleop: Annotated[
         str,
         typer.Option(
-            help="spacemouse, gamepad (or gamepad:/dev/input/eventN), keyboard, or scripted "
+            help="spacemouse, gamepad (or gamepad:/dev/input/eventN; gamepad:sdl for SDL's "
+            "controller layout), keyboard, or scripted "
             "(the task's expert at a virtual device: plant and emulator only)."
         ),
     ] = "spacemouse",
@@ -64,6 +65,14 @@ def record(
         bool, typer.Option(help="Read the marks' keys from the terminal (when it is one).")
     ] = True,
     effects: PlantEffects = None,
+    settle: Annotated[
+        int,
+        typer.Option(
+            help="Steps recorded after a success mark with the arm held still, so the last "
+            "frames show the success (what 'twinrl train reward-classifier' learns from).",
+            min=0,
+        ),
+    ] = 3,
     max_steps: Annotated[
         int | None,
         typer.Option(
@@ -102,6 +111,7 @@ def record(
             keys=keys,
             seed=seed,
             max_steps=max_steps,
+            settle=settle,
             on_status=lambda status: live.update(
                 Text.from_markup(_status_line(status)), refresh=True
             ),

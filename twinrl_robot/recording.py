@@ -51,6 +51,7 @@ MARK_KEYS = {
     "q": "quit",
 }
 """The terminal's keys for the recording's marks, whatever the device."""
+SET_UP = "set up the cell as shown, then start (Enter)"
 WAIT_PERIOD = 0.1  # s between looks at the device and the cameras while the cell is set up
 DISK_PERIOD = 1.0  # s between looks at the free disk space for the status line
 
@@ -163,10 +164,12 @@ def record_session(
     on_status: Callable[[RecordStatus], None] | None = None,
     operator: str | None = None,
     max_steps: int | None = None,
+    settle: int = 3,
 ) -> RecordReport:
     """Record ``episodes`` kept episodes of ``task`` driven by ``teleop`` into ``session``
     (see the module docstring). A simulated ``robot`` is paced at its control rate, as
-    a person drives it; a real one keeps its rate itself."""
+    a person drives it; a real one keeps its rate itself. After a success mark the arm
+    holds for ``settle`` more recorded steps (what a reward classifier learns from)."""
     if episodes < 1:
         raise RobotError(f"episodes must be at least 1, got {episodes}")
     recovered = tuple(str(p) for p in repair_session(session.path).recovered)
@@ -201,6 +204,7 @@ def record_session(
                 until=take.until,
                 ready=take.ready,
                 note=lambda: take.marks.note,
+                settle=settle,
             )
         except RecordingStopped:
             if take.recording and recorder.saved_path is not None:
@@ -273,24 +277,20 @@ class _EpisodeTaker:
         """Show the guidance and wait for the person to start."""
         if self.view is not None:
             self.view.guidance(self.status.episode, self.config, observation)
-        waiting = "set up the cell as shown, then start (Enter)"
-        while True:
-            _check_device(self.teleop)
-            self.marks.add(list(self.teleop.step(None).events))
-            mark = self.marks.take()
-            if mark == "start":
-                break
-            if mark == "quit":
-                raise RecordingStopped("stopped by the person before the episode started")
-            self.show(state=waiting)
+
+        def waiting() -> None:
+            self.show(state=SET_UP)
             if self.view is not None:
                 self.view.live(self.robot.observe())
-            time.sleep(WAIT_PERIOD)
+
+        if not wait_for_start(self.teleop, self.marks, waiting):
+            raise RecordingStopped("stopped by the person before the episode started")
         self.started = self.paced = time.monotonic()
         self.recording = True
         self.show()
 
-    def judge(self) -> bool:
+    def judge(self, _observation: dict[str, np.ndarray]) -> bool:
+        """The person's mark: success ends the episode (failure and discard: :meth:`until`)."""
         self.marks.add(self.source.take_events())
         mark = self.marks.take()
         if mark == "quit":
@@ -300,7 +300,7 @@ class _EpisodeTaker:
         return mark == "success"
 
     def until(self) -> bool:
-        _check_device(self.teleop)
+        check_device(self.teleop)
         return self.mark in ("failure", "discard")
 
     def on_step(self, t: int, sent: Sent) -> None:
@@ -314,9 +314,25 @@ class _EpisodeTaker:
         )
 
 
-def _check_device(teleop: Teleop) -> None:
+def check_device(teleop: Teleop) -> None:
+    """Raise the device's :class:`TeleopError` once it is gone."""
     if teleop.lost is not None:
         raise TeleopError(teleop.lost)
+
+
+def wait_for_start(teleop: Teleop | None, marks: Marks, waiting: Callable[[], None]) -> bool:
+    """Wait while the person sets the cell up (``waiting`` is called every
+    :data:`WAIT_PERIOD`): ``True`` at their start (Enter, the device's ``start``),
+    ``False`` at their quit."""
+    while True:
+        if teleop is not None:
+            check_device(teleop)
+            marks.add(list(teleop.step(None).events))
+        mark = marks.take()
+        if mark in ("start", "quit"):
+            return mark == "start"
+        waiting()
+        time.sleep(WAIT_PERIOD)
 
 
 def _dropped(robot: Robot) -> int:
@@ -339,22 +355,23 @@ def run_recording(
     seed: int = 0,
     marks: tuple[str, ...] = (),
     max_steps: int | None = None,
+    settle: int = 3,
     on_status: Callable[[RecordStatus], None] | None = None,
 ) -> RecordReport:
     """``twinrl record``: open the cell (``robot``: ``plant``, or ``ur`` with its ``cell``
     file, ``emulated`` for the emulator), the session folder ``out`` (continued when it
     exists), the terminal's keys (``keys``, when standard input is a terminal), the
     ``teleop`` device and the live ``view`` (``spawn``, a URL, or an ``.rrd`` path), and
-    record (see :func:`record_session`). ``marks``: the scripted person's marks."""
-    from twinrl_robot.backends import open_robot, recorded_cameras
+    record (see :func:`record_session`). ``marks``: the scripted person's marks;
+    ``settle``: steps recorded after a success mark with the arm held."""
+    from twinrl_robot.backends import ROBOTS, open_robot, recorded_cameras
     from twinrl_robot.cell_file import CellFile, load_cell
     from twinrl_robot.teleop import open_teleop
     from twinrl_sim.tasks import make_task, task_on_twin
 
-    worlds = {"plant": "plant", "ur": "real"}
-    if robot not in worlds:
+    if robot not in ("plant", "ur"):
         raise RobotError(f"unknown robot '{robot}'; record on plant or ur (with its cell file)")
-    world = worlds[robot]
+    world = ROBOTS[robot]
     cell_file: CellFile | None = None
     if world == "real":
         if cell is None:
@@ -403,6 +420,7 @@ def run_recording(
             view=live,
             on_status=on_status,
             max_steps=max_steps,
+            settle=settle,
         )
     finally:
         for thing in reversed(opened):

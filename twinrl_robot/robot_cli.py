@@ -13,9 +13,7 @@ from twinrl_data.errors import UsageError
 from twinrl_robot.cli import CellOption, EmulatedOption, PlantEffects
 
 console = Console(soft_wrap=True)
-robot_app = typer.Typer(
-    help="A real cell's arm (UR over ur_rtde): check it, emulate it, replay an episode on it."
-)
+robot_app = typer.Typer(help="A real cell's arm (UR over ur_rtde): check it, or emulate it.")
 CellArgument = Annotated[Path, typer.Argument(help="Cell file (YAML).", show_default=False)]
 TaskOption = Annotated[
     str | None,
@@ -88,7 +86,6 @@ def check(
         raise typer.Exit(1)
 
 
-@robot_app.command("replay")
 def replay(
     episode: Annotated[
         str, typer.Argument(help="Episode to replay: .mcap, session or dataset, each as PATH#N.")
@@ -96,7 +93,9 @@ def replay(
     out: Annotated[
         Path, typer.Option(help="Session to record the replay into (created or added to).")
     ],
-    world: Annotated[str, typer.Option(help="twin, plant or real (with --cell).")] = "real",
+    robot: Annotated[
+        str, typer.Option(help="ur (with --cell), plant, or twin (the ideal simulation).")
+    ] = "ur",
     cell: CellOption = None,
     emulated: EmulatedOption = False,
     effects: PlantEffects = None,
@@ -110,17 +109,23 @@ def replay(
     from twinrl_data.recorder import Recorder
     from twinrl_data.session import Session
     from twinrl_data.sources import open_episode
-    from twinrl_robot.backends import WORLDS, open_robot
-    from twinrl_robot.cli import check_real
+    from twinrl_robot.backends import ROBOTS, open_robot
+    from twinrl_robot.cell_file import load_cell
     from twinrl_robot.replay_source import replay_episode
-    from twinrl_sim.tasks import make_task
+    from twinrl_sim.tasks import make_task, task_on_twin
 
-    if world not in WORLDS:
-        raise UsageError(f"--world must be one of {', '.join(WORLDS)}, got '{world}'")
-    check_real([world], cell, emulated)
+    if robot not in ROBOTS:
+        raise UsageError(f"--robot must be one of {', '.join(ROBOTS)}, got '{robot}'")
+    world = ROBOTS[robot]
+    if world == "real" and cell is None:
+        raise UsageError("--robot ur needs the arm's --cell file")
+    if (cell is not None or emulated) and world != "real":
+        raise UsageError("--cell and --emulated describe a UR arm; add --robot ur")
     logged = open_episode(episode)
-    task = make_task(logged.meta.task)
-    robot = open_robot(
+    # On a cell, the task on the cell's own twin (the IK and the limits the arm runs with).
+    twin = task_on_twin(logged.meta.task, load_cell(cell).twin) if cell is not None else None
+    task = make_task(logged.meta.task, twin)
+    arm = open_robot(
         world,
         task,
         effects=effects if world == "plant" else None,
@@ -132,9 +137,9 @@ def replay(
     recorder = Recorder(Session.create(out, exist_ok=True))
     confirm = None if yes else lambda start: typer.confirm(f"Move the arm to {start}?")
     try:
-        result = replay_episode(robot, logged, task, recorder, confirm)
+        result = replay_episode(arm, logged, task, recorder, confirm)
     finally:
-        robot.close()
+        arm.close()
     console.print(
         f"{result.path}: {result.steps} steps replayed; the joints ran "
         f"{result.joint_rms * 1000:.2f} mrad RMS from the log"

@@ -105,6 +105,7 @@ def run_scripted_expert(
     scene: SceneSpec | None = None,
     cell: CellFile | str | Path | None = None,
     emulated: bool = False,
+    settle: int = 0,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
 
@@ -117,6 +118,8 @@ def run_scripted_expert(
     built-in cell (e.g. one built by ``twinrl twin build``) in both worlds. ``real`` is
     the arm of ``cell`` (a cell file); the expert reads object poses, which only an
     ``emulated`` cell lends (a real cell refuses it: a person demonstrates there).
+    ``settle`` steps are recorded after each success with the arm held (see
+    :func:`~twinrl_robot.loop.run_episode`).
     """
     if episodes < 1:
         raise RobotError(f"episodes must be at least 1, got {episodes}")
@@ -168,6 +171,7 @@ def run_scripted_expert(
                     judge=privileged_success(robot),
                     recorder=recorder,
                     meta=meta,
+                    settle=settle,
                 )
                 episode = ExpertEpisode(region, config.to_dict(), outcome.success, outcome.steps)
                 results.append(episode)

@@ -12,7 +12,8 @@ from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
 from twinrl_learn.mining import mine
 from twinrl_learn.policy import Policy
-from twinrl_learn.real_rl import RealRL, RealRLSettings, load_evaluations
+from twinrl_learn.real_rl import RealRL, RealRLSettings
+from twinrl_learn.real_rl_progress import load_evaluations
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.settings import RLConfig, SFTConfig

@@ -16,7 +16,8 @@ from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
 from twinrl_learn.mining import Target
 from twinrl_learn.policy import Policy
-from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner, load_evaluations
+from twinrl_learn.real_rl import RealRL, RealRLSettings, ResetPlanner
+from twinrl_learn.real_rl_progress import load_evaluations
 from twinrl_learn.settings import RLConfig
 from twinrl_learn.studies.pipeline import run_demo
 from twinrl_learn.studies.presets import METHOD_TABLE, PRESETS
@@ -188,7 +189,7 @@ def test_real_rl_flags_interventions_and_feeds_them_to_the_demo_buffer(demos, tm
     assert len(run.online.episodes) == len(episodes) - len(helped)
     points = load_evaluations(tmp_path / "run")
     assert [p.plant_steps for p in points] == [0, run.agent.env_steps]
-    assert list((tmp_path / "run").glob("resets-*.rrd"))
+    assert list((tmp_path / "run").glob("live-*.rrd"))
 
     # Resume with a longer budget: counters, history and evaluations carry on.
     more = real_settings(demos, tmp_path / "run", plant_steps=120, refresh_every=1)

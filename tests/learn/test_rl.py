@@ -8,6 +8,7 @@ import torch
 
 from tests.conftest import tiny_state_policy
 from tests.test_cli import twinrl as run_cli
+from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode, EpisodeMeta
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
@@ -16,6 +17,8 @@ from twinrl_learn.policy import Policy
 from twinrl_learn.replay import MixedSampler, ReplayBuffer, RewardSettings, discounted_returns
 from twinrl_learn.settings import RLConfig
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
+from twinrl_sim.spec import load_spec, save_spec
+from twinrl_sim.tasks import make_task
 
 
 def synthetic_episode(length: int, success: bool, source: str = "twin_rl", offset: float = 0.0):
@@ -212,6 +215,21 @@ def test_mine_and_twin_rl_commands(demos, tmp_path):
     data = json.loads((tmp_path / "targets.json").read_text())
     assert len(targets) <= 3 and len(data["cells"]) >= 2
     assert (tmp_path / "targets" / "heatmap.png").is_file()
+    # Mining in a cell's own twin: its evaluation runs there (the episodes name its digest).
+    scene = make_task("pick_place").scene
+    cell_twin = scene.model_copy(
+        update={"physics": scene.physics.model_copy(update={"servo": "track"})}
+    )
+    save_spec(cell_twin, tmp_path / "my_cell.yaml")
+    in_cell = run_cli(
+        "mine", "--task", "pick_place", "--policy", str(sft), "--grid", "2x2",
+        "--episodes", "1", "--twin", str(tmp_path / "my_cell.yaml"),
+        "--out", str(tmp_path / "cell_targets.json"),
+    )  # fmt: skip
+    assert in_cell.returncode == 0, in_cell.stderr
+    mined = [read_episode(p, images=False).meta.twin for p in
+             Session(tmp_path / "cell_targets" / "session").episode_paths()]  # fmt: skip
+    assert mined and set(mined) == {load_spec(tmp_path / "my_cell.yaml").digest} != {scene.digest}
     again = run_cli(
         "mine",
         "--task",

@@ -57,6 +57,32 @@ def test_the_expert_through_the_loop_is_recorded_step_for_step(tmp_path):
     assert Session(tmp_path / "s").entries[0]["status"] == "complete"
 
 
+def test_settle_steps_record_the_success_itself_with_the_arm_held(tmp_path):
+    task = make_task("pick_place")
+    robot = open_robot("plant", task, seed=0)
+    recorder = Recorder(Session.create(tmp_path / "s"))
+    meta = task.episode_meta(source="teleop", world=robot.world, names=robot.names, config=CONFIG)
+    rng = np.random.default_rng(0)
+    judged = []
+
+    def judge(observation):  # sees the observation after each step
+        judged.append(observation["observation.state"].copy())
+        return robot.privileged.success
+
+    result = run_episode(
+        robot, ExpertSource(rng, rng, 0.0), task, CONFIG, judge=judge, recorder=recorder,
+        meta=meta, settle=3,
+    )  # fmt: skip
+    episode = read_episode(result.path)
+    assert result.success and len(episode) == result.steps + 3 == len(judged) + 3
+    assert episode.data["next.success"][-4:].all() and not episode.data["next.success"][:-4].any()
+    assert episode.data["next.done"][-1] and not episode.data["next.done"][:-1].any()
+    held = episode.data["action"][-3:]
+    assert not held[:, :6].any() and (held[:, 6] == episode.data["action"][-4, 6]).all()
+    # the frame after the success step shows what the judge saw
+    np.testing.assert_array_equal(episode.data["observation.state"][-3], judged[-1])
+
+
 def test_interventions_reach_the_source_and_the_log(tmp_path):
     class Operator:
         judges_progress = False
@@ -117,7 +143,7 @@ def test_a_real_cell_needs_a_judge_other_than_ground_truth(tmp_path):
     task = make_task("pick_place")
     source = Scripted([np.zeros(7, np.float32)] * 3)
     marks = iter([False, False, True])
-    result = run_episode(real, source, task, CONFIG, judge=lambda: next(marks))
+    result = run_episode(real, source, task, CONFIG, judge=lambda _observation: next(marks))
     assert result.success and result.steps == 3 and result.path is None
 
 

@@ -13,12 +13,15 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.robot.test_ur_cell import write_cell
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode, read_summary
+from twinrl_data.schema import CONTROLLER_TARGET, CONTROLLER_TIME, JOINT_TARGET
 from twinrl_data.session import Session
+from twinrl_data.sources import open_episode
 from twinrl_robot.backends import open_robot
 from twinrl_robot.recording import record_session, run_recording
 from twinrl_robot.reset_plan import ResetPlan
@@ -83,6 +86,27 @@ def test_a_scripted_person_records_on_the_emulated_arm(tmp_path: Path) -> None:
     episode = read_episode(report.episodes[1].path, images=False)
     assert episode.meta.world == "real" and episode.meta.success
     assert episode.data["intervention"].sum() == 0  # the person drove: no takeover
+    # Each step carries the controller's own clock, from the episode's start: a control
+    # period apart (10 Hz), whatever the host's clock did.
+    clock = episode.data[CONTROLLER_TIME][:, 0].astype(float)
+    assert episode.meta.names[CONTROLLER_TIME] == ["controller.t"]
+    assert 0.0 <= clock[0] < 0.05
+    assert np.median(np.diff(clock)) == pytest.approx(0.1, abs=0.01)
+    # ... and the targets the controller was tracking then: the step's sent target, all
+    # but the last few milliseconds of its segment (a 10 Hz step's target within 5 %).
+    echoed, sent = episode.data[CONTROLLER_TARGET], episode.data[JOINT_TARGET]
+    assert episode.meta.names[CONTROLLER_TARGET] == episode.meta.names[JOINT_TARGET]
+    moved = np.linalg.norm(sent[1:-1] - sent[:-2], axis=1) > 0.01
+    short = np.linalg.norm(sent[1:-1] - echoed[2:], axis=1)[moved]
+    assert np.median(short / np.linalg.norm(sent[1:-1] - sent[:-2], axis=1)[moved]) < 0.05
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    result = export_dataset([episode], tmp_path / "dataset", repo_id="tests/ur")
+    dataset = LeRobotDataset("tests/ur", root=result.root, video_backend="pyav")
+    assert dataset.meta.features[CONTROLLER_TIME]["names"] == ["controller.t"]
+    assert float(dataset[3][CONTROLLER_TIME]) == pytest.approx(clock[3], abs=1e-4)
+    back = open_episode(f"{result.root}#0")
+    np.testing.assert_allclose(back.data[CONTROLLER_TIME][:, 0], clock, atol=1e-6)
 
 
 def _manifest(folder: Path) -> list[dict]:

@@ -1,4 +1,4 @@
-"""``twinrl robot replay``: a logged episode re-sent through the safety layer, after the
+"""``twinrl replay``: a logged episode re-sent through the safety layer, after the
 start pose is shown and confirmed, recorded as a new episode and overlaid in Rerun."""
 
 from __future__ import annotations
@@ -24,10 +24,9 @@ def logged(tmp_path_factory) -> Path:
 def test_a_replay_in_the_plant_retraces_the_log_and_is_recorded(logged, tmp_path) -> None:
     out, overlay = tmp_path / "replays", tmp_path / "overlay.rrd"
     result = twinrl(
-        "robot",
         "replay",
         f"{logged}#0",
-        "--world",
+        "--robot",
         "plant",
         "--out",
         str(out),
@@ -46,8 +45,21 @@ def test_a_replay_in_the_plant_retraces_the_log_and_is_recorded(logged, tmp_path
 
 def test_an_unconfirmed_replay_moves_nothing(logged, tmp_path) -> None:
     out = tmp_path / "replays"
-    result = twinrl(
-        "robot", "replay", f"{logged}#0", "--world", "plant", "--out", str(out), stdin="n\n"
-    )
+    result = twinrl("replay", f"{logged}#0", "--robot", "plant", "--out", str(out), stdin="n\n")
     assert result.returncode == 2 and "not confirmed" in result.stderr
     assert not list(out.rglob("*.mcap"))
+
+
+@pytest.mark.parametrize(
+    ("options", "said"),
+    [
+        (["--robot", "ur"], "--robot ur needs the arm's --cell file"),
+        (["--robot", "plant", "--cell", "cell.yaml"], "describe a UR arm; add --robot ur"),
+        (["--robot", "arm"], "--robot must be one of ur, plant, twin"),
+    ],
+)
+def test_a_replay_without_its_arm_is_refused_in_one_line(logged, tmp_path, options, said) -> None:
+    out = tmp_path / "replays"
+    result = twinrl("replay", f"{logged}#0", *options, "--out", str(out), "--yes")
+    assert result.returncode == 2 and said in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not out.exists()

@@ -1,6 +1,7 @@
 """Teleop devices without hardware: the SpaceMouse through recorded HID report bytes,
 the gamepad through recorded evdev events (and a virtual uinput pad where the kernel
-offers one), the keyboard through a pseudo-terminal; their maps, deadman and marks."""
+offers one) and through SDL events posted into pygame's queue, the keyboard through a
+pseudo-terminal; their maps, deadman and marks."""
 
 from __future__ import annotations
 
@@ -162,6 +163,70 @@ def test_a_virtual_uinput_gamepad_drives_the_evdev_reader() -> None:
         pad.syn()
         assert _settle(teleop, 0.2).action[0] > 0
         teleop.close()
+
+
+def _sdl_events(*events: tuple[float, str, dict]) -> None:
+    """Post SDL controller events into pygame's own queue, each at its time (s)."""
+    import pygame
+
+    start = time.monotonic()
+    for at, kind, fields in events:
+        time.sleep(max(0.0, start + at - time.monotonic()))
+        pygame.event.post(pygame.event.Event(getattr(pygame, kind), **fields))
+
+
+def test_an_sdl_gamepad_maps_by_position_onto_the_gamepad_map() -> None:
+    import threading
+
+    from twinrl_robot.teleop.gamepad_sdl import SdlSource
+
+    pad = SdlSource(instance_id=7, name="test pad")  # brings pygame up, quietly
+    teleop = Teleop(Gamepad(pad), DEFAULT_MAPS["gamepad"])
+    import pygame
+
+    def button(name: str) -> dict:
+        return {"instance_id": 7, "button": getattr(pygame, f"CONTROLLER_BUTTON_{name}")}
+
+    def axis(name: str, value: int) -> dict:
+        code = getattr(pygame, f"CONTROLLER_AXIS_{name}")
+        return {"instance_id": 7, "axis": code, "value": value}
+
+    poster = threading.Thread(
+        target=_sdl_events,
+        args=(
+            (0.00, "CONTROLLERAXISMOTION", axis("LEFTY", -32768)),  # left stick up: +x
+            (0.00, "CONTROLLERBUTTONDOWN", button("LEFTSHOULDER")),  # the deadman
+            # Another pad's stick is not this one's.
+            (0.00, "CONTROLLERAXISMOTION", {**axis("LEFTX", 32767), "instance_id": 8}),
+            (0.30, "CONTROLLERBUTTONDOWN", button("DPAD_LEFT")),  # the hat: tilt about y
+            (0.60, "CONTROLLERBUTTONUP", button("DPAD_LEFT")),
+            (0.60, "CONTROLLERBUTTONDOWN", button("A")),  # bottom face button: gripper
+            (0.65, "CONTROLLERBUTTONUP", button("A")),
+            (0.90, "CONTROLLERBUTTONUP", button("LEFTSHOULDER")),
+            (0.90, "CONTROLLERBUTTONDOWN", button("Y")),  # top face button: success
+            (1.20, "CONTROLLERDEVICEREMOVED", {"instance_id": 7}),
+        ),
+    )
+    poster.start()
+    step = _settle(teleop, 0.15)
+    translation = DEFAULT_MAPS["gamepad"].translation
+    np.testing.assert_allclose(step.action[:3], [translation, 0, 0], rtol=1e-3, atol=1e-9)
+    step = _settle(teleop, 0.3)
+    assert abs(step.action[3]) > 0 and step.action[0] > 0  # the D-pad tilts as well
+    step = _settle(teleop, 0.3)
+    assert step.events == ("gripper",) and step.action[6] == 1.0 and step.action[3] == 0
+    step = _settle(teleop, 0.3)
+    assert step.events == ("success",) and not step.moving
+    poster.join()
+    _settle(teleop, 0.2)
+    assert teleop.lost is not None and "gamepad went away" in teleop.lost
+    teleop.close()
+
+
+def test_no_sdl_game_controller_is_one_line() -> None:
+    with pytest.raises(TeleopError, match="SDL finds no game controller") as refused:
+        open_teleop("gamepad:sdl")
+    assert "\n" not in str(refused.value)
 
 
 @pytest.fixture

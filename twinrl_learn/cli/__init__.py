@@ -41,6 +41,7 @@ app.add_typer(robot_commands.robot_app, name="robot")
 data_cli.app.command("import-csv")(sim_cli.import_csv_command)  # needs the twin for FK
 app.add_typer(data_cli.app, name="data")
 app.command("record")(record_cli.record)
+app.command("replay")(robot_commands.replay)
 app.command("view")(sim_cli.view)
 app.command("expand")(sim_cli.expand_command)
 app.add_typer(train.app, name="train")

@@ -28,6 +28,13 @@ def mine_command(
     grid: Annotated[str, typer.Option(help="Configuration grid over ID and OOD.")] = "8x8",
     episodes: Annotated[int, typer.Option(help="Twin episodes per grid cell.", min=1)] = 2,
     seed: Annotated[int, typer.Option(help="Seed for the evaluation.")] = 0,
+    twin: Annotated[
+        str | None,
+        typer.Option(
+            help="The cell's twin to mine in: a scene spec file (or a built-in cell); "
+            "default: the task's own scene."
+        ),
+    ] = None,
 ) -> None:
     """Stage III support: where does the policy fail in the twin? Ranked reset targets."""
     from twinrl_learn.mining import mine
@@ -45,6 +52,7 @@ def mine_command(
         k=k,
         seed=seed,
         catalog=episodes_from,
+        twin=twin,
     )
     table = Table("#", "region", "x", "y", "est. success", "score", title=f"targets (tau {tau})")
     for i, target in enumerate(result["targets"], 1):

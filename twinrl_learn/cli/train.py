@@ -7,6 +7,7 @@ a field's docstring is its option's help."""
 from __future__ import annotations
 
 import inspect
+import sys
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -19,7 +20,9 @@ from twinrl_learn.replay import RewardSettings
 from twinrl_learn.settings import RealRLSettings, RLConfig, SFTConfig, TwinRLSettings
 from twinrl_robot.operator import OperatorRule
 
-app = typer.Typer(help="Train policies: SFT, twin RL, real RL.", no_args_is_help=True)
+app = typer.Typer(
+    help="Train policies (SFT, twin RL, real RL) and reward classifiers.", no_args_is_help=True
+)
 
 RESUME = inspect.Parameter(
     "resume",
@@ -168,7 +171,7 @@ OPERATOR = inspect.Parameter(
 def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
     import torch
 
-    from twinrl_learn.real_rl import RealRL
+    from twinrl_robot.teleop import TerminalKeys
 
     # A resumed run keeps the RL settings it started with (RealRL.resume loads them).
     rl = settings.pop("rl")
@@ -177,9 +180,26 @@ def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
     # Small networks: one thread each for the actor and the learner.
     torch.set_num_threads(1)
     quiet_encoders()
-    job_run = RealRL.resume(config) if resume else RealRL.start(config)
+    terminal = TerminalKeys() if sys.stdin.isatty() else None  # the person's keys
+    try:
+        _real_rl(config, resume, terminal)
+    finally:
+        if terminal is not None:
+            terminal.close()
+
+
+def _real_rl(config: RealRLSettings, resume: bool, terminal: Any) -> None:
+    from twinrl_learn.real_rl import RealRL
+
     steps = config.plant_steps
     with progress("ID", "OOD", "interventions") as bar:
+        waiting = bar.add_task("", total=None, visible=False, ID="", OOD="", interventions="")
+
+        def on_wait(message: str) -> None:
+            bar.update(waiting, description=message, visible=True)
+
+        start = RealRL.resume if resume else RealRL.start
+        job_run = start(config, terminal=terminal, on_wait=on_wait)
         offline = bar.add_task(
             "offline updates",
             total=job_run.run_state.agent.config.offline_steps,
@@ -190,6 +210,7 @@ def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
         job = bar.add_task("robot steps", total=steps, ID="-", OOD="-", interventions=0)
 
         def on_episode(record, real) -> None:
+            bar.update(waiting, visible=False)
             rates = real.evaluations[-1].success_rate
             bar.update(
                 job,
@@ -202,6 +223,12 @@ def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
             on_episode=on_episode, on_update=lambda n: bar.update(offline, completed=n)
         )
     final, out = job_run.evaluations[-1], Path(config.out)
+    if job_run.paused:
+        console.print(
+            f"{out}: paused after {len(run.history)} episodes ({run.agent.env_steps} robot "
+            "steps), everything kept; go on with the same command and --resume"
+        )
+        return
     console.print(
         f"{out}: {run.agent.env_steps} robot steps ({final.plant_minutes:.1f} plant min), "
         f"{len(run.history)} episodes, "
@@ -212,9 +239,10 @@ def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
 
 
 REAL_RL_FIELDS = (
-    "task", "out", "init", "keep_critic", "robot", "effects", "demos", "twin_buffer",
+    "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
+    "classifier", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "plant_steps", "eval_every", "eval_grid",
-    "eval_episodes", "learner_sync",
+    "eval_episodes", "learner_sync", "show_resets", "view",
 )  # fmt: skip
 settings_command(
     app,
@@ -231,6 +259,62 @@ settings_command(
         ),
     ],
     real_rl,
-    help="Stage III: human-in-the-loop RL on the robot with twin-mined resets.",
+    help="Stage III: human-in-the-loop RL on the robot with twin-mined resets (keys: s "
+    "success, f failure, q pause after this episode; Enter starts one on a real cell).",
     extra=[OPERATOR, RESUME],
 )
+
+
+# ---------------------------------------------------------------- reward-classifier
+@app.command("reward-classifier")
+def reward_classifier(
+    datasets: Annotated[
+        list[Path],
+        typer.Argument(help="Session folders, .mcap episodes or LeRobot datasets of one task."),
+    ],
+    out: Annotated[Path, typer.Option(help="Folder to create for the classifier and report.")],
+    camera: Annotated[
+        list[str] | None, typer.Option(help="Camera it looks at; repeat for several.")
+    ] = None,
+    image_size: Annotated[int, typer.Option(help="Pixels each camera is resized to.", min=16)] = 64,
+    steps: Annotated[int, typer.Option(help="Training steps.", min=1)] = 1500,
+    margin: Annotated[
+        int, typer.Option(help="Frames before the succeeding step left out as ambiguous.", min=0)
+    ] = 6,
+    task: Annotated[
+        str | None, typer.Option(help="Only this task's episodes (a session may hold several).")
+    ] = None,
+    heldout: Annotated[float, typer.Option(help="Share of episodes held out.")] = 0.25,
+    seed: Annotated[int, typer.Option(help="Seed of the split and the training.")] = 0,
+) -> None:
+    """Learn a task's success from its episodes' cameras (a reward for real RL on a cell
+    without ground truth); reports held-out accuracy, precision, recall and mistakes."""
+    from twinrl_learn.reward_classifier import (
+        REPORT,
+        ClassifierSettings,
+        episodes_under,
+        train_reward_classifier,
+    )
+
+    settings = ClassifierSettings(
+        cameras=tuple(camera or ["front"]),
+        image_size=image_size,
+        margin=margin,
+        heldout=heldout,
+        steps=steps,
+        seed=seed,
+    )
+    episodes = episodes_under(datasets, settings.cameras, task)
+    with progress("loss") as bar:
+        job = bar.add_task("reward classifier", total=steps, loss="-")
+        report = train_reward_classifier(
+            episodes,
+            out,
+            settings,
+            progress=lambda step, loss: bar.update(job, completed=step, loss=f"{loss:.3f}"),
+        )
+    console.print(
+        f"{out}: held out {report.heldout_frames} frames of {report.heldout_episodes} episodes: "
+        f"accuracy {100 * report.accuracy:.1f} %, precision {100 * report.precision:.1f} %, "
+        f"recall {100 * report.recall:.1f} %; report {out / REPORT}"
+    )

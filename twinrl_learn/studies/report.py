@@ -17,7 +17,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.view import save_rrd
 from twinrl_learn.evaluate import grid_cells
-from twinrl_learn.real_rl import EvalPoint, load_evaluations, minutes_to
+from twinrl_learn.real_rl_progress import EvalPoint, load_evaluations, minutes_to
 from twinrl_learn.studies.layout import eval_folder
 from twinrl_learn.studies.presets import METHOD_TABLE, Preset
 from twinrl_sim.tasks import REGION_NAMES
@@ -222,7 +222,7 @@ def write_report(
     lines += [
         "",
         "Per run: `real_rl/<method>/seed<k>/` (curve.png, evaluations/, session/, "
-        "resets-*.rrd). All episodes are indexed in `catalog.parquet`; "
+        "live-*.rrd). All episodes are indexed in `catalog.parquet`; "
         "`representative.rrd` shows a TwinRL episode with an operator takeover and its "
         "last training episode.",
         "",

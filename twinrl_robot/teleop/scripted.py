@@ -9,6 +9,11 @@ axis map, the deadman's zero when it lets go), presses ``gripper`` when the expe
 gripper command changes, and, when the task succeeds or the expert's plan is done,
 presses the mark its script gives that episode (``success`` by default; ``failure`` or
 ``discard`` to exercise those paths).
+
+In real RL it ``watches`` the policy instead, as the simulated operator's rule says
+(:class:`~twinrl_robot.operator.OperatorRule`): it presses ``takeover`` when the rule
+takes the controls, drives the rule's expert through the device, and presses
+``takeover`` again to hand back.
 """
 
 from __future__ import annotations
@@ -17,9 +22,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_robot.robot import Privileged
 from twinrl_robot.teleop.device import DeviceState, TeleopError
 from twinrl_robot.teleop.settings import ACTION_AXES, DeviceMap
+from twinrl_robot.teleop.teleop import GripperAsLeft
 from twinrl_sim.tasks import Task, TaskConfig
 from twinrl_sim.tasks.expert import GRIPPER_CLOSED, ScriptedExpert
 
@@ -34,6 +41,8 @@ class ScriptedPerson:
         marks: per episode in turn, the mark pressed at its end (then ``success``).
         noise: hand jitter, m per step (rotations: 5x, in rad), which the expert corrects.
         seed: seeds the expert's grasps and the jitter.
+        watch: in real RL, when to take over from the policy and hand back (the
+            simulated operator's rule, with its own jitter); ``None`` drives every step.
     """
 
     kind = "scripted"
@@ -47,6 +56,7 @@ class ScriptedPerson:
         marks: Sequence[str] = (),
         noise: float = 0.002,
         seed: int = 0,
+        watch: OperatorRule | None = None,
     ) -> None:
         if privileged is None:
             raise TeleopError(
@@ -61,10 +71,16 @@ class ScriptedPerson:
         self._gripper = 0.0
         self._marked = False
         self._stamp = 0.0
+        self._watcher = None if watch is None else SimulatedOperator(watch, seed=seed)
+        self._holding = False  # watching: whether it has the controls
+        self._as_left = GripperAsLeft()
 
     def episode(self, task: Task, config: TaskConfig) -> None:
         self._expert = task.expert(config, self.rng)
         self._gripper, self._marked = 0.0, False
+        if self._watcher is not None:
+            self._watcher.reset(task, config)
+            self._holding, self._as_left = False, GripperAsLeft()
 
     def read(self, observation: Mapping[str, np.ndarray] | None = None) -> DeviceState:
         self._stamp += 1.0
@@ -76,6 +92,8 @@ class ScriptedPerson:
             self._marked = True
             mark = self.marks.pop(0) if self.marks else "success"
             return DeviceState({}, self._button(mark), self._stamp)
+        if self._watcher is not None:
+            return self._watch(observation)
         action = np.asarray(self._expert.act(dict(observation)), np.float64)
         if self.noise > 0:
             shake = self.rng.normal(0.0, self.noise, 6) * np.array([1, 1, 1, 5, 5, 5])
@@ -87,6 +105,27 @@ class ScriptedPerson:
             self._gripper = closing
             buttons = self._button("gripper")
         return DeviceState(self._deflection(action[:6]), buttons, self._stamp)
+
+    def _watch(self, observation: Mapping[str, np.ndarray]) -> DeviceState:
+        """Real RL: take over, drive and hand back as the watcher's rule says."""
+        assert self._watcher is not None
+        as_left = self._as_left.see(observation)  # what the takeover will start with
+        action = self._watcher.intervene(dict(observation), self.privileged.progress)
+        if action is None:
+            released = self._holding
+            self._holding = False
+            return DeviceState(
+                {}, self._button("takeover") if released else frozenset(), self._stamp
+            )
+        buttons: frozenset[str] = frozenset()
+        if not self._holding:  # the device's takeover starts from the gripper as it is
+            self._holding = True
+            self._gripper = as_left
+            buttons = self._button("takeover")
+        elif float(action[6] >= GRIPPER_CLOSED) != self._gripper:
+            self._gripper = float(action[6] >= GRIPPER_CLOSED)
+            buttons = self._button("gripper")
+        return DeviceState(self._deflection(np.asarray(action[:6])), buttons, self._stamp)
 
     def _deflection(self, motion: np.ndarray) -> dict[str, float]:
         """The axes that command ``motion`` through the map (the map's inverse)."""

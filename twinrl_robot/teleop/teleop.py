@@ -122,6 +122,20 @@ class TeleopSource:
         return events
 
 
+class GripperAsLeft:
+    """The gripper command a takeover starts with, as the policy left the fingers: closed
+    when they open less than :data:`CLOSED_BELOW` of their widest this episode."""
+
+    def __init__(self) -> None:
+        self.widest = 0.0
+
+    def see(self, observation: Mapping[str, np.ndarray]) -> float:
+        """Take this step's opening into account; the command a takeover now starts with."""
+        opening = float(observation["observation.state"][-1])
+        self.widest = max(self.widest, opening)
+        return float(opening < CLOSED_BELOW * self.widest)
+
+
 class TeleopOperator:
     """A person at a device as the RL loop's :class:`~twinrl_robot.operator.Operator`:
     their ``takeover`` button takes the controls from the policy and hands them back;
@@ -144,19 +158,18 @@ class TeleopOperator:
         self.teleop.reset()
         self.teleop.device.episode(task, config)
         self.takeovers = 0
-        self._widest = 0.0
+        self._gripper = GripperAsLeft()
 
     def intervene(
         self, observation: dict[str, np.ndarray], progress: Progress | None
     ) -> np.ndarray | None:
-        opening = float(observation["observation.state"][-1])
-        self._widest = max(self._widest, opening)
+        as_left = self._gripper.see(observation)
         was = self.teleop.in_control
         step = self.teleop.step(observation)
         self._events += step.events
         if self.teleop.in_control and not was:
             self.takeovers += 1
-            self.teleop.gripper = float(opening < CLOSED_BELOW * self._widest)
+            self.teleop.gripper = as_left
             step = TeleopStep(self.teleop.action_with(step.action[:6]), step.events, step.moving)
         return step.action if self.teleop.in_control else None
 
