@@ -56,8 +56,10 @@ test: setup
 
 # The end-to-end runs marked slow (about 5 minutes more); CI runs them after `make test`.
 # One at a time, as the real-time tests (timed kills among them) need.
+# The slow tests too: on every core, then those that keep real time, alone.
 test-slow: setup
-	$(BIN)/pytest -q -m slow
+	$(PARALLEL) -q -m "slow and not realtime"
+	$(BIN)/pytest -q -m "slow and realtime"
 
 DEMO := out/demo
 demo: setup
