@@ -7,6 +7,7 @@ from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_robot.excitation import run_excitation
+from twinrl_sim.gap.identify import _remembering_last_point
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.gap.localize import localize
 from twinrl_sim.gap.shooting import replay_windows
@@ -184,3 +185,23 @@ def test_a_125_hz_log_names_its_delay_and_payload_not_a_servo_gain(tmp_path):
     assert sorted(s["effect"] for s in diagnosis.selected) == ["actuator_delay", "payload"]
     assert diagnosis.effects["actuator_delay"]["seconds"] == pytest.approx(0.03, rel=0.15)
     assert diagnosis.effects["payload"]["mass"] == pytest.approx(2.0, rel=0.15)
+
+
+def test_a_fit_does_not_replay_its_last_point_again():
+    """The optimiser's last point is asked for again (intervals, information criteria):
+    answered from memory, while new points and finite-difference batches are replayed."""
+    calls = []
+
+    def residual_fn(x, params, **kwargs):
+        calls.append(np.shape(x))
+        return [np.atleast_2d(x).sum(axis=0)], [], []
+
+    remembering = _remembering_last_point(residual_fn)
+    first = remembering(np.array([[1.0], [2.0]]), None)  # as the optimiser asks: a column
+    again = remembering(np.array([1.0, 2.0]), "another template")
+    assert first[0][0].shape == (1, 1) and again[0][0].shape == (1,)
+    assert again[0][0][0] == first[0][0][0, 0]
+    remembering(np.array([[1.0, 1.1], [2.0, 2.0]]), None)  # a batch: always replayed
+    remembering(np.array([1.0, 2.5]), None)
+    remembering(np.array([1.0, 2.0]), None)  # no longer the last point alone
+    assert calls == [(2, 1), (2, 2), (2,), (2,)]

@@ -26,8 +26,9 @@ from dataclasses import dataclass, fields
 
 import mujoco
 import numpy as np
+import scipy.optimize as scipy_optimize
 from absl import logging as absl_logging
-from mujoco import sysid
+from mujoco import minimize, sysid
 from mujoco.rollout import Rollout
 
 from twinrl_data.errors import SettingError
@@ -41,6 +42,7 @@ from twinrl_sim.windowed import WindowedReplay
 FD_STEP = 1e-3  # finite-difference step in optimiser units (see Candidate.scale)
 MAX_ITERS = 12  # Levenberg-Marquardt iterations per fit; these fits converge in 3-8
 XTOL = 1e-4  # relative step below which a fit has converged (far below any interval)
+BIC_STEP = 0.5  # a fit whose last step changed its BIC by less than this has converged
 
 
 @dataclass(frozen=True)
@@ -85,21 +87,82 @@ def least_squares(
     params: sysid.ParameterDict, residual_fn, *, eps: float, xtol: float, max_iters: int
 ):
     """``sysid.optimize`` with MuJoCo's bounded Levenberg-Marquardt as the gap fits use
-    it: (fitted parameters, the optimiser's result, iterations taken)."""
+    it: (fitted parameters, the optimiser's result, iterations taken).
+
+    Besides the optimiser's own step tolerance, a fit stops once its last step changed
+    its BIC by less than :data:`BIC_STEP` (the step's share of the squared residuals
+    times their count): what the diagnosis compares could then barely move, while a
+    parameter whose value is near zero (an offset the arm does not have) would take
+    steps relative to that value until ``max_iters``."""
     logging.getLogger("absl").setLevel(logging.ERROR)
-    fitted, result = sysid.optimize(
-        params,
-        residual_fn,
-        optimizer="mujoco",
-        verbose=False,
-        max_iters=max_iters,
-        eps=eps,
-        x_scale="jac",  # column-normalised: the damping is then of order one
-        mu_factor=10**0.5,  # few rejected trial steps (each costs a rollout)
-        xtol=xtol,
-        output=io.StringIO(),  # the backend prints every iteration; keep it quiet
-    )
+    try:
+        fitted, result = sysid.optimize(
+            params,
+            residual_fn,
+            optimizer="mujoco",
+            verbose=False,
+            max_iters=max_iters,
+            eps=eps,
+            x_scale="jac",  # column-normalised: the damping is then of order one
+            mu_factor=10**0.5,  # few rejected trial steps (each costs a rollout)
+            xtol=xtol,
+            output=io.StringIO(),  # the backend prints every iteration; keep it quiet
+            iter_callback=_stop_when_flat,
+        )
+    except _Flat as flat:
+        return _flat_result(params, residual_fn, flat, eps)
     return fitted, result, len(result.extras.get("objective", [])) or max_iters
+
+
+class _Flat(Exception):
+    """Raised from the optimiser's iteration callback: the fit has converged at ``x``."""
+
+    def __init__(self, x: np.ndarray, iterations: int) -> None:
+        self.x, self.iterations = x, iterations
+
+
+def _stop_when_flat(trace: list[minimize.IterLog]) -> None:
+    last = trace[-1]
+    if last.step is None or last.residual is None or not last.reduction > 0:
+        return  # the final entry, or a step that did not help
+    if last.residual.size * last.reduction < BIC_STEP * last.objective:
+        raise _Flat(last.candidate + last.step, len(trace))
+
+
+def _flat_result(params: sysid.ParameterDict, residual_fn, flat: _Flat, eps: float):
+    """What :func:`sysid.optimize` returns, for a fit stopped at ``flat.x``: the
+    parameters there and the Jacobian there (as the optimiser ends with)."""
+    low, high = params.get_bounds()
+    x = np.clip(flat.x, low[:, None], high[:, None])
+
+    def residual(z: np.ndarray) -> np.ndarray:
+        return np.concatenate(residual_fn(z, params)[0])
+
+    jac, _ = minimize.jacobian_fd(residual, x, residual(x), eps, 0, [low[:, None], high[:, None]])
+    fitted = params.copy()
+    fitted.update_from_vector(x[:, 0])
+    return fitted, scipy_optimize.OptimizeResult(x=x[:, 0], jac=jac), flat.iterations
+
+
+def _remembering_last_point(residual_fn):
+    """``residual_fn`` that answers the point it last evaluated alone from memory: the
+    optimiser's last accepted point is asked for again, for the intervals and the
+    information criteria, and each such replay of every window costs a rollout."""
+    last: dict[bytes, tuple] = {}
+
+    def residual(x, params, **kwargs):
+        x = np.asarray(x, float)
+        if (x.ndim > 1 and x.shape[1] != 1) or kwargs:  # finite differences' batch, options
+            return residual_fn(x, params, **kwargs)
+        key = x.ravel().tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = residual_fn(x, params)
+        residuals, *rest = last[key]
+        shape = (-1,) if x.ndim == 1 else (-1, 1)  # as asked: one point flat or as a column
+        return ([r.reshape(shape) for r in residuals], *rest)
+
+    return residual
 
 
 class WindowReplay:
@@ -131,12 +194,14 @@ class WindowReplay:
         self.engine = WindowedReplay(self.layout, windows.fps, pool)
         self.starts = measured_starts(model, self.layout, windows)
         self.sequences = self._sequences(structure, model)
-        self.residual_fn = sysid.build_residual_fn(
-            models_sequences=[self.sequences],
-            build_model=lambda params, _spec: self.edited_spec(params).compile(),
-            custom_rollout=self._rollout,
-            modify_residual=self._residual,
-            n_threads=2,
+        self.residual_fn = _remembering_last_point(
+            sysid.build_residual_fn(
+                models_sequences=[self.sequences],
+                build_model=lambda params, _spec: self.edited_spec(params).compile(),
+                custom_rollout=self._rollout,
+                modify_residual=self._residual,
+                n_threads=2,
+            )
         )
 
     # ------------------------------------------------------------------ model
