@@ -19,7 +19,13 @@ from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
 from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, _inside, build_twin
-from twinrl_sim.reconstruct.segment import TablePlane, TagPlane, describe_cluster, level_table
+from twinrl_sim.reconstruct.segment import (
+    TablePlane,
+    TagPlane,
+    describe_cluster,
+    find_objects,
+    level_table,
+)
 from twinrl_sim.reconstruct.synthetic import (
     THREE_TAGS,
     TagPlacement,
@@ -146,6 +152,43 @@ def test_a_round_footprint_has_one_diameter_however_unevenly_its_rim_is_seen():
     # An elongated footprint keeps its two extents.
     bar = describe_cluster(_disc_points(rng, 0.03, 400, stretch=3.0), np.ones(3), table)
     assert 0.85 < bar.size[0] / 0.18 < 1.0 and 0.85 < bar.size[1] / 0.06 < 1.0
+
+
+def _streak(rng, xy, height, n=80):
+    """Points up a thin vertical line from the table at ``xy``: the outline of a clear
+    object where it bends the background, as structure from motion finds it."""
+    return np.c_[np.asarray(xy) + rng.normal(0, 0.002, (n, 2)), rng.uniform(0.01, height, n)]
+
+
+def _box(rng, xy, side, n=200):
+    return np.c_[
+        np.asarray(xy) + rng.uniform(-side / 2, side / 2, (n, 2)), rng.uniform(0.01, side, n)
+    ]
+
+
+def test_a_clear_objects_outline_streaks_become_one_object_as_wide_as_it_looks():
+    rng = np.random.default_rng(1)
+    table = TablePlane(0.0, np.zeros(2), np.ones(2), 0.0, np.ones(3), 0.0, 100)
+    # A bottle 7.5 cm across, 25 cm tall: its two sides as seen from +x; 40 cm away two
+    # cubes 5 cm apart, a pen 14 cm tall and a second bottle.
+    clouds = [
+        _streak(rng, (0.0, -0.0375), 0.25),
+        _streak(rng, (0.003, 0.0375), 0.25),
+        _box(rng, (0.4, 0.0), 0.04),
+        _box(rng, (0.4, 0.09), 0.04),
+        _streak(rng, (0.0, 0.2), 0.14),
+        _streak(rng, (-0.2, -0.2), 0.25),
+        _streak(rng, (-0.2, -0.27), 0.25),
+    ]
+    points = np.vstack(clouds)
+    objects = find_objects(points, np.full((len(points), 3), 128.0), table)
+    assert len(objects) == 5  # the two bottles, the two cubes, the pen
+    bottles = sorted((o for o in objects if o.outline), key=lambda o: -o.center[0])
+    assert [o.outline for o in bottles] == [2, 2]
+    assert np.linalg.norm(bottles[0].center[:2] - [0.0015, 0.0]) < 0.005
+    assert bottles[0].size[0] == bottles[0].size[1] == pytest.approx(0.075, abs=0.01)
+    assert abs(bottles[0].size[2] - 0.25) < 0.02
+    assert sum(o.outline == 0 for o in objects) == 3
 
 
 def _pixels(rgb, n: int, rng, brightness=(1.0, 1.0), noise: float = 3.0) -> np.ndarray:

@@ -72,6 +72,11 @@ def weigh_evidence(
             f"seen from one side only ({arc:.0f} deg of arc): its depth along the view is "
             "a guess; film it from more sides"
         )
+    if cluster.outline and not carved:
+        doubts.append(
+            f"built from its outline ({cluster.outline} streaks of points, as a clear or "
+            "glossy object gives): its depth is taken as its width"
+        )
     if not carved and len(cluster.points) < MIN_POINTS:
         doubts.append(
             f"only {len(cluster.points)} points and no silhouette (a clear, glossy or plain "

@@ -266,7 +266,7 @@ def build_twin(
         clusters = [
             cluster
             if hull is None
-            else describe_cluster(cluster.points, cluster.color, table, hull)
+            else describe_cluster(cluster.points, cluster.color, table, hull, cluster.outline)
             for cluster, hull in zip(clusters, hulls, strict=True)
         ]
         evidence = [weigh_evidence(cluster, model, to_cell) for cluster in clusters]

@@ -7,11 +7,14 @@
 - **Objects**: points above the table (and below ``max_height``) clustered with DBSCAN
   (open3d ``cluster_dbscan``); each large enough cluster is one object, described by its
   oriented footprint (its points seen from above, or its visual hull's where one was
-  carved, see ``silhouette``), height, mean colour.
+  carved, see ``silhouette``), height, mean colour. A clear or glossy object gives
+  points only along its outline, where it bends or mirrors what is behind it: tall thin
+  streaks of one height a width apart, which are joined into one object (``outline``).
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -34,6 +37,8 @@ TOP_CELLS = 4  # cells needed; fewer, and the top is a high percentile of the po
 TOP_PERCENTILE = 90  # over the cells' median heights
 FOOTPRINT_TRIM = 1.0  # percent of the points left out at each end of a footprint
 ROUND_ASPECT = 1.25  # footprints rounder than this have no heading and one diameter
+STREAK_SLENDERNESS = 0.3  # a cluster whose footprint spans less of its height is a streak
+STREAK_HEIGHTS_AGREE = 0.15  # relative: streaks of one outline stand as tall as each other
 
 
 def planar_axes(yaw: float) -> np.ndarray:
@@ -77,6 +82,7 @@ class ObjectCluster:
     color: np.ndarray  # (3,) mean RGB in [0, 1]
     points: np.ndarray  # (N, 3) the SfM points
     carved: np.ndarray | None = None  # (M, 2) footprint carved from silhouettes, if any
+    outline: int = 0  # streaks of points it was joined from (its outline's), 0: one cluster
 
     @property
     def body_points(self) -> np.ndarray:
@@ -89,7 +95,11 @@ class ObjectCluster:
 
 
 def describe_cluster(
-    points: np.ndarray, color: np.ndarray, table: TablePlane, carved: np.ndarray | None = None
+    points: np.ndarray,
+    color: np.ndarray,
+    table: TablePlane,
+    carved: np.ndarray | None = None,
+    outline: int = 0,
 ) -> ObjectCluster:
     """An object from its points, and its carved footprint where it has one: footprint,
     heading, height.
@@ -98,7 +108,9 @@ def describe_cluster(
     the 1st-99th percentile box, as a few stray matches fringe every object. A round
     footprint (aspect under ``ROUND_ASPECT``) has one diameter, its long extent: the
     long axis is where the points spread most, so uneven coverage of the rim (a pale
-    plate's, from a short clip) shortens the other one more."""
+    plate's, from a short clip) shortens the other one more. An object joined from its
+    ``outline``'s streaks is as deep as it is wide: its depth along the view was never
+    seen."""
     if carved is None:
         footprint, trim = points[:, :2], FOOTPRINT_TRIM
     else:
@@ -107,9 +119,9 @@ def describe_cluster(
     axes = planar_axes(yaw)
     low, high = np.percentile(footprint @ axes.T, [trim, 100 - trim], axis=0)
     centre_xy = ((low + high) / 2) @ axes
-    height = top_height(points) - table.height
+    height = (streak_top(points) if outline else top_height(points)) - table.height
     extent = high - low
-    if extent.max() < ROUND_ASPECT * extent.min():
+    if extent.max() < ROUND_ASPECT * extent.min() or (outline and carved is None):
         extent = np.full(2, extent.max())
     return ObjectCluster(
         center=np.array([centre_xy[0], centre_xy[1], table.height + height / 2]),
@@ -118,6 +130,7 @@ def describe_cluster(
         color=color,
         points=points,
         carved=carved,
+        outline=outline,
     )
 
 
@@ -225,8 +238,14 @@ def top_height(points: np.ndarray) -> float:
         np.median(points[cell_of == k, 2]) for k in np.flatnonzero(counts >= TOP_CELL_POINTS)
     ]
     if len(medians) < TOP_CELLS:  # a small or sparse object: no cells to trust
-        return float(np.percentile(points[:, 2], 98))
+        return streak_top(points)
     return float(np.percentile(medians, TOP_PERCENTILE))
+
+
+def streak_top(points: np.ndarray) -> float:
+    """The top of a streak of points, or of an outline made of them: a high percentile of
+    the points (a streak has no top surface whose cells :func:`top_height` could take)."""
+    return float(np.percentile(points[:, 2], 98))
 
 
 def find_objects(
@@ -242,13 +261,56 @@ def find_objects(
         return []
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen))
     labels = np.asarray(cloud.cluster_dbscan(CLUSTER_EPS, 8))
+    parts = [np.flatnonzero(labels == label) for label in range(labels.max() + 1)]
     objects = []
-    for label in range(labels.max() + 1):
-        member = labels == label
-        if member.sum() < MIN_CLUSTER_POINTS:
+    for group in join_outlines([chosen[part] for part in parts], table.height):
+        members = np.concatenate([parts[i] for i in group])
+        if len(members) < MIN_CLUSTER_POINTS:
             continue
-        cluster = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen[member]))
+        streaks = len(group) if len(group) > 1 else 0
+        cluster = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen[members]))
         _, keep = cluster.remove_statistical_outlier(nb_neighbors=8, std_ratio=2.0)
-        color = chosen_colors[member][keep].mean(0) / 255.0
-        objects.append(describe_cluster(chosen[member][keep], color, table))
+        color = chosen_colors[members][keep].mean(0) / 255.0
+        objects.append(describe_cluster(chosen[members][keep], color, table, outline=streaks))
     return sorted(objects, key=lambda o: -len(o.points))
+
+
+def join_outlines(clouds: list[np.ndarray], table_height: float) -> list[list[int]]:
+    """The clusters ``clouds`` grouped into objects (indices into ``clouds``), with the
+    streaks that outline one object joined.
+
+    A streak is a cluster whose footprint spans less than :data:`STREAK_SLENDERNESS` of
+    its height. Streaks are joined, the nearest pair first, while their heights agree
+    within :data:`STREAK_HEIGHTS_AGREE` and the joined footprint is no wider than it is
+    tall (a glass or a bottle, not a row of them); every other cluster stays alone.
+    """
+    heights = [streak_top(c) - table_height for c in clouds]
+    centres = [c[:, :2].mean(0) for c in clouds]
+
+    def joinable(members: list[int]) -> bool:
+        tall = [heights[i] for i in members]
+        footprint = np.vstack([clouds[i][:, :2] for i in members])
+        agree = min(tall) >= (1 - STREAK_HEIGHTS_AGREE) * max(tall)
+        return agree and _span(footprint) <= min(tall)
+
+    def gap(a: list[int], b: list[int]) -> float:
+        return float(
+            np.linalg.norm(
+                np.mean([centres[i] for i in a], 0) - np.mean([centres[i] for i in b], 0)
+            )
+        )
+
+    streaks = [i for i, c in enumerate(clouds) if _span(c[:, :2]) < STREAK_SLENDERNESS * heights[i]]
+    groups = [[i] for i in streaks]
+    while pairs := [
+        (gap(a, b), a, b) for a, b in itertools.combinations(groups, 2) if joinable(a + b)
+    ]:
+        _, a, b = min(pairs, key=lambda pair: pair[0])
+        groups = [g for g in groups if g is not a and g is not b] + [a + b]
+    return [[i] for i in range(len(clouds)) if i not in streaks] + groups
+
+
+def _span(xy: np.ndarray) -> float:
+    """The longest extent of a footprint's points (m), about its own long axis."""
+    local = xy @ planar_axes(footprint_yaw(xy)).T
+    return float(np.ptp(local, axis=0).max()) if len(xy) else 0.0
