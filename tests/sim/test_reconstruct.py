@@ -17,7 +17,7 @@ from tests.test_cli import twinrl
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
-from twinrl_sim.reconstruct.objects import match_task_objects, template_sizes
+from twinrl_sim.reconstruct.objects import match_task_objects, reconstruct_shape, template_sizes
 from twinrl_sim.reconstruct.pipeline import BuildSettings, _inside, build_twin
 from twinrl_sim.reconstruct.segment import (
     TablePlane,
@@ -189,6 +189,12 @@ def test_a_clear_objects_outline_streaks_become_one_object_as_wide_as_it_looks()
     assert bottles[0].size[0] == bottles[0].size[1] == pytest.approx(0.075, abs=0.01)
     assert abs(bottles[0].size[2] - 0.25) < 0.02
     assert sum(o.outline == 0 for o in objects) == 3
+    # Its unseen back: a closed surface as deep as it is wide, a cylinder's volume.
+    shape = reconstruct_shape(bottles[0], bottles[0].yaw, table.height)
+    extent = np.ptp(np.asarray(shape.surface.vertices), axis=0)
+    assert shape.surface.is_watertight() and extent[1] == pytest.approx(extent[0], rel=0.05)
+    radius, height = bottles[0].size[0] / 2, bottles[0].size[2]
+    assert shape.volume == pytest.approx(np.pi * radius**2 * height, rel=0.1)
 
 
 def _pixels(rgb, n: int, rng, brightness=(1.0, 1.0), noise: float = 3.0) -> np.ndarray:

@@ -37,6 +37,7 @@ from twinrl_sim.spec import SceneSpec
 
 DEFAULT_DENSITY = 700.0  # kg/m^3: fruit, wood, filled plastic; override per object
 ALPHA = 0.03  # m: alpha-shape radius, about the spacing of sparse SfM points
+OUTLINE_RIM = 32  # points on each rim of an object built from its outline
 CONVEXITY = 0.05  # CoACD concavity threshold
 MAX_PARTS = 8
 SCALE_MISMATCH = 1.3  # objects this much larger/smaller than the task's: a wrong tag size
@@ -108,17 +109,39 @@ def reconstruct_shape(
     cluster: ObjectCluster, yaw: float, table_height: float, seed: int = 0
 ) -> ObjectShape:
     """The closed surface of a cluster (alpha shape of its points, its carved footprint
-    and their drop onto the table)."""
+    and their drop onto the table).
+
+    An object built from its outline's streaks has no seen back, and is as deep as it is
+    wide (see :func:`~twinrl_sim.reconstruct.segment.describe_cluster`): its surface is
+    the convex hull of its points and of rims as wide as its outline at its foot and top,
+    a cylinder for a bottle or a glass. A surface the alpha shape could not close into a
+    manifold (sparse points), which could be neither painted nor decomposed, is the
+    points' convex hull."""
     points = _to_object_frame(cluster.body_points, cluster.center[:2], yaw, table_height)
     points = points[points[:, 2] <= cluster.size[2]]
+    if cluster.outline:
+        angle = np.linspace(0, 2 * np.pi, OUTLINE_RIM, endpoint=False)
+        rim = cluster.size[0] / 2 * np.c_[np.cos(angle), np.sin(angle)]
+        points = np.vstack([points, np.c_[rim, np.full(len(rim), cluster.size[2])]])
     footprint = points.copy()
     footprint[:, 2] = 0.0
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([points, footprint])))
-    surface = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(cloud, ALPHA)
-    if len(surface.triangles) < 4:
+    surface = None
+    if not cluster.outline:
+        surface = o3d.geometry.TriangleMesh.create_from_point_cloud_alpha_shape(cloud, ALPHA)
+    if surface is None or not _closed(surface):
         surface, _ = cloud.compute_convex_hull()
     surface.compute_vertex_normals()
     return _shape(surface, seed)
+
+
+def _closed(surface: o3d.geometry.TriangleMesh) -> bool:
+    """Whether ``surface`` is a closed manifold with some volume."""
+    return (
+        len(surface.triangles) >= 4
+        and surface.is_edge_manifold(allow_boundary_edges=False)
+        and surface.is_vertex_manifold()
+    )
 
 
 def read_mesh(path: Path) -> o3d.geometry.TriangleMesh:
