@@ -132,13 +132,13 @@ def _stop_when_flat(trace: list[minimize.IterLog]) -> None:
 def _flat_result(params: sysid.ParameterDict, residual_fn, flat: _Flat, eps: float):
     """What :func:`sysid.optimize` returns, for a fit stopped at ``flat.x``: the
     parameters there and the Jacobian there (as the optimiser ends with)."""
-    low, high = params.get_bounds()
-    x = np.clip(flat.x, low[:, None], high[:, None])
+    bounds = [bound[:, None] for bound in params.get_bounds()]  # columns, as x is
+    x = np.clip(flat.x, *bounds)
 
     def residual(z: np.ndarray) -> np.ndarray:
         return np.concatenate(residual_fn(z, params)[0])
 
-    jac, _ = minimize.jacobian_fd(residual, x, residual(x), eps, 0, [low[:, None], high[:, None]])
+    jac, _ = minimize.jacobian_fd(residual, x, residual(x), eps, 0, bounds)
     fitted = params.copy()
     fitted.update_from_vector(x[:, 0])
     return fitted, scipy_optimize.OptimizeResult(x=x[:, 0], jac=jac), flat.iterations

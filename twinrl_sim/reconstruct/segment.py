@@ -284,24 +284,20 @@ def join_outlines(clouds: list[np.ndarray], table_height: float) -> list[list[in
     within :data:`STREAK_HEIGHTS_AGREE` and the joined footprint is no wider than it is
     tall (a glass or a bottle, not a row of them); every other cluster stays alone.
     """
-    heights = [streak_top(c) - table_height for c in clouds]
-    centres = [c[:, :2].mean(0) for c in clouds]
+    heights = np.array([streak_top(c) - table_height for c in clouds])
+    centres = np.array([c[:, :2].mean(0) for c in clouds])
 
     def joinable(members: list[int]) -> bool:
-        tall = [heights[i] for i in members]
+        tall = heights[members]
         footprint = np.vstack([clouds[i][:, :2] for i in members])
-        agree = min(tall) >= (1 - STREAK_HEIGHTS_AGREE) * max(tall)
-        return agree and _span(footprint) <= min(tall)
+        agree = tall.min() >= (1 - STREAK_HEIGHTS_AGREE) * tall.max()
+        return agree and _span(footprint) <= tall.min()
 
     def gap(a: list[int], b: list[int]) -> float:
-        return float(
-            np.linalg.norm(
-                np.mean([centres[i] for i in a], 0) - np.mean([centres[i] for i in b], 0)
-            )
-        )
+        return float(np.linalg.norm(centres[a].mean(0) - centres[b].mean(0)))
 
-    streaks = [i for i, c in enumerate(clouds) if _span(c[:, :2]) < STREAK_SLENDERNESS * heights[i]]
-    groups = [[i] for i in streaks]
+    streaks = {i for i, c in enumerate(clouds) if _span(c[:, :2]) < STREAK_SLENDERNESS * heights[i]}
+    groups = [[i] for i in sorted(streaks)]
     while pairs := [
         (gap(a, b), a, b) for a, b in itertools.combinations(groups, 2) if joinable(a + b)
     ]:
@@ -313,4 +309,4 @@ def join_outlines(clouds: list[np.ndarray], table_height: float) -> list[list[in
 def _span(xy: np.ndarray) -> float:
     """The longest extent of a footprint's points (m), about its own long axis."""
     local = xy @ planar_axes(footprint_yaw(xy)).T
-    return float(np.ptp(local, axis=0).max()) if len(xy) else 0.0
+    return float(np.ptp(local, axis=0).max())
