@@ -10,17 +10,19 @@ Nothing here knows about sockets: :mod:`.server` drives it from the protocols.
 from __future__ import annotations
 
 import enum
+import sys
 import threading
-from collections import deque
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
+from twinrl_robot.ur.emulator.reference import JointLimits, JointReference
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.layout import MOUNT_BODY
+from twinrl_sim.robots.ur5e import JOINT_SPEED_LIMIT
 from twinrl_sim.tasks import Task, TaskConfig
 
 
@@ -48,9 +50,15 @@ class RuntimeState(enum.IntEnum):
 
 
 PROTECTIVE_FORCE = 150.0  # N between the robot and the table: a UR's default force limit
-STOP_DECELERATION = 15.0  # rad/s^2 with which a stopped program brings the joints to rest
-FEED_FORWARD_PERIODS = 5  # servo periods the servo's speed feed-forward averages over
-STALLED_PERIODS = 3  # servo periods without a new target after which the stream has stopped
+JOINT_ACCELERATION_LIMIT = 40.0  # rad/s^2: ur_rtde's bound on a joint's acceleration
+# A stopped program (ur_rtde's stopScript, the watchdog, the dashboard's stop) brings the
+# joints to rest along their path, as a UR's controlled stop does: the leading joint
+# decelerates at STOP_DECELERATION, or faster where that would take longer than
+# STOP_TIME, so the arm rests within STOP_TIME of the stop from any speed (from the top
+# speed that is 35 rad/s^2, within the acceleration limit).
+STOP_DECELERATION = 15.0  # rad/s^2
+STOP_TIME = 0.09  # s
+SPEED_MARGIN = 1.05  # the safety system's speed limit over the joints' top speed
 
 
 @dataclass(frozen=True)
@@ -60,8 +68,10 @@ class ArmReading:
     timestamp: float
     q: np.ndarray
     qd: np.ndarray
+    qdd: np.ndarray
     target_q: np.ndarray
     target_qd: np.ndarray
+    target_qdd: np.ndarray
     torque: np.ndarray  # N m the joints' servos apply
     current: np.ndarray  # A, torque over a nominal torque constant
     tcp_pose: np.ndarray  # x y z (m), rx ry rz (axis-angle, rad) of the configured TCP
@@ -74,17 +84,6 @@ class ArmReading:
     gripper_opening: float  # m, measured
     digital_out: int
     speed_fraction: float  # the pendant's speed slider, 0..1
-
-
-@dataclass
-class _Motion:
-    """The joint reference's law until the next command."""
-
-    kind: str = "idle"  # idle | servo | speed | move | stop
-    target: np.ndarray | None = None  # servo/move goal (rad)
-    velocity: np.ndarray | None = None  # speed command or the move's speed profile
-    speed: float = 1.0  # move: rad/s
-    acceleration: float = 1.4  # move/speed/stop: rad/s^2
 
 
 class EmulatedArm:
@@ -135,7 +134,7 @@ class EmulatedArm:
         self.digital_out = 0
         self.gripper_position = 0.0
         self.ticks = 0
-        self._motion = _Motion()
+        self.fault: str | None = None  # what the newest protective stop was for
         self._lead = self.cell.servo_lead or 0.0  # s of velocity feed-forward
         self._flange = model.body(self.cell.layout.flange_body).id
         self._base = model.body(MOUNT_BODY).id
@@ -143,51 +142,57 @@ class EmulatedArm:
         self._robot_bodies = _subtree(model, self._base)
         self._arm_link_bodies = self._robot_bodies - _subtree(model, self._flange)
         self._tracker = task.start(self.cell, task.sample_config(np.random.default_rng(0)))
-        self._reference = self.cell.arm_q  # the arm powers up at rest at the twin's home
-        self._reference_velocity = np.zeros_like(self._reference)
-        self._feed_forward = np.zeros_like(self._reference)
-        self._history: deque[np.ndarray] = deque(maxlen=FEED_FORWARD_PERIODS + 1)
-        self._unchanged = 0
+        joints = [model.joint(name).id for name in self.cell.layout.arm_joints]
+        self.limits = JointLimits(
+            lower=model.jnt_range[joints, 0].copy(),
+            upper=model.jnt_range[joints, 1].copy(),
+            speed=JOINT_SPEED_LIMIT,
+            acceleration=JOINT_ACCELERATION_LIMIT,
+        )
+        # The arm powers up at rest at the twin's home.
+        self.reference = JointReference(self.cell.arm_q, self.limits, self.period)
 
     # -------------------------------------------------------------- commands
-    def servo_pose(self, pose: np.ndarray) -> None:
+    def servo_pose(self, pose: np.ndarray, duration: float = 0.0, age: float = 0.0) -> None:
         """servoL: track the TCP pose ``pose`` (the controller's inverse kinematics)."""
         with self.lock:
-            start = self._motion.target if self._motion.kind == "servo" else self._reference
-            self.servo(self.tool.solve(pose, start))
+            target = self.reference.servo_target
+            start = self.reference.q if target is None else target
+            self.servo(self.tool.solve(pose, start), duration, age)
 
-    def servo(self, q: np.ndarray) -> None:
-        """servoJ: track ``q`` from the next period on (the newest target wins)."""
+    def servo(self, q: np.ndarray, duration: float = 0.0, age: float = 0.0) -> None:
+        """servoJ: reach ``q`` ``duration`` s (at least one servo period) after it came,
+        ``age`` s ago (the newest target wins)."""
         with self.lock:
-            if self._may_move():
-                self._motion = _Motion("servo", target=np.asarray(q, float))
+            if self._may_move() and self._within_range(q, "servo target"):
+                self.reference.servo(q, duration, age)
 
     def speed(self, qd: np.ndarray, acceleration: float) -> None:
         """speedJ: run the joints at ``qd`` (rad/s), reached at ``acceleration``."""
         with self.lock:
             if self._may_move():
-                self._motion = _Motion(
-                    "speed", velocity=np.asarray(qd, float), acceleration=acceleration
-                )
+                self.reference.speed(qd, acceleration)
 
     def move(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         """moveJ: go to ``q`` with a joint-space trapezoidal profile."""
         with self.lock:
-            if self._may_move():
-                self._motion = _Motion(
-                    "move", target=np.asarray(q, float), speed=speed, acceleration=acceleration
-                )
+            if self._may_move() and self._within_range(q, "move target"):
+                self.reference.move(q, speed, acceleration)
 
-    def stop(self, deceleration: float = STOP_DECELERATION) -> None:
-        """Bring the joints to rest from their current speed at ``deceleration``."""
+    def stop(self, deceleration: float | None = None) -> None:
+        """Bring the joints to rest along their path at ``deceleration`` (rad/s^2 of the
+        leading joint; ``None``: a stopped program's, see :data:`STOP_TIME`)."""
         with self.lock:
-            self._motion = _Motion("stop", acceleration=max(deceleration, 1e-3))
+            if deceleration is None:
+                lead = float(np.abs(self.reference.qd).max())
+                deceleration = max(STOP_DECELERATION, lead / STOP_TIME)
+            self.reference.stop(deceleration)
 
     @property
     def resting(self) -> bool:
         """Whether nothing is commanded and the joints have come to rest."""
         speed = float(np.abs(self.cell.data.qvel[self.cell.arm_dof]).max())
-        return self._motion.kind == "idle" and speed < 1e-2
+        return self.reference.idle and speed < 1e-2
 
     def set_speed_fraction(self, fraction: float) -> None:
         """The pendant's speed slider (0..1): moves run at that share of their speed."""
@@ -203,10 +208,32 @@ class EmulatedArm:
         return self.safety_mode == SafetyMode.NORMAL and self.robot_mode == RobotMode.RUNNING
 
     # ----------------------------------------------------------------- faults
-    def protective_stop(self) -> None:
+    def protective_stop(self, reason: str = "a protective stop was triggered") -> None:
+        """Stop at once (the arm hit something, or was told to) and lock until unlocked."""
         with self.lock:
-            self.safety_mode = SafetyMode.PROTECTIVE_STOP
+            self._lock_out(reason)
             self._halt()
+
+    def limit_stop(self, reason: str) -> None:
+        """A protective stop for a breached joint limit: the arm brakes along its path at
+        the acceleration limit (a controlled stop) and locks until unlocked."""
+        with self.lock:
+            self._lock_out(reason)
+            self.program_running = False
+            self.reference.stop(self.limits.acceleration)
+
+    def _lock_out(self, reason: str) -> None:
+        self.safety_mode = SafetyMode.PROTECTIVE_STOP
+        self.fault = reason
+        print(f"emulator: protective stop: {reason}", file=sys.stderr, flush=True)
+
+    def _within_range(self, q: np.ndarray, what: str) -> bool:
+        """Whether ``q`` is within the joint range; if not, a protective stop says why."""
+        beyond = self.limits.beyond(np.asarray(q, float))
+        if beyond:
+            names = ", ".join(self.cell.layout.arm_joints[i] for i in beyond)
+            self.limit_stop(f"the {what} is beyond the joint limits of {names}")
+        return not beyond
 
     def emergency_stop(self) -> None:
         with self.lock:
@@ -219,6 +246,7 @@ class EmulatedArm:
             if self.safety_mode != SafetyMode.PROTECTIVE_STOP:
                 return False
             self.safety_mode = SafetyMode.NORMAL
+            self.fault = None
             return True
 
     def release_emergency_stop(self) -> None:
@@ -230,11 +258,7 @@ class EmulatedArm:
 
     def _halt(self) -> None:
         self.program_running = False
-        self._motion = _Motion("idle")
-        self._reference = self.cell.arm_q
-        self._reference_velocity[:] = 0.0
-        self._feed_forward[:] = 0.0
-        self._history.clear()
+        self.reference.hold(self.cell.arm_q)
 
     # ------------------------------------------------------------------ scene
     def arrange(self, config: TaskConfig) -> None:
@@ -246,7 +270,7 @@ class EmulatedArm:
             self._tracker = self.task.start(self.cell, config)
             self.cell.data.qpos[self.cell.arm_qpos] = q
             self.cell.data.qvel[self.cell.arm_dof] = qd
-            self.cell.data.ctrl[self.cell.arm_act] = self._reference
+            self.cell.data.ctrl[self.cell.arm_act] = self.reference.q
             if self.cell.gripper_act is not None:
                 self.cell.data.ctrl[self.cell.gripper_act] = gripper
             self.cell.finish_reset()
@@ -265,12 +289,13 @@ class EmulatedArm:
     def tick(self) -> None:
         """One servo period: advance the joint reference, step the physics, check safety."""
         with self.lock:
-            self._advance_reference()
+            reference = self.reference
+            reference.advance(self.speed_fraction)
             cell = self.cell
             # Velocity feed-forward, as a UR's servo does: the position servo would lag its
             # reference by damping/stiffness x speed; leading the reference by as much
-            # lets the arm track servo targets closely at any speed.
-            cell.data.ctrl[cell.arm_act] = self._reference + self._lead * self._feed_forward
+            # lets the arm track it closely at any speed.
+            cell.data.ctrl[cell.arm_act] = reference.q + self._lead * reference.qd
             if cell.gripper_act is not None:
                 gripper = self.gripper_position
                 if self.gripper_output is not None:
@@ -279,63 +304,24 @@ class EmulatedArm:
             mujoco.mj_step(cell.model, cell.data, nstep=self.physics_per_tick)
             mujoco.mj_forward(cell.model, cell.data)
             self.ticks += 1
-            if self.safety_mode == SafetyMode.NORMAL and self._hits_table():
-                self.protective_stop()
+            if self.safety_mode == SafetyMode.NORMAL:
+                self._check_safety()
 
-    def _advance_reference(self) -> None:
-        motion, dt = self._motion, self.period
-        previous = self._reference.copy()
-        if motion.kind == "servo" and motion.target is not None:
-            self._reference = motion.target.copy()
-        elif motion.kind == "speed" and motion.velocity is not None:
-            change = np.clip(
-                motion.velocity - self._reference_velocity,
-                -motion.acceleration * dt,
-                motion.acceleration * dt,
+    def _check_safety(self) -> None:
+        """The protective stops a UR's safety system raises: the arm against the table,
+        a joint beyond its range or faster than its speed limit."""
+        if self._hits_table():
+            self.protective_stop("the arm hit the table or pressed on it too hard")
+            return
+        if not self._within_range(self.reference.q, "arm"):
+            return
+        speed = np.abs(self.cell.data.qvel[self.cell.arm_dof])
+        fastest = int(np.argmax(speed))
+        if speed[fastest] > self.limits.speed * SPEED_MARGIN:
+            self.limit_stop(
+                f"joint {self.cell.layout.arm_joints[fastest]} moved at "
+                f"{speed[fastest]:.2f} rad/s, beyond its {self.limits.speed:.2f} rad/s limit"
             )
-            self._reference = self._reference + (self._reference_velocity + change) * dt
-        elif motion.kind == "move" and motion.target is not None:
-            self._reference = self._move_step(motion, dt)
-        elif motion.kind == "stop":
-            speed = np.linalg.norm(self._reference_velocity)
-            slower = max(0.0, speed - motion.acceleration * dt)
-            scale = slower / speed if speed > 0 else 0.0
-            self._reference = self._reference + self._reference_velocity * scale * dt
-            if slower == 0.0:
-                self._motion = _Motion("idle")
-        self._reference_velocity = (self._reference - previous) / dt
-        self._feed_forward = self._servo_feed_forward(previous)
-
-    def _servo_feed_forward(self, previous: np.ndarray) -> np.ndarray:
-        """The reference speed the servo leads by. Servo targets arrive over the network,
-        not in step with the servo period: a period with none and one with two would kick
-        a per-period speed, so it is averaged over FEED_FORWARD_PERIODS; and when no new
-        target came for STALLED_PERIODS the stream has stopped and so does the lead."""
-        self._history.append(self._reference.copy())
-        unchanged = np.array_equal(self._reference, previous)
-        self._unchanged = self._unchanged + 1 if unchanged else 0
-        if self._unchanged >= STALLED_PERIODS or len(self._history) < 2:
-            return np.zeros_like(self._reference)
-        return (self._history[-1] - self._history[0]) / ((len(self._history) - 1) * self.period)
-
-    def _move_step(self, motion: _Motion, dt: float) -> np.ndarray:
-        """One period of a synchronised trapezoidal joint move toward ``motion.target``."""
-        assert motion.target is not None
-        remaining = motion.target - self._reference
-        distance = float(np.max(np.abs(remaining)))
-        if distance < 1e-6:
-            self._motion = _Motion("idle")
-            return motion.target.copy()
-        # The speed slider slows the move's time: speeds by it, accelerations by its square.
-        fraction = self.speed_fraction
-        if fraction <= 0.0:
-            return self._reference.copy()
-        acceleration = motion.acceleration * fraction**2
-        current = float(np.max(np.abs(self._reference_velocity)))
-        braking = np.sqrt(2.0 * acceleration * distance)
-        speed = min(motion.speed * fraction, current + acceleration * dt, braking)
-        step = min(distance, max(speed, acceleration * dt) * dt)
-        return self._reference + remaining * (step / distance)
 
     def _hits_table(self) -> bool:
         data, model = self.cell.data, self.cell.model
@@ -359,15 +345,16 @@ class EmulatedArm:
     def read(self) -> ArmReading:
         with self.lock:
             cell, data = self.cell, self.cell.data
-            q = cell.arm_q
-            qd = data.qvel[cell.arm_dof].copy()
             torque = cell.joint_torques()
+            reference = self.reference
             return ArmReading(
                 timestamp=self.ticks * self.period,
-                q=q,
-                qd=qd,
-                target_q=self._reference.copy(),
-                target_qd=self._reference_velocity.copy(),
+                q=cell.arm_q,
+                qd=data.qvel[cell.arm_dof].copy(),
+                qdd=data.qacc[cell.arm_dof].copy(),
+                target_q=reference.q.copy(),
+                target_qd=reference.qd.copy(),
+                target_qdd=reference.qdd.copy(),
                 torque=torque,
                 current=torque / self.torque_constant,
                 tcp_pose=self._tcp_pose(),

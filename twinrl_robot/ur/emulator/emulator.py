@@ -105,7 +105,9 @@ class Emulator:
             (
                 "dashboard",
                 ports.dashboard,
-                lambda a: LineServer(a, Dashboard(self.arm, self._remote), _DASHBOARD_GREETING),
+                lambda a: LineServer(
+                    a, Dashboard(self.arm, self._remote, self.program.end), _DASHBOARD_GREETING
+                ),
             ),
             ("harness", ports.harness, lambda a: LineServer(a, Harness(self.arm, self._faults()))),
         ]
@@ -165,7 +167,7 @@ class Emulator:
         period = self.arm.period
         next_tick = time.monotonic()
         while self._running:
-            self.program.cycle()
+            self.program.cycle(next_tick)
             self.arm.tick()
             next_tick += period
             delay = next_tick - time.monotonic()
@@ -183,7 +185,7 @@ class Emulator:
         """What the harness may do to the cell, as a person or the world would."""
 
         def protective() -> None:
-            self.arm.protective_stop()
+            self.arm.protective_stop("the harness triggered a protective stop")
             self.program.end("protective stop")
 
         def emergency() -> None:

@@ -8,6 +8,11 @@ commands run once, to completion (a synchronous moveJ runs over many cycles), an
 done, and wait for the client to clear the command (0). Command 255 ends the program;
 so do the RTDE watchdog, a protective or emergency stop, and the dashboard's ``stop``.
 
+A realtime command is taken with the arguments of the package it came in, even when
+the next package (a watchdog kick: ur_rtde sends it as command 0) overwrote the
+registers before the cycle read them: the script's servo thread keeps servoing to the
+newest target, and a kick means only "no new command".
+
 The commands with an effect here are those the driver and common ur_rtde use; any
 other answers as the script does (ready or done) so that a client never
 hangs, and the emulator says once, on its error stream, that it did nothing for it.
@@ -18,6 +23,7 @@ from __future__ import annotations
 import re
 import sys
 import time
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -64,6 +70,11 @@ class ControlProgram:
         self._resumed_at = 0.0
         self.messages: list[str] = []  # what the program stopped for, newest last
         self._warned: set[int] = set()  # commands reported as not emulated
+        self._latched: tuple[Mapping[str, float | int | bool], float] | None = None
+        registers.listener = self._received
+        self.async_move = False  # an asynchronous moveJ is under way
+        self._async_writes = 0
+        self._async_id = 0
 
     @property
     def running(self) -> bool:
@@ -74,9 +85,12 @@ class ControlProgram:
         with self.arm.lock:
             self.offset = offset
             self.executing, self.pending, self.watchdog_period = False, None, None
+            self._latched = None
             self.started_at = time.monotonic()
             if self.arm.safety_mode == SafetyMode.NORMAL and self.arm.robot_mode == 7:
                 self.arm.program_running = True
+                self.async_move = False
+                self._write_async_progress(-1)
                 self._write_int(0, READY)
 
     def end(self, reason: str) -> None:
@@ -87,11 +101,20 @@ class ControlProgram:
             self.arm.program_running = False
             self.watchdog_period = None
             self.pending = None
+            self._finish_async()
             self.arm.stop()
 
+    def _received(self, package: Mapping[str, float | int | bool], at: float) -> None:
+        """An input package came (under the registers' lock): keep the newest realtime
+        command with its arguments until the next cycle runs it."""
+        if package.get(f"input_int_register_{self.offset}") in REALTIME:
+            self._latched = (package, at)
+
     # ------------------------------------------------------------------ cycle
-    def cycle(self) -> None:
-        """One control cycle of the script (called before each servo period)."""
+    def cycle(self, scheduled: float | None = None) -> None:
+        """One control cycle of the script (called before each servo period, which was
+        due at ``scheduled``, a ``time.monotonic()``: a servo target's age is counted to
+        then, so a cycle that runs late does not move the target's path)."""
         now = time.monotonic()
         if now - self._previous_cycle > STALL:
             self._resumed_at = now
@@ -101,9 +124,15 @@ class ControlProgram:
         if self._watchdog_expired():
             self.end("the RTDE watchdog expired: no command came in time")
             return
+        with self.registers.lock:
+            latched, self._latched = self._latched, None
+        if latched is not None:
+            package, at = latched
+            self._realtime(package, age=max(0.0, (now if scheduled is None else scheduled) - at))
         cmd = int(self._read_int(0))
         if cmd in REALTIME:
-            self._realtime(cmd)
+            if latched is None:
+                self._measure(cmd)  # the script repeats a realtime command every cycle
             self._write_int(0, READY)
         elif cmd == 0:
             self.executing = False
@@ -116,6 +145,26 @@ class ControlProgram:
         elif self.pending is not None and self._finished():
             self.pending = None
             self._write_int(0, DONE)
+        if self.async_move and self.arm.resting:
+            self._finish_async()
+
+    def _finish_async(self) -> None:
+        """The asynchronous move ended (arrived, stopped or replaced)."""
+        if self.async_move:
+            self.async_move = False
+            self._write_async_progress(-1)
+
+    def _write_async_progress(self, progress: int) -> None:
+        """The script's asynchronous progress word (``output_int_register_2``): bits
+        24-30 the operation's id, counted up as one starts (progress 0), 16-22 a count of
+        writes, 15 running, 0-14 the progress; a negative progress: finished."""
+        self._async_writes = (self._async_writes + 1) % 128
+        if progress == 0:
+            self._async_id = (self._async_id + 1) % 128
+        word = self._async_id << 24 | self._async_writes << 16
+        if progress >= 0:
+            word |= 1 << 15 | min(progress, (1 << 15) - 1)
+        self._write_int(2, word)
 
     def _watchdog_expired(self) -> bool:
         if self.watchdog_period is None:
@@ -124,20 +173,35 @@ class ControlProgram:
         last = max(self.registers.updated.get(name, self.started_at), self._resumed_at)
         return time.monotonic() - last > self.watchdog_period
 
-    def _realtime(self, cmd: int) -> None:
-        arm = self.arm
-        if cmd == SERVOJ:
-            arm.servo(self._doubles(0, 6))
+    def _realtime(self, package: Mapping[str, float | int | bool], age: float) -> None:
+        """Run the realtime command of ``package``, which came ``age`` s ago."""
+        offset = self.offset
+
+        def doubles(start: int, count: int) -> np.ndarray:
+            names = [f"input_double_register_{start + i + offset}" for i in range(count)]
+            return np.array([float(package.get(n, self.registers.get(n))) for n in names])
+
+        cmd = int(package[f"input_int_register_{offset}"])
+        if cmd in (SERVOJ, SERVOL, SPEEDJ):  # the script stops an asynchronous move first
+            self._finish_async()
+        if cmd == SERVOJ:  # doubles: q, speed, acceleration (unused), time, lookahead, gain
+            self.arm.servo(doubles(0, 6), duration=doubles(8, 1)[0], age=age)
         elif cmd == SERVOL:
-            arm.servo_pose(self._doubles(0, 6))
+            self.arm.servo_pose(doubles(0, 6), duration=doubles(8, 1)[0], age=age)
         elif cmd == SPEEDJ:
-            arm.speed(self._doubles(0, 6), acceleration=max(self._double(6), 1e-3))
-        elif cmd == GET_JOINT_TORQUES:
+            self.arm.speed(doubles(0, 6), acceleration=max(doubles(6, 1)[0], 1e-3))
+        else:
+            self._measure(cmd)
+
+    def _measure(self, cmd: int) -> None:
+        """The realtime commands that read the arm (answered afresh every cycle)."""
+        arm = self.arm
+        if cmd == GET_JOINT_TORQUES:
             self._write_doubles(0, arm.read().torque)
         elif cmd == GET_ACTUAL_TOOL_FLANGE_POSE:
             with arm.lock:  # the tool frame's scratch state is shared with the readers
                 self._write_doubles(0, arm.tool.pose(arm.cell.arm_q, tool=False))
-        else:
+        elif cmd not in (SERVOJ, SERVOL, SPEEDJ):
             self._not_emulated(cmd)
 
     def _begin(self, cmd: int) -> None:
@@ -148,6 +212,9 @@ class ControlProgram:
             if self._read_int(1) == 0:  # synchronous: done when the arm arrives
                 self.pending = "move"
                 return
+            self._finish_async()
+            self.async_move = True
+            self._write_async_progress(0)
         elif cmd in (SERVO_STOP, SPEED_STOP, STOPJ, STOPL):
             arm.stop(max(self._double(0), 1e-3))
             if not (cmd in (STOPJ, STOPL) and self._read_int(1) == 1):

@@ -20,7 +20,7 @@ import socketserver
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -111,6 +111,9 @@ class Registers:
         self.values: dict[str, float | int | bool] = {}
         self.writers: dict[str, int] = {}  # input variable -> client id that set it up
         self.updated: dict[str, float] = {}  # input variable -> when a client last wrote it
+        # Told of every input package (its values, when it came), under the lock: the
+        # control program keeps each command with the arguments it came with.
+        self.listener: Callable[[Mapping[str, float | int | bool], float], None] | None = None
 
     def get(self, name: str, default: float | int = 0) -> float | int | bool:
         with self.lock:
@@ -144,22 +147,21 @@ def arm_variables(reading: ArmReading) -> dict[str, object]:
     status_bits = 1 | (2 if reading.runtime_state == 2 else 0)  # power on, program running
     if reading.robot_mode != 7:
         status_bits &= ~1
-    safety_bits = {
+    safety_bits = {  # 0 normal, 2 protective stop, 6-7 emergency stop, 10 stopped for safety
         SafetyMode.NORMAL: 1,
-        SafetyMode.PROTECTIVE_STOP: 1 << 2,
-        SafetyMode.ROBOT_EMERGENCY_STOP: (1 << 6) | (1 << 7),
+        SafetyMode.PROTECTIVE_STOP: (1 << 2) | (1 << 10),
+        SafetyMode.ROBOT_EMERGENCY_STOP: (1 << 6) | (1 << 7) | (1 << 10),
     }.get(SafetyMode(safety), 0)
-    zeros6 = np.zeros(6)
     return {
         "timestamp": reading.timestamp,
         "target_q": reading.target_q,
         "target_qd": reading.target_qd,
-        "target_qdd": zeros6,
+        "target_qdd": reading.target_qdd,
         "target_current": reading.current,
         "target_moment": reading.torque,
         "actual_q": reading.q,
         "actual_qd": reading.qd,
-        "actual_qdd": zeros6,
+        "actual_qdd": reading.qdd,
         "actual_current": reading.current,
         "actual_current_as_torque": reading.torque,
         "actual_moment": reading.torque,
@@ -320,11 +322,13 @@ class _RTDEHandler(socketserver.BaseRequestHandler):
         values = struct.unpack(fmt, payload[1:])
         registers = self.server.registers
         now = time.monotonic()
+        update = dict(zip(names, values, strict=True))
         with registers.lock:
-            registers.values.update(zip(names, values, strict=True))
+            registers.values.update(update)
             registers.updated.update(dict.fromkeys(names, now))
+            if registers.listener is not None:
+                registers.listener(update, now)
         if "standard_digital_output_mask" in names and self.server.digital_output is not None:
-            update = dict(zip(names, values, strict=True))
             self.server.digital_output(
                 int(update["standard_digital_output_mask"]), int(update["standard_digital_output"])
             )

@@ -52,10 +52,17 @@ class _LineHandler(socketserver.StreamRequestHandler):
 
 
 class Dashboard:
-    """The dashboard server's answers for the arm (robot and safety modes, stops)."""
+    """The dashboard server's answers for the arm (robot and safety modes, stops).
 
-    def __init__(self, arm: EmulatedArm, remote_control: Callable[[], bool]) -> None:
-        self.arm, self.remote_control = arm, remote_control
+    ``end_program(reason)`` stops the control program as its ``stop`` command does."""
+
+    def __init__(
+        self,
+        arm: EmulatedArm,
+        remote_control: Callable[[], bool],
+        end_program: Callable[[str], None],
+    ) -> None:
+        self.arm, self.remote_control, self.end_program = arm, remote_control, end_program
 
     def __call__(self, line: str) -> str | None:
         command = line.strip().lower()
@@ -102,8 +109,7 @@ class Dashboard:
             arm.emergency_stop()
             return "Powering off"
         if command == "stop":
-            arm.stop()
-            arm.program_running = False
+            self.end_program("the dashboard stopped the program")
             return "Stopped"
         if command == "pause":
             arm.stop()
