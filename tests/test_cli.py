@@ -185,6 +185,29 @@ def test_train_and_eval_commands(tmp_path):
             ["bench", "stage1", "--out", "x", "--inputs", "sideways"],
             "--inputs must be one of absolute, relative, got 'sideways'",
         ),
+        (
+            ["bench", "stage1", "--out", "x", "--perception", "-1"],
+            "--perception must be >= 0, got -1",
+        ),
+        (
+            [
+                "train",
+                "sft",
+                "--dataset",
+                ".",
+                "--out",
+                "x",
+                "--policy",
+                "state",
+                "--perception",
+                "est",
+            ],
+            "--perception serves the vla policy",
+        ),
+        (
+            ["train", "perception", "--dataset", ".", "--out", "x", "--steps", "0"],
+            "--steps must be at least 1, got 0",
+        ),
         # Options derived from the run's settings: the settings' checks name the flag.
         (
             ["train", "real-rl", "--task", "pick_place", "--out", "x", "--plant-steps", "0"],

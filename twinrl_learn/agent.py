@@ -108,9 +108,15 @@ class Agent:
         observations (None for the state policy) computed once for every loss: with a
         gradient where the actor's Q term trains the encoders through them."""
         p = self.policy
-        obs = p.inputs(batch.state, batch.environment_state, batch.images, batch.instruction)
+        obs = p.inputs(
+            batch.state, batch.environment_state, batch.images, batch.instruction, batch.estimates
+        )
         following = p.inputs(
-            batch.next_state, batch.next_environment_state, batch.next_images, batch.instruction
+            batch.next_state,
+            batch.next_environment_state,
+            batch.next_images,
+            batch.instruction,
+            batch.next_estimates,
         )
         with torch.set_grad_enabled(self.actor_reads_q()):
             keypoints = p.keypoints(obs)

@@ -77,7 +77,9 @@ class OnlineRun:
             raise LearnError(f"{out} already holds a run; resume it or choose another folder")
         session = Session.create(out / "session")
         if online is None:
-            online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+            online = ReplayBuffer(
+                cameras=demo.cameras, estimate=demo.estimate, rewards=agent.config.rewards
+            )
         rng = np.random.default_rng(agent.config.seed)
         return cls(out, agent, demo, online, session, rng, [])
 
@@ -96,7 +98,9 @@ class OnlineRun:
         kept = state["episodes_logged"]
         session.truncate(kept)  # episodes of a round the interruption cut short
         if online is None:
-            online = ReplayBuffer(cameras=demo.cameras, rewards=agent.config.rewards)
+            online = ReplayBuffer(
+                cameras=demo.cameras, estimate=demo.estimate, rewards=agent.config.rewards
+            )
         rng = np.random.default_rng()
         rng.bit_generator.state = state["rng"]
         history = [RoundRecord(**r) for r in state["history"]]

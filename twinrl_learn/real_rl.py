@@ -117,11 +117,10 @@ class ResetPlanner:
 
 
 def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, ReplayBuffer]:
-    cameras = tuple(policy.config.cameras) if policy.needs_images else ()
-    rewards = settings.rl.rewards
-    demo = ReplayBuffer.from_datasets(settings.demos, cameras=cameras, rewards=rewards)
+    views, rewards = policy.replay_views(), settings.rl.rewards
+    demo = ReplayBuffer.from_datasets(settings.demos, rewards=rewards, **views)
     twin = [settings.twin_buffer] if settings.twin_buffer else []
-    return demo, ReplayBuffer.from_datasets(twin, cameras=cameras, rewards=rewards)
+    return demo, ReplayBuffer.from_datasets(twin, rewards=rewards, **views)
 
 
 class PolicySource:

@@ -24,7 +24,7 @@ Rows whose action is a human's (demonstration episodes, intervention steps) are 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -62,6 +62,10 @@ class RewardSettings:
     (docs/results/defaults.md)."""
 
 
+# A pose estimator's rows for an episode's images (by camera) and states.
+Estimate = Callable[[dict[str, np.ndarray], np.ndarray], np.ndarray]
+
+
 @dataclass
 class TransitionBatch:
     """Sampled chunked transitions (numpy, physical action units).
@@ -84,6 +88,8 @@ class TransitionBatch:
     mc_return: np.ndarray
     intervention: np.ndarray
     demo: np.ndarray  # the action is a human's (demonstration or intervention): BC data
+    estimates: np.ndarray | None = None  # a pose estimator's view of the state (see estimate)
+    next_estimates: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.state)
@@ -94,15 +100,21 @@ class ReplayBuffer:
     """Episodes plus flat per-step arrays for sampling; see the module docstring.
 
     ``capacity`` (steps) drops the oldest episodes first once exceeded; ``cameras``
-    names the images kept (none for state policies).
+    names the images kept (none for state policies). ``estimate`` (images by camera,
+    states) -> rows is what a policy acting through a pose estimator reads of each step
+    (:meth:`~twinrl_learn.perception.estimator.PoseEstimator.estimate_rows`): it is
+    computed once per episode and sampled beside the images, so an update runs no image
+    network.
     """
 
     cameras: tuple[str, ...] = ()
     capacity: int | None = None
     rewards: RewardSettings = field(default_factory=RewardSettings)
     episodes: list[Episode] = field(default_factory=list)
+    estimate: Estimate | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        self._estimates: dict[int, np.ndarray] = {}  # id(episode) -> its rows' estimates
         self._arrays: dict[str, np.ndarray] = {}
         self._images: dict[str, np.ndarray] = {}
         self._instructions: list[str] = []
@@ -127,7 +139,7 @@ class ReplayBuffer:
         self.episodes.append(episode)
         if self.capacity is not None:
             while len(self.episodes) > 1 and self.num_steps > self.capacity:
-                self.episodes.pop(0)
+                self._estimates.pop(id(self.episodes.pop(0)), None)
         self._built_for = None
 
     def extend(self, episodes: Iterable[Episode]) -> None:
@@ -175,7 +187,7 @@ class ReplayBuffer:
             return
         columns: dict[str, list[np.ndarray]] = {
             "state": [], "env": [], "action": [], "reward": [], "terminal": [],
-            "end": [], "mc": [], "intervention": [], "demo": [], "episode": [],
+            "end": [], "mc": [], "intervention": [], "demo": [], "episode": [], "estimate": [],
         }  # fmt: skip
         images: dict[str, list[np.ndarray]] = {c: [] for c in self.cameras}
         self._instructions = []
@@ -206,6 +218,8 @@ class ReplayBuffer:
             columns["episode"].append(np.full(n, index))
             for camera in self.cameras:
                 images[camera].append(episode.images[camera])
+            if self.estimate is not None:
+                columns["estimate"].append(self._estimates_of(episode))
             self._instructions.append(episode.meta.instruction or episode.meta.task)
             total += n
         if len(columns["env"]) != len(self.episodes):
@@ -214,6 +228,14 @@ class ReplayBuffer:
         self._images = {c: np.concatenate(v) for c, v in images.items() if v}
         self._starts = {}
         self._built_for = gamma
+
+    def _estimates_of(self, episode: Episode) -> np.ndarray:
+        key = id(episode)
+        if key not in self._estimates:
+            images = {c: episode.images[c] for c in self.cameras}
+            state = np.asarray(episode.data[STATE], np.float32)
+            self._estimates[key] = np.asarray(self.estimate(images, state), np.float32)
+        return self._estimates[key]
 
     def valid_starts(self, chunk: int, gamma: float = 0.99) -> np.ndarray:
         """Rows from which a chunk of ``chunk`` steps has a known outcome."""
@@ -250,6 +272,7 @@ class ReplayBuffer:
         terminal = a["terminal"][last]
         next_rows = np.minimum(rows + steps, end - 1)  # unused where terminal
         env = a.get("env")
+        estimate = a.get("estimate")
         return TransitionBatch(
             state=a["state"][rows],
             environment_state=None if env is None else env[rows],
@@ -264,6 +287,8 @@ class ReplayBuffer:
             mc_return=a["mc"][rows],
             intervention=a["intervention"][rows],
             demo=a["demo"][rows],
+            estimates=None if estimate is None else estimate[rows],
+            next_estimates=None if estimate is None else estimate[next_rows],
         )
 
 

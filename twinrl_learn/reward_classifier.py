@@ -42,6 +42,13 @@ WEIGHTS, SETTINGS, METRICS, REPORT, MISTAKES = (
 )  # fmt: skip
 
 
+ENCODERS = ("scratch", "pretrained")
+ENCODER_WORDS = {
+    "scratch": "a CNN trained from scratch",
+    "pretrained": "a frozen ImageNet-pretrained encoder with a trained head",
+}
+
+
 @dataclass(frozen=True)
 class ClassifierSettings:
     """How the classifier is labelled, shaped and trained."""
@@ -54,11 +61,20 @@ class ClassifierSettings:
     batch_size: int = 64
     lr: float = 1e-3
     threshold: float = 0.5
+    # scratch: a small CNN trained from scratch on the frames; pretrained: the frozen
+    # ImageNet encoder of twinrl_learn.perception with a small trained head (its
+    # features of every frame are computed once, so it trains in about the same time)
+    encoder: str = "scratch"
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not self.cameras:
             raise LearnError("the reward classifier needs at least one camera")
+        if self.encoder not in ENCODERS:
+            raise LearnError(
+                f"the reward classifier's `encoder` must be one of {', '.join(ENCODERS)}, "
+                f"got '{self.encoder}'"
+            )
         if self.margin < 0 or not 0 < self.heldout < 1:
             raise LearnError(
                 "the reward classifier's `margin` must be >= 0 and `heldout` in (0, 1)"
@@ -146,6 +162,54 @@ class SuccessNet(nn.Module):
         return self.head(torch.cat([features, gripper[:, None] * 10.0], dim=1))[:, 0]
 
 
+class PretrainedSuccessNet(nn.Module):
+    """Each camera's frozen ImageNet features (:class:`~twinrl_learn.perception.backbone.
+    FrozenBackbone`) through a small trained head (keypoints and the maps' mean), joined
+    with the gripper's opening; one logit."""
+
+    def __init__(self, cameras: int, size: int) -> None:
+        from twinrl_learn.perception.backbone import FrozenBackbone
+        from twinrl_learn.perception.estimator import CameraHead
+
+        super().__init__()
+        self.heads = nn.ModuleList(CameraHead(keypoints=16) for _ in range(cameras))
+        width = sum(head.out_dim for head in self.heads) + 1
+        self.mlp = nn.Sequential(nn.Linear(width, 128), nn.ReLU(), nn.Linear(128, 1))
+        self.backbone = FrozenBackbone()
+        self.size = size
+
+    def encode(self, images: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Each camera's (fine, coarse) backbone features of stacked uint8 images
+        (B, 3 x cameras, S, S)."""
+        x = images.float() / 255.0
+        return [self.backbone(x[:, 3 * i : 3 * i + 3]) for i in range(len(self.heads))]
+
+    def classify(
+        self, features: list[tuple[torch.Tensor, torch.Tensor]], gripper: torch.Tensor
+    ) -> torch.Tensor:
+        parts = [head(*f) for head, f in zip(self.heads, features, strict=True)]
+        return self.mlp(torch.cat([*parts, gripper[:, None] * 10.0], dim=1))[:, 0]
+
+    def forward(self, images: torch.Tensor, gripper: torch.Tensor) -> torch.Tensor:
+        return self.classify(self.encode(images), gripper)
+
+
+def success_net(settings: ClassifierSettings) -> SuccessNet | PretrainedSuccessNet:
+    """The network ``settings`` ask for."""
+    if settings.encoder == "pretrained":
+        return PretrainedSuccessNet(len(settings.cameras), settings.image_size)
+    return SuccessNet(3 * len(settings.cameras), settings.image_size)
+
+
+def _encoded(net: PretrainedSuccessNet, images: np.ndarray) -> list[tuple[torch.Tensor, ...]]:
+    """Every frame's backbone features per camera, in half precision, computed once."""
+    parts = [net.encode(torch.from_numpy(images[i : i + 128])) for i in range(0, len(images), 128)]
+    return [
+        tuple(torch.cat([p[camera][level] for p in parts]).half() for level in (0, 1))
+        for camera in range(len(net.heads))
+    ]
+
+
 @dataclass(frozen=True)
 class ClassifierReport:
     """Held-out scores of a trained classifier."""
@@ -203,17 +267,23 @@ def train_reward_classifier(
         raise LearnError("the fitted episodes hold no success; record more successful ones")
     torch.manual_seed(settings.seed)
     generator = torch.Generator().manual_seed(settings.seed)
-    net = SuccessNet(fitted.images.shape[1], settings.image_size)
+    net = success_net(settings)
     optimizer = torch.optim.Adam(net.parameters(), lr=settings.lr)
     images = torch.from_numpy(fitted.images)
+    encoded = _encoded(net, fitted.images) if isinstance(net, PretrainedSuccessNet) else None
     gripper = torch.from_numpy(fitted.gripper)
     labels = torch.from_numpy(fitted.labels.astype(np.float32))
     # Balanced batches: successes are a few frames an episode.
     weights = torch.where(labels > 0, 0.5 / labels.sum(), 0.5 / (1 - labels).sum())
     for step in range(settings.steps):
         rows = torch.multinomial(weights, settings.batch_size, True, generator=generator)
-        batch = random_shift(images[rows].float(), generator)  # a camera nudged between sessions
-        loss = F.binary_cross_entropy_with_logits(net(batch, gripper[rows]), labels[rows])
+        if encoded is not None:
+            features = [(fine[rows], coarse[rows]) for fine, coarse in encoded]
+            logits = net.classify(features, gripper[rows])
+        else:
+            batch = random_shift(images[rows].float(), generator)  # a camera nudged
+            logits = net(batch, gripper[rows])
+        loss = F.binary_cross_entropy_with_logits(logits, labels[rows])
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -256,7 +326,9 @@ def episodes_under(
     return episodes
 
 
-def _predict(net: SuccessNet, images: np.ndarray, gripper: np.ndarray) -> np.ndarray:
+def _predict(
+    net: SuccessNet | PretrainedSuccessNet, images: np.ndarray, gripper: np.ndarray
+) -> np.ndarray:
     with torch.no_grad():
         logits = [
             net(torch.from_numpy(images[i : i + 256]), torch.from_numpy(gripper[i : i + 256]))
@@ -267,7 +339,7 @@ def _predict(net: SuccessNet, images: np.ndarray, gripper: np.ndarray) -> np.nda
 
 def _write(
     out: Path,
-    net: SuccessNet,
+    net: SuccessNet | PretrainedSuccessNet,
     settings: ClassifierSettings,
     task: str,
     report: ClassifierReport,
@@ -326,10 +398,11 @@ def _report_md(
         [
             f"# Reward classifier: {task}",
             "",
-            f"Cameras {', '.join(settings.cameras)} at {settings.image_size} px and the gripper's "
-            "opening; the frames recorded after a successful episode's succeeding step are "
-            f"successes, frames more than {settings.margin} steps before it and every frame "
-            "of a failure are not.",
+            f"Cameras {', '.join(settings.cameras)} at {settings.image_size} px "
+            f"({ENCODER_WORDS[settings.encoder]}) and the gripper's opening; the frames "
+            "recorded after a successful episode's succeeding step are successes, frames "
+            f"more than {settings.margin} steps before it and every frame of a failure are "
+            "not.",
             "",
             "| held out | accuracy | balanced accuracy | precision | recall |",
             "|---|---|---|---|---|",
@@ -347,7 +420,9 @@ def _report_md(
 class RewardClassifier:
     """A trained classifier, to judge success on a cell without ground truth."""
 
-    def __init__(self, net: SuccessNet, settings: ClassifierSettings, task: str) -> None:
+    def __init__(
+        self, net: SuccessNet | PretrainedSuccessNet, settings: ClassifierSettings, task: str
+    ) -> None:
         self.net, self.settings, self.task = net.eval(), settings, task
         self.threshold = settings.threshold
 
@@ -364,7 +439,7 @@ class RewardClassifier:
         raw = json.loads((folder / SETTINGS).read_text())
         task = raw.pop("task")
         settings = ClassifierSettings(**{**raw, "cameras": tuple(raw["cameras"])})
-        net = SuccessNet(3 * len(settings.cameras), settings.image_size)
+        net = success_net(settings)
         net.load_state_dict(load_file(str(folder / WEIGHTS)))
         return cls(net, settings, task)
 

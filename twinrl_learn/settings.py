@@ -72,10 +72,11 @@ class SFTConfig:
     """Sampling weight per dataset, e.g. 1,2 (default: by their frames, as if they were one
     dataset; a resumed run keeps its own)."""
     steps: int | None = None
-    """Training steps (default: 5000 vla, 3000 state; a resumed run: its own, more extends
-    it)."""
+    """Training steps (default: 5000 vla, 3000 state and vla with `perception`; a resumed
+    run: its own, more extends it)."""
     batch_size: int | None = None
-    """Batch size (default by policy; a resumed run: its own)."""
+    """Batch size (default by policy, vla with `perception` as state; a resumed run: its
+    own)."""
     lr: float | None = None
     """Learning rate (default by policy; a resumed run: its own)."""
     lr_schedule: str | None = None
@@ -93,6 +94,10 @@ class SFTConfig:
     """vla only: weight of the auxiliary loss that locates the objects relative to the TCP
     from the images (needs object poses in the data; 0 turns it off). Its squared error is
     in decimetres (a 1 cm miss costs 0.01); 10 beat 1 and 30 (docs/results/defaults.md)."""
+    perception: str | None = None
+    """vla only: a pose estimator folder (`twinrl train perception`) the policy acts
+    through: it reads the cameras and proprio and says where the objects are, and the
+    policy acts on that as the state policy does on the true poses (no locating head)."""
     seed: int = 0
     """Seed (initialisation, sampling, augmentation)."""
     checkpoint_every: int = 500
@@ -113,6 +118,10 @@ class SFTConfig:
             )
         if self.locate_weight < 0:
             raise SettingError("locate_weight", f"must be >= 0, got {self.locate_weight}")
+        if self.perception is not None and self.policy != "vla":
+            raise SettingError(
+                "perception", "serves the vla policy (the state policy reads the true poses)"
+            )
         if self.lr_schedule not in (None, *LR_SCHEDULES):
             raise SettingError(
                 "lr_schedule",
@@ -121,8 +130,15 @@ class SFTConfig:
         if self.chunk < 1:
             raise SettingError("chunk", f"must be at least 1, got {self.chunk}")
 
+    @property
+    def defaults(self) -> Defaults:
+        """The defaults of the network this trains: an image policy acting through a pose
+        estimator trains the state policy's network on its estimates, so it takes the
+        state policy's."""
+        return DEFAULTS["state" if self.perception is not None else self.policy]
+
     def resolved(self) -> SFTConfig:
-        defaults = DEFAULTS[self.policy]
+        defaults = self.defaults
         return SFTConfig(
             **{
                 **asdict(self),
@@ -132,6 +148,36 @@ class SFTConfig:
                 "lr_schedule": self.lr_schedule or defaults.lr_schedule,
             }
         )
+
+
+@dataclass
+class PerceptionSettings:
+    """What the pose estimator learns from, and how long (twinrl_learn.perception)."""
+
+    datasets: list[str]
+    """Twin episodes holding the true object poses (LeRobot dataset, session or
+    catalog); repeat to add more."""
+    out: str
+    """Folder for the estimator (must not exist or be empty)."""
+    steps: int = 3000
+    """Training steps."""
+    batch_size: int = 256
+    """Frames per step."""
+    lr: float = 1e-3
+    """Peak learning rate (cosine decay to zero)."""
+    seed: int = 0
+    """Seed (initialisation, held-out episodes, sampling)."""
+    log_every: int = 100
+    """Steps between progress reports and held-out checks."""
+
+    def __post_init__(self) -> None:
+        if not self.datasets:
+            raise SettingError("datasets", "is empty; pass twin episodes that hold object poses")
+        for name in ("steps", "batch_size", "log_every"):
+            if getattr(self, name) < 1:
+                raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise SettingError("lr", f"must be > 0, got {self.lr}")
 
 
 METHODS = ("twinrl", "conrft", "hil-serl")

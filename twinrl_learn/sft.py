@@ -32,6 +32,7 @@ import torch
 from twinrl_data.errors import SettingError
 from twinrl_data.training import FrameTable, load_frames
 from twinrl_learn.errors import LearnError
+from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy, PolicyConfig
 from twinrl_learn.settings import STEM_STRIDES, SFTConfig
 from twinrl_learn.training_state import load_state, save_state
@@ -61,13 +62,16 @@ def _batch(
     rows: np.ndarray,
     generator: torch.Generator,
     chunk: int,
+    estimates: torch.Tensor | None = None,
 ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-    """An augmented, normalised training batch of ``rows`` and their action chunks."""
+    """An augmented, normalised training batch of ``rows`` and their action chunks
+    (``estimates``: every frame's pose estimates, for a policy that perceives)."""
     batch = policy.inputs(
         frames.state[rows],
         None if frames.environment_state is None else frames.environment_state[rows],
-        {camera: frames.images[camera][rows] for camera in frames.images},
+        {} if estimates is not None else {c: frames.images[c][rows] for c in frames.images},
         [frames.instruction[r] for r in rows],
+        None if estimates is None else estimates[rows],
     )
     actions = policy.normalize("action", torch.from_numpy(frames.action_chunks(rows, chunk)))
     batch = policy.augment(batch, generator)
@@ -119,9 +123,19 @@ def train_sft(
     if weights is None:  # as if the datasets were one
         weights = np.bincount(frames.source, minlength=len(config.datasets)) / len(frames.source)
     config = replace(config, weights=weights.tolist())
+    estimator = (
+        None if config.perception is None else PoseEstimator.from_pretrained(config.perception)
+    )
+    if estimator is not None and estimator.config.state_names != frames.state_names:
+        raise LearnError(
+            f"the pose estimator {config.perception} learnt on another observation.state "
+            "layout than these datasets'; train one on twin episodes of this cell"
+        )
     # Joint velocities are a clock in demonstrations that a rollout does not keep; relative
-    # inputs also leave out joint angles, which would tell the policy where it is.
-    ignored_state = ("qd.", "q.") if config.inputs == "relative" else ("qd.",)
+    # inputs (and a perceiving policy's, relative too) also leave out joint angles, which
+    # would tell the policy where it is.
+    relative = config.inputs == "relative" or estimator is not None
+    ignored_state = ("qd.", "q.") if relative else ("qd.",)
     tcp_index = frames.state_names.index("tcp.x") if "tcp.x" in frames.state_names else -1
     object_indices = (
         [i for i, n in enumerate(frames.environment_names) if n.endswith(".x")]
@@ -139,6 +153,7 @@ def train_sft(
     # actions alone.
     locating = (
         config.policy == "vla"
+        and estimator is None
         and config.locate_weight > 0
         and frames.environment_state is not None
         and bool(object_indices)
@@ -158,10 +173,18 @@ def train_sft(
         ],
         object_indices=object_indices,
         inputs=config.inputs,
+        estimator=None if estimator is None else asdict(estimator.config),
         seed=config.seed,
         stats={k: {s: v.tolist() for s, v in d.items()} for k, d in frames.stats.items()},
     )
     policy = Policy(policy_config)
+    estimates = None
+    if estimator is not None:
+        policy.estimator.load_state_dict(estimator.state_dict())
+        # Computed once per frame (the backbone is frozen and an image pass is most of
+        # the estimator's cost): what the policy trains on, as it will act on them.
+        estimator.eval()
+        estimates = torch.from_numpy(estimator.estimate_rows(frames.images, frames.state))
     for instruction in sorted(set(frames.instruction)):
         policy.instructions(instruction)
     optimizer = torch.optim.AdamW(policy.parameters(), lr=config.lr, weight_decay=1e-4)
@@ -177,7 +200,7 @@ def train_sft(
     start, window = time.perf_counter(), time.perf_counter()
     while step < config.steps:
         rows = _sample_rows(frames, weights, config.batch_size, generator)
-        batch, actions = _batch(policy, frames, rows, generator, config.chunk)
+        batch, actions = _batch(policy, frames, rows, generator, config.chunk, estimates)
         loss = policy.sft_loss(batch, actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -272,7 +295,7 @@ def _saved_option(saved: dict, key: str):
 
 def _check_same_network(saved: dict, config: SFTConfig, out: Path) -> None:
     """A resumed run must build the network it saved (else its weights do not fit)."""
-    image_only = ("image_size", "locate_weight") if config.policy == "vla" else ()
+    image_only = ("image_size", "locate_weight", "perception") if config.policy == "vla" else ()
     differ = []
     for key in ("policy", "chunk", "inputs", *image_only):
         before = _saved_option(saved, key)

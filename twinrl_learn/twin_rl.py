@@ -38,8 +38,7 @@ from twinrl_sim.tasks import Progress, make_task
 
 
 def load_demo_buffer(demos: list[str], policy: Policy, rl: RLConfig) -> ReplayBuffer:
-    cameras = tuple(policy.config.cameras) if policy.needs_images else ()
-    return ReplayBuffer.from_datasets(demos, cameras=cameras, rewards=rl.rewards)
+    return ReplayBuffer.from_datasets(demos, rewards=rl.rewards, **policy.replay_views())
 
 
 def run_twin_rl(

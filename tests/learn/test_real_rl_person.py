@@ -112,6 +112,30 @@ def test_the_classifier_command_writes_a_report_with_its_mistakes(plant_episodes
     assert classifier.task == "pick_place" and classifier.settings.image_size == 32
 
 
+def test_a_classifier_on_the_pretrained_encoder_trains_saves_and_judges(plant_episodes, tmp_path):
+    out = tmp_path / "pretrained"
+    result = run_cli(
+        "train", "reward-classifier", str(plant_episodes), "--camera", "front",
+        "--camera", "wrist", "--encoder", "pretrained", "--out", str(out), "--steps", "40",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "frozen ImageNet-pretrained encoder" in (out / "report.md").read_text()
+    classifier = RewardClassifier.load(out)
+    assert classifier.settings.encoder == "pretrained"
+    # Only the trained head is saved: the backbone comes from its package.
+    assert (out / "weights.safetensors").stat().st_size < 2_000_000
+    episode = episodes_under([plant_episodes], ("front", "wrist"))[0]
+    observation = {
+        "observation.state": episode.data["observation.state"][-1],
+        **{f"observation.images.{c}": episode.images[c][-1] for c in ("front", "wrist")},
+    }
+    assert 0.0 <= classifier.probability(observation) <= 1.0
+    bad = run_cli("train", "reward-classifier", str(plant_episodes), "--encoder", "dino",
+                  "--out", str(tmp_path / "bad"))  # fmt: skip
+    assert bad.returncode != 0 and "--encoder must be one of scratch, pretrained" in bad.stderr
+    assert not (tmp_path / "bad").exists()
+
+
 def test_the_classifier_judges_real_rl_and_a_pause_keeps_the_run(demos, classifier, tmp_path):
     # A classifier that sees success everywhere ends every episode after its first step:
     # the episode's outcome is the classifier's, not the plant's ground truth.

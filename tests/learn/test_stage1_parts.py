@@ -504,7 +504,8 @@ def test_the_table_i_benchmark_end_to_end_at_smoke_scale(tmp_path):
     assert all(set(r["success"]) == {"ID", "OOD"} for r in rows)
     table = (out / "table1.md").read_text()
     assert "100 % of them straying beside the object first" in table
-    assert table.count("| pick_place | state |") == len(MIXES)
+    assert table.count("| pick_place | state (privileged) |") == len(MIXES)
+    assert "true object poses, which only the twin and the plant know" in table
     for r in rows:
         name = f"state_real_id{r['twin_id']}_ood{r['twin_ood']}"
         assert (out / "pick_place" / f"{name}_eval" / "heatmap.png").is_file()

@@ -111,7 +111,13 @@ def labelled_sources(texts: list[str]) -> dict[str, Path]:
 
 
 def locate_command(
-    checkpoint: Annotated[Path, typer.Argument(help="twinrl image-policy checkpoint.")],
+    checkpoint: Annotated[
+        Path,
+        typer.Argument(
+            help="twinrl image-policy checkpoint (locating head or pose estimator), or a pose "
+            "estimator folder (`twinrl train perception`)."
+        ),
+    ],
     sources: Annotated[
         list[str],
         typer.Argument(
@@ -121,7 +127,8 @@ def locate_command(
     ],
     out: Annotated[Path, typer.Option(help="Folder for locating.json and locating.png.")],
 ) -> None:
-    """How far off an image policy's locating head sees the objects in logged episodes.
+    """How far off an image policy's locating head or a pose estimator sees the objects in
+    logged episodes.
 
     By the TCP's distance to each object, per source and region: its training demos
     against its own rollouts, say."""

@@ -17,7 +17,13 @@ from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.settings_cli import options, settings_command
 from twinrl_learn.cli.common import console
 from twinrl_learn.replay import RewardSettings
-from twinrl_learn.settings import RealRLSettings, RLConfig, SFTConfig, TwinRLSettings
+from twinrl_learn.settings import (
+    PerceptionSettings,
+    RealRLSettings,
+    RLConfig,
+    SFTConfig,
+    TwinRLSettings,
+)
 from twinrl_robot.operator import OperatorRule
 
 app = typer.Typer(
@@ -45,14 +51,13 @@ def rl_settings(given: dict[str, Any]) -> RLConfig:
 
 # ------------------------------------------------------------------------------ sft
 def sft(settings: dict[str, Any], resume: bool) -> None:
-    from twinrl_learn.settings import DEFAULTS
     from twinrl_learn.sft import train_sft
 
     config = SFTConfig(**settings)
     with progress("loss", "rate") as bar:
         # A resumed run without --steps reports its own length.
         steps = config.steps
-        total = None if resume and steps is None else steps or DEFAULTS[config.policy].steps
+        total = None if resume and steps is None else steps or config.defaults.steps
         job = bar.add_task(f"SFT {config.policy}", total=total, loss="-", rate="-")
 
         def report(step: int, metrics: dict[str, float]) -> None:
@@ -70,7 +75,12 @@ def sft(settings: dict[str, Any], resume: bool) -> None:
         f"{result.out}: {result.steps} steps in {result.seconds:.0f} s, final loss "
         f"{sum(tail) / max(len(tail), 1):.3f}; curve {result.out / 'loss.png'}"
     )
-    if config.policy == "vla" and config.locate_weight > 0 and not result.locating:
+    if (
+        config.policy == "vla"
+        and config.perception is None
+        and config.locate_weight > 0
+        and not result.locating
+    ):
         console.print(
             "note: no dataset holds both the object poses (observation.environment_state) "
             "and the TCP pose (tcp.x), so the policy learnt from the actions alone, "
@@ -80,7 +90,7 @@ def sft(settings: dict[str, Any], resume: bool) -> None:
 
 SFT_FIELDS = (
     "datasets", "out", "policy", "weights", "steps", "batch_size", "lr", "lr_schedule",
-    "chunk", "inputs", "image_size", "locate_weight", "seed",
+    "chunk", "inputs", "image_size", "locate_weight", "perception", "seed",
 )  # fmt: skip
 settings_command(
     app,
@@ -89,6 +99,45 @@ settings_command(
     sft,
     help="Supervised fine-tuning on demonstrations (real and twin), with a loss curve.",
     extra=[RESUME],
+)
+
+
+# ------------------------------------------------------------------------ perception
+def perception(settings: dict[str, Any]) -> None:
+    from twinrl_learn.perception.training import train_estimator
+
+    config = PerceptionSettings(**settings)
+    quiet_encoders()
+    with progress("loss", "held") as bar:
+        features = bar.add_task("frozen features", total=None, loss="", held="")
+        job = bar.add_task("training", total=config.steps, loss="-", held="-")
+
+        def report(stage: str, done: int, total: int, metrics: dict[str, float]) -> None:
+            if stage == "features":
+                bar.update(features, completed=done, total=total)
+                return
+            bar.update(
+                job, completed=done, loss=f"{metrics['loss']:.4f}", held=f"{metrics['held']:.4f}"
+            )
+
+        result = train_estimator(config, progress=report)
+    console.print(
+        f"{result.out}: {result.steps} steps in {result.seconds:.0f} s; held-out episodes "
+        + "; ".join(
+            f"{name} {e['planar_cm']:.1f} cm planar, {e['orientation_deg']:.0f} deg"
+            for name, e in result.held_out_errors.items()
+        )
+        + f"; curve {result.out / 'loss.png'}"
+    )
+
+
+settings_command(
+    app,
+    "perception",
+    options(PerceptionSettings, names={"datasets": "dataset"}),
+    perception,
+    help="Train a pose estimator for the image policy on twin episodes (true poses as "
+    "labels), on a frozen ImageNet-pretrained encoder.",
 )
 
 
@@ -285,6 +334,13 @@ def reward_classifier(
         str | None, typer.Option(help="Only this task's episodes (a session may hold several).")
     ] = None,
     heldout: Annotated[float, typer.Option(help="Share of episodes held out.")] = 0.25,
+    encoder: Annotated[
+        str,
+        typer.Option(
+            help="scratch (a small CNN trained on the frames) or pretrained (a frozen "
+            "ImageNet encoder with a trained head; use --image-size 128)."
+        ),
+    ] = "scratch",
     seed: Annotated[int, typer.Option(help="Seed of the split and the training.")] = 0,
 ) -> None:
     """Learn a task's success from its episodes' cameras (a reward for real RL on a cell
@@ -302,6 +358,7 @@ def reward_classifier(
         margin=margin,
         heldout=heldout,
         steps=steps,
+        encoder=encoder,
         seed=seed,
     )
     episodes = episodes_under(datasets, settings.cameras, task)

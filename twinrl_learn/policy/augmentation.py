@@ -16,8 +16,8 @@ def augment(
     pixels, states with STATE_NOISE std units of noise (robustness to the small state
     errors a rollout makes)."""
     out = dict(batch)
-    if config.kind == "vla":
-        for camera in config.cameras:
+    for camera in config.cameras:
+        if f"image.{camera}" in out:
             out[f"image.{camera}"] = random_shift(out[f"image.{camera}"], generator)
     for key in ("state", "env", "relative"):
         if key in out:

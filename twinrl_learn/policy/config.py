@@ -49,6 +49,12 @@ class PolicyConfig:
     # Acting, hold the arm while the gripper closes (HoldRule).
     # State policies gained successes with it, none lost any (docs/results/defaults.md).
     grasp_hold: bool = True
+    # The pose estimator an image policy acts through (EstimatorConfig as a dict; its
+    # head's weights are in the checkpoint under ``estimator.``): it reads the cameras
+    # and proprio and says where the objects are relative to the tool, and the policy
+    # acts on that as the state policy does on the true poses (twinrl_learn.perception).
+    # None: the cameras' own FiLM encoders, trained with the policy.
+    estimator: dict | None = None
     seed: int = 0
     stats: dict[str, dict[str, list[float]]] = field(default_factory=dict)
     instructions: dict[str, list[float]] = field(default_factory=dict)
@@ -69,6 +75,11 @@ class PolicyConfig:
             raise LearnError(
                 f"temporal_ensemble must be a finite number >= 0 (or None: chunks open-loop), "
                 f"got {self.temporal_ensemble}"
+            )
+        if self.estimator is not None and (self.kind != "vla" or self.locate_weight > 0):
+            raise LearnError(
+                "a pose estimator serves the vla policy, which then needs no locating head "
+                "(locate_weight 0)"
             )
         if self.locate_weight > 0 and self.kind != "vla":
             raise LearnError(

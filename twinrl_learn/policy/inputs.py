@@ -3,7 +3,7 @@ the tool, resized images and the instruction's embedding, as one batch of tensor
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -14,33 +14,30 @@ from twinrl_learn.language import InstructionCache
 from twinrl_learn.policy.config import PolicyConfig
 from twinrl_learn.policy.normalization import Normalizer
 
+if TYPE_CHECKING:
+    from twinrl_learn.perception.estimator import PoseEstimator
+
 
 class InputEncoder:
     """Turns raw arrays (or contract observations) into the normalised batch the
     networks read."""
 
     def __init__(
-        self, config: PolicyConfig, normalizer: Normalizer, instructions: InstructionCache
+        self,
+        config: PolicyConfig,
+        normalizer: Normalizer,
+        instructions: InstructionCache,
+        estimator: PoseEstimator | None = None,
     ) -> None:
         self.config, self.normalizer, self.instructions = config, normalizer, instructions
+        self.estimator = estimator
 
     def relative_poses(self, state: torch.Tensor, env: torch.Tensor) -> torch.Tensor:
-        """Each object's position relative to the TCP (m x 10, base axes): what a reaching
-        policy needs, invariant to where on the table things are. With ``relative`` inputs
-        also its orientation in the tool frame (the first two columns of R_tool^T R_object,
-        a continuous rotation code): how far the tool must still turn to grasp it."""
+        """See :func:`relative_poses`; orientations with ``relative`` inputs."""
         config = self.config
-        if not config.object_indices:
-            return state.new_zeros((state.shape[0], 0))
-        start = config.tcp_index
-        tcp = state[:, start : start + 3]
-        parts = [(env[:, i : i + 3] - tcp) * 10.0 for i in config.object_indices]
-        if config.inputs == "relative":
-            tool = quat_matrix(state[:, start + 3 : start + 7])
-            for i in config.object_indices:
-                rotation = tool.transpose(1, 2) @ quat_matrix(env[:, i + 3 : i + 7])
-                parts.append(rotation[:, :, :2].reshape(len(rotation), 6))
-        return torch.cat(parts, dim=-1)
+        return relative_poses(
+            state, env, config.tcp_index, config.object_indices, config.inputs == "relative"
+        )
 
     def prepare_images(self, images: torch.Tensor) -> torch.Tensor:
         """uint8 (B, H, W, 3) -> float (B, 3, S, S) in [0, 1] at the policy's image size."""
@@ -58,14 +55,21 @@ class InputEncoder:
         environment_state: np.ndarray | torch.Tensor | None,
         images: dict[str, np.ndarray | torch.Tensor],
         instructions: list[str],
+        estimates: np.ndarray | torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
-        """A normalised input batch from raw arrays (B rows)."""
+        """A normalised input batch from raw arrays (B rows). A policy that acts through a
+        pose estimator reads its ``estimates`` of these rows when given (SFT computes them
+        once per frame), or runs it on ``images``."""
         state = torch.as_tensor(np.asarray(state, np.float32))
         batch = {
             "state": self.normalizer.normalize("state", state),
             "text": torch.as_tensor(np.stack([self.instructions(i) for i in instructions])),
         }
-        if self.config.kind == "vla":
+        if self.estimator is not None:
+            if estimates is None:
+                estimates = self.estimator.estimate(images, state)
+            batch["relative"] = torch.as_tensor(np.asarray(estimates, np.float32))
+        elif self.config.kind == "vla":
             for camera in self.config.cameras:
                 batch[f"image.{camera}"] = self.prepare_images(torch.as_tensor(images[camera]))
         else:
@@ -91,6 +95,31 @@ class InputEncoder:
             images,
             instructions,
         )
+
+
+def relative_poses(
+    state: torch.Tensor,
+    env: torch.Tensor,
+    tcp_index: int,
+    object_indices: list[int],
+    orientations: bool,
+) -> torch.Tensor:
+    """Each object's position relative to the TCP (m x 10, base axes): what a reaching
+    policy needs, invariant to where on the table things are. With ``orientations`` also
+    its orientation in the tool frame (the first two columns of R_tool^T R_object, a
+    continuous rotation code): how far the tool must still turn to grasp it. ``state``
+    holds the TCP pose from ``tcp_index`` (xyz, quaternion wxyz), ``env`` each object's
+    from its index in ``object_indices``."""
+    if not object_indices:
+        return state.new_zeros((state.shape[0], 0))
+    tcp = state[:, tcp_index : tcp_index + 3]
+    parts = [(env[:, i : i + 3] - tcp) * 10.0 for i in object_indices]
+    if orientations:
+        tool = quat_matrix(state[:, tcp_index + 3 : tcp_index + 7])
+        for i in object_indices:
+            rotation = tool.transpose(1, 2) @ quat_matrix(env[:, i + 3 : i + 7])
+            parts.append(rotation[:, :, :2].reshape(len(rotation), 6))
+    return torch.cat(parts, dim=-1)
 
 
 def quat_matrix(quat: torch.Tensor) -> torch.Tensor:

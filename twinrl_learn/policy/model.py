@@ -33,8 +33,15 @@ class Policy(nn.Module):
         self.config = config
         c = config
         self.encoders = nn.ModuleDict()
+        self.estimator = None
         features = 0
-        if c.kind == "vla":
+        if self.perceives:
+            from twinrl_learn.perception.estimator import EstimatorConfig, PoseEstimator
+
+            self.estimator = PoseEstimator(EstimatorConfig(**c.estimator))
+            self.estimator.requires_grad_(False)
+            proprio = self.state_width + 9 * len(self.estimator.config.objects)
+        elif c.kind == "vla":
             for camera in c.cameras:
                 self.encoders[camera] = FiLMConvEncoder(stem_stride=c.stem_stride)
                 features += self.encoders[camera].out_dim
@@ -55,8 +62,14 @@ class Policy(nn.Module):
             self.locator = nn.Linear(c.hidden, 3 * len(c.object_indices))
         self.instructions = InstructionCache(c.instructions)
         self.normalizer = Normalizer(c.stats, c.state_inputs)
-        self.input_encoder = InputEncoder(c, self.normalizer, self.instructions)
+        self.input_encoder = InputEncoder(c, self.normalizer, self.instructions, self.estimator)
         self.acting = ChunkedActing(c)
+
+    @property
+    def perceives(self) -> bool:
+        """Whether the image policy acts through a pose estimator
+        (:mod:`twinrl_learn.perception`) rather than its own image encoders."""
+        return self.config.kind == "vla" and self.config.estimator is not None
 
     @property
     def locates(self) -> bool:
@@ -80,8 +93,9 @@ class Policy(nn.Module):
         return self.state_width + absolute + self.relative_width
 
     def privileged_inputs(self, batch: dict[str, torch.Tensor]) -> list[torch.Tensor]:
-        """What the state policy reads of a normalised batch."""
-        if self.config.inputs == "relative":
+        """What the state policy reads of a normalised batch (and an image policy that
+        perceives: the estimated poses in place of the true ones)."""
+        if self.config.inputs == "relative" or self.perceives:
             return [batch["state"], batch["relative"]]
         return [batch["state"], batch["env"], batch["relative"]]
 
@@ -91,7 +105,7 @@ class Policy(nn.Module):
         (None for the state policy). They are most of an image policy's cost, so an RL
         update computes them once per batch and hands them to :meth:`features` and
         :meth:`critic_inputs`."""
-        if self.config.kind != "vla":
+        if self.config.kind != "vla" or self.perceives:
             return None
         text = batch["text"]
         return torch.cat(
@@ -104,7 +118,7 @@ class Policy(nn.Module):
     ) -> torch.Tensor:
         """Trunk features of a normalised batch (``keypoints``: the batch's
         :meth:`keypoints`, when already computed)."""
-        if self.config.kind == "vla":
+        if self.config.kind == "vla" and not self.perceives:
             keypoints = self.keypoints(batch) if keypoints is None else keypoints
             parts = [keypoints, self.proprio(batch["state"])]
         else:
@@ -118,7 +132,7 @@ class Policy(nn.Module):
         """What a critic reads: the image encoders' keypoints (no gradient: the critic
         sits on frozen encoder features, as in TwinRL) or the privileged state, plus
         proprio and the instruction embedding (``keypoints``: as for :meth:`features`)."""
-        if self.config.kind == "vla":
+        if self.config.kind == "vla" and not self.perceives:
             if keypoints is None:
                 with torch.no_grad():
                     keypoints = self.keypoints(batch)
@@ -130,7 +144,9 @@ class Policy(nn.Module):
     @property
     def critic_input_dim(self) -> int:
         c = self.config
-        if c.kind == "vla":
+        if self.perceives:
+            width = self.state_width + 9 * len(self.estimator.config.objects)
+        elif c.kind == "vla":
             width = sum(e.out_dim for e in self.encoders.values()) + self.state_width
         else:
             width = self.privileged_width
@@ -261,9 +277,11 @@ class Policy(nn.Module):
         environment_state: np.ndarray | torch.Tensor | None,
         images: dict[str, np.ndarray | torch.Tensor],
         instructions: list[str],
+        estimates: np.ndarray | torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
-        """A normalised input batch from raw arrays (B rows): what :meth:`features` reads."""
-        return self.input_encoder.inputs(state, environment_state, images, instructions)
+        """A normalised input batch from raw arrays (B rows): what :meth:`features` reads
+        (``estimates``: see :meth:`InputEncoder.inputs`)."""
+        return self.input_encoder.inputs(state, environment_state, images, instructions, estimates)
 
     def augment(
         self, batch: dict[str, torch.Tensor], generator: torch.Generator
@@ -310,6 +328,16 @@ class Policy(nn.Module):
     @property
     def needs_images(self) -> bool:
         return self.config.kind == "vla"
+
+    def replay_views(self) -> dict[str, Any]:
+        """What a replay buffer keeps for this policy (:class:`~twinrl_learn.replay.
+        ReplayBuffer`'s ``cameras`` and ``estimate``): the cameras an image policy reads,
+        and for one acting through a pose estimator its estimates, computed once per
+        episode so that an RL update runs no image network."""
+        return {
+            "cameras": tuple(self.config.cameras) if self.needs_images else (),
+            "estimate": self.estimator.estimate_rows if self.perceives else None,
+        }
 
     # ------------------------------------------------------------ checkpoints
     def save_pretrained(self, path: str | Path) -> Path:

@@ -35,6 +35,11 @@ class Stage1Settings:
     diagnose) and synthesize the twin demos in that look."""
     detours: float = 0.0
     """Share of the twin demos that first stray beside the object (see expand)."""
+    perception: int = 0
+    """Twin episodes per region (synthesized in the twin of the demos, half of them
+    straying first, under varied light) that a pose estimator learns from; the image
+    policy then acts through it (`twinrl train perception`). 0: the image policy's own
+    encoders, trained with it."""
     state_inputs: str = "relative"
     """The state policy's inputs: relative (objects seen from the TCP, the quick
     pipeline's: with absolute poses the best mix varied) or absolute (poses in the base
@@ -48,6 +53,8 @@ class Stage1Settings:
             raise SettingError(
                 "episodes_per_cell", f"must be at least 1, got {self.episodes_per_cell}"
             )
+        if self.perception < 0:
+            raise SettingError("perception", f"must be >= 0, got {self.perception}")
         if not 0.0 <= self.detours <= 1.0:
             raise SettingError("detours", f"is a share from 0 to 1, got {self.detours}")
 

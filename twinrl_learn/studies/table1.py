@@ -11,10 +11,15 @@ For each task:
    diagnose`` fitted to the real demos' images (``<task>/twin_fitted.yaml``), so that
    an image policy's twin demos look like the cell; with ``detours`` that share of
    them first strays beside the object (``twinrl expand --detours``).
-3. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
+3. With ``perception`` (image policy): that many twin episodes per region, half of
+   them straying first, under varied light, in the same twin, and a pose estimator
+   trained on them (:mod:`twinrl_learn.perception`) that every image policy acts
+   through.
+4. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
    (30, 30), (60, 30), (30, 60) (scaled by ``scale``); the state policy reads
-   ``state_inputs`` (relative by default, as in the quick pipeline).
-4. Evaluation of every policy in the plant over a grid covering ID and OOD.
+   ``state_inputs`` (relative by default, as in the quick pipeline) of the privileged
+   object poses, and is labelled so.
+5. Evaluation of every policy in the plant over a grid covering ID and OOD.
 
 Writes ``out/table1.md`` (the paper's Table I shape, plus the paper's numbers for
 reference), ``out/stage1.json`` and one heatmap per policy.
@@ -37,8 +42,9 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.perception.training import train_estimator
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import SFTConfig
+from twinrl_learn.settings import PerceptionSettings, SFTConfig
 from twinrl_learn.sft import train_sft
 from twinrl_learn.studies.settings import Stage1Settings
 from twinrl_robot.scripted import run_scripted_expert
@@ -50,6 +56,8 @@ from twinrl_sim.tasks import make_task
 
 TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operator corrects
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
+POLICY_LABELS = {"state": "state (privileged)", "vla": "vla (images)"}
+PERCEPTION_DETOURS = 0.5  # share of the perception episodes that stray: off-path views
 PAPER_TABLE1 = {(0, 0): (40, 0), (30, 30): (70, 30), (60, 30): (80, 40), (30, 60): (70, 70)}
 
 
@@ -102,6 +110,32 @@ def fit_look(task: str, real: Path, path: Path) -> SceneSpec:
     return load_spec(path)
 
 
+def train_task_estimator(
+    task: str, base: Path, scene: SceneSpec | None, per_region: int, settings: Stage1Settings
+) -> Path:
+    """Synthesize ``per_region`` twin episodes per region for perception (half of them
+    straying first, under varied light) and train the pose estimator on them; returns
+    its folder."""
+    expand(
+        task,
+        id_count=per_region,
+        ood_count=per_region,
+        out=base / "perception",
+        scene=scene,
+        seed=settings.seed + 2,
+        export=False,
+        detours=PERCEPTION_DETOURS,
+        randomize=("lighting",),
+    )
+    folder = base / "estimator"
+    train_estimator(
+        PerceptionSettings(
+            datasets=[str(base / "perception" / "session")], out=str(folder), seed=settings.seed
+        )
+    )
+    return folder
+
+
 def run_stage1(
     settings: Stage1Settings, out: str | Path, log: Callable[[str], None] = print
 ) -> list[Stage1Row]:
@@ -146,6 +180,10 @@ def run_stage1(
             images="vla" in settings.policies,
             detours=settings.detours,
         )
+        estimator = None
+        if settings.perception and "vla" in settings.policies:
+            estimator = train_task_estimator(task, base, scene, n(settings.perception), settings)
+            log(f"{task}: pose estimator {estimator} (twinrl locate it on any episodes)")
         twin_id = Session(base / "twin_id" / "session").episode_paths()
         twin_ood = Session(base / "twin_ood" / "session").episode_paths()
         for mix_id, mix_ood in MIXES:
@@ -168,6 +206,7 @@ def run_stage1(
                         policy=kind,
                         steps=settings.sft_steps(kind),
                         inputs=settings.state_inputs if kind == "state" else "absolute",
+                        perception=None if kind != "vla" or estimator is None else str(estimator),
                         seed=settings.seed,
                     )
                 )
@@ -211,7 +250,15 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
         + "; "
         f"evaluation in the plant over a {settings.grid[0]}x{settings.grid[1]} grid "
         f"({settings.episodes_per_cell} episodes per cell); the state policy reads "
-        f"{settings.state_inputs} inputs. Paper: one task, real robot.",
+        f"{settings.state_inputs} inputs of the true object poses, which only the twin and "
+        "the plant know"
+        + (
+            f"; the image policy acts through a pose estimator trained on "
+            f"{settings.perception} twin episodes per region"
+            if settings.perception and "vla" in settings.policies
+            else ""
+        )
+        + ". Paper: one task, real robot.",
         "",
         "| task | policy | twin ID | twin OOD | ID SR | OOD SR | avg | paper ID | paper OOD |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -219,8 +266,9 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
     for r in rows:
         ids, ood = r.success.get("ID", 0.0), r.success.get("OOD", 0.0)
         paper = PAPER_TABLE1[(r.twin_id, r.twin_ood)]
+        policy = POLICY_LABELS.get(r.policy, r.policy)
         lines.append(
-            f"| {r.task} | {r.policy} | {r.twin_id} | {r.twin_ood} | {100 * ids:.0f} % | "
+            f"| {r.task} | {policy} | {r.twin_id} | {r.twin_ood} | {100 * ids:.0f} % | "
             f"{100 * ood:.0f} % | {100 * np.mean([ids, ood]):.0f} % | {paper[0]} % | {paper[1]} % |"
         )
     lines += ["", "Heatmaps: `<task>/<policy>_eval/heatmap.png`."]
