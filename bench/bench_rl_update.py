@@ -3,8 +3,10 @@
 Twin and real RL make one gradient update per environment step (``utd``), and on CPU
 the updates, not the simulation, set how long a pipeline takes. This times the TwinRL
 agent's update (critic ensemble + actor, batch 64, chunks as SFT makes them) for the
-state policy and the image policy on the same few twin demos, offline (with the Cal-QL
-regulariser) and online, prints their ratio, and multiplies each by the number of
+state policy, the image policy with its own encoders and the image policy acting through
+a pose estimator (whose estimates the replay buffer computes once per episode) on the
+same few twin demos, offline (with the Cal-QL regulariser) and online, prints their
+ratios, and multiplies each by the number of
 updates a preset's pipeline makes (Stage II, then four methods x seeds of real RL, each
 with its offline phase). Usage::
 
@@ -25,9 +27,10 @@ import typer
 
 from twinrl_data.console import quiet_encoders
 from twinrl_learn.agent import Agent
+from twinrl_learn.perception import train_estimator
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
-from twinrl_learn.settings import RLConfig, SFTConfig
+from twinrl_learn.settings import PerceptionSettings, RLConfig, SFTConfig
 from twinrl_learn.sft import train_sft
 from twinrl_learn.studies.presets import (
     METHOD_TABLE,
@@ -37,6 +40,8 @@ from twinrl_learn.studies.presets import (
     twin_rl_config,
 )
 from twinrl_sim.expand import expand
+
+LABELS = ("state", "vla", "vla through an estimator")
 
 
 def seconds_per_update(
@@ -82,15 +87,21 @@ def main(
     try:
         report = expand("pick_place", id_count=demos // 2, ood_count=demos - demos // 2,
                         out=root / "demos", workers=1)  # fmt: skip
+        estimator = root / "estimator"
+        train_estimator(PerceptionSettings(datasets=[report.dataset], out=str(estimator),
+                                           steps=1))  # fmt: skip
         seconds = {}
-        for kind in ("state", "vla"):
-            checkpoint = root / kind
+        for label in LABELS:
+            kind = label.split()[0]
+            checkpoint = root / label.replace(" ", "_")
+            perception = str(estimator) if "estimator" in label else None
             train_sft(SFTConfig(datasets=[report.dataset], out=str(checkpoint), policy=kind,
-                                steps=1))  # fmt: skip
-            cameras = Policy.from_pretrained(checkpoint).config.cameras if kind == "vla" else ()
-            buffer = ReplayBuffer.from_datasets([report.dataset], cameras=cameras)
+                                steps=1, perception=perception))  # fmt: skip
+            views = Policy.from_pretrained(checkpoint).replay_views()
+            buffer = ReplayBuffer.from_datasets([report.dataset], **views)
+            buffer.valid_starts(1)  # the estimates, computed once, before the timing
             for phase in ("offline", "online"):
-                seconds[kind, phase] = seconds_per_update(
+                seconds[label, phase] = seconds_per_update(
                     checkpoint, buffer, updates, offline=phase == "offline"
                 )
     finally:
@@ -98,10 +109,12 @@ def main(
     batch = RLConfig().batch_size
     print(f"TwinRL update, batch {batch}, {torch.get_num_threads()} threads, mean of {updates}\n")
     print("| policy | offline s / update | online s / update |\n|---|---|---|")
-    for kind in ("state", "vla"):
-        print(f"| {kind} | {seconds[kind, 'offline']:.3f} | {seconds[kind, 'online']:.3f} |")
-    ratio = seconds["vla", "online"] / seconds["state", "online"]
-    print(f"\nimage / state, online: {ratio:.1f}x\n")
+    for label in LABELS:
+        print(f"| {label} | {seconds[label, 'offline']:.3f} | {seconds[label, 'online']:.3f} |")
+    for label in LABELS[1:]:
+        ratio = seconds[label, "online"] / seconds["state", "online"]
+        print(f"\n{label} / state, online: {ratio:.1f}x")
+    print()
     print("| preset | policy | offline + online updates | hours of updates |\n|---|---|---|---|")
     for name in ("quick", "paper"):
         preset = PRESETS[name]
