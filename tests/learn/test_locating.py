@@ -87,7 +87,7 @@ def test_locate_command_reports_each_source_and_refuses_bad_input(demos_and_poli
                   batch_size=4, image_size=64, locate_weight=0.0)
     )  # fmt: skip
     headless = twinrl("locate", str(plain), str(folder / "session"), "--out", str(tmp_path / "y"))
-    assert headless.returncode != 0 and "has no locating head" in headless.stderr
+    assert headless.returncode != 0 and "neither locates the objects" in headless.stderr
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
