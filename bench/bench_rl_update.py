@@ -119,10 +119,12 @@ def main(
     for name in ("quick", "paper"):
         preset = PRESETS[name]
         offline, online = pipeline_updates(preset)
-        hours = (
-            offline * seconds[preset.policy, "offline"] + online * seconds[preset.policy, "online"]
-        ) / 3600
-        print(f"| {name} | {preset.policy} | {offline:,} + {online:,} | {hours:.1f} |")
+        # An image preset's updates, with the image policy's own encoders or through an
+        # estimator.
+        labels = [label for label in LABELS if label.split()[0] == preset.policy]
+        for label in labels:
+            hours = (offline * seconds[label, "offline"] + online * seconds[label, "online"]) / 3600
+            print(f"| {name} | {label} | {offline:,} + {online:,} | {hours:.1f} |")
 
 
 if __name__ == "__main__":
