@@ -11,12 +11,13 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.agent import Agent
 from twinrl_learn.mining import mine
+from twinrl_learn.perception import train_estimator
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL, RealRLSettings
 from twinrl_learn.real_rl_progress import load_evaluations
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.runners import TwinrlRunner
-from twinrl_learn.settings import RLConfig, SFTConfig
+from twinrl_learn.settings import PerceptionSettings, RLConfig, SFTConfig
 from twinrl_learn.sft import train_sft
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule
@@ -57,10 +58,22 @@ def test_an_update_encodes_each_image_batch_once(image_demos, method, offline, p
 
 
 @pytest.mark.slow
-def test_the_image_policy_runs_through_twin_rl_mining_and_real_rl(image_demos, tmp_path):
+@pytest.mark.parametrize("perceiving", [False, True], ids=["own encoders", "estimator"])
+def test_the_image_policy_runs_through_twin_rl_mining_and_real_rl(
+    image_demos, tmp_path, perceiving
+):
     torch.set_num_threads(1)
     dataset, sft = image_demos
-    assert Policy.from_pretrained(sft).locates
+    if perceiving:  # acting through a pose estimator trained on the same twin episodes
+        train_estimator(PerceptionSettings(datasets=[str(dataset)], out=str(tmp_path / "est"),
+                                           steps=5, batch_size=8))  # fmt: skip
+        sft = tmp_path / "sft"
+        train_sft(
+            SFTConfig(datasets=[str(dataset)], out=str(sft), policy="vla", steps=2,
+                      batch_size=4, chunk=4, perception=str(tmp_path / "est"))
+        )  # fmt: skip
+    policy = Policy.from_pretrained(sft)
+    assert policy.perceives if perceiving else policy.locates
     rl = RLConfig(offline_steps=2, batch_size=8, utd=0.02, seed=1)
 
     twin = run_twin_rl(
@@ -98,6 +111,8 @@ def test_the_image_policy_runs_through_twin_rl_mining_and_real_rl(image_demos, t
     # The buffers hold the cameras' frames, of every real-RL episode too (one the
     # operator helped in as a demonstration).
     assert run.online.cameras == run.demo.cameras == ("front", "wrist")
+    # A perceiving policy's buffers hold its estimates too, computed once per episode.
+    assert (run.online.estimate is not None) == (run.demo.estimate is not None) == perceiving
     buffered = {e.meta.episode_id for e in run.online.episodes + run.demo.episodes}
     assert {e.meta.episode_id for e in episodes} <= buffered
     assert [p.plant_steps for p in load_evaluations(tmp_path / "real")] == [0, run.agent.env_steps]
