@@ -210,8 +210,10 @@ def train_estimator(
     true = targets(frames)
     generator = torch.Generator().manual_seed(settings.seed)
     episodes = frames.episodes
-    held = torch.randperm(episodes, generator=generator)[: max(1, round(HELD_OUT * episodes))]
-    is_held = np.isin(frames.episode, held.numpy()) if episodes > 1 else np.zeros(len(true), bool)
+    # A tenth of the episodes, at least one, held out (none when there is only one).
+    count = max(1, round(HELD_OUT * episodes)) if episodes > 1 else 0
+    held = torch.randperm(episodes, generator=generator)[:count]
+    is_held = np.isin(frames.episode, held.numpy())
     train_rows = torch.from_numpy(np.flatnonzero(~is_held))
     held_rows = torch.from_numpy(np.flatnonzero(is_held))
     objects = len(estimator.config.objects)
@@ -282,7 +284,15 @@ def _predict(
     return torch.cat(parts) if parts else torch.zeros(0, estimator.config.output_dim)
 
 
-def _loss_on(estimator, features, state, true, rows, objects) -> float:
+def _loss_on(
+    estimator: PoseEstimator,
+    features: dict[str, tuple[torch.Tensor, torch.Tensor]],
+    state: torch.Tensor,
+    true: torch.Tensor,
+    rows: torch.Tensor,
+    objects: int,
+) -> float:
+    """The pose loss on ``rows`` (NaN when there are none)."""
     if len(rows) == 0:
         return float("nan")
     return pose_loss(_predict(estimator, features, state, rows), true[rows], objects).item()
