@@ -36,6 +36,7 @@ from twinrl_data.sources import open_episodes
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy
+from twinrl_learn.policy.checkpoint import is_checkpoint
 from twinrl_learn.policy.inputs import relative_poses
 
 # TCP-to-object distances (cm) that split the frames: grasping, approaching, reaching.
@@ -85,12 +86,9 @@ class Locator:
     @classmethod
     def load(cls, path: str | Path) -> Locator:
         """From a policy checkpoint or a pose estimator folder."""
-        path = Path(path)
-        if (path / "config.json").is_file() and "proprio_names" in json.loads(
-            (path / "config.json").read_text()
-        ):
-            return cls(PoseEstimator.from_pretrained(path))
-        return cls(Policy.from_pretrained(path))
+        if is_checkpoint(path):
+            return cls(Policy.from_pretrained(path))
+        return cls(PoseEstimator.from_pretrained(path))
 
     @property
     def cameras(self) -> list[str]:

@@ -203,9 +203,11 @@ def success_net(settings: ClassifierSettings) -> SuccessNet | PretrainedSuccessN
 
 def _encoded(net: PretrainedSuccessNet, images: np.ndarray) -> list[tuple[torch.Tensor, ...]]:
     """Every frame's backbone features per camera, in half precision, computed once."""
-    parts = [net.encode(torch.from_numpy(images[i : i + 128])) for i in range(0, len(images), 128)]
     return [
-        tuple(torch.cat([p[camera][level] for p in parts]).half() for level in (0, 1))
+        net.backbone.cached(
+            torch.from_numpy(images[i : i + 128, 3 * camera : 3 * camera + 3]).float() / 255.0
+            for i in range(0, len(images), 128)
+        )
         for camera in range(len(net.heads))
     ]
 

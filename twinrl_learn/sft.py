@@ -183,7 +183,6 @@ def train_sft(
         policy.estimator.load_state_dict(estimator.state_dict())
         # Computed once per frame (the backbone is frozen and an image pass is most of
         # the estimator's cost): what the policy trains on, as it will act on them.
-        estimator.eval()
         estimates = torch.from_numpy(estimator.estimate_rows(frames.images, frames.state))
     for instruction in sorted(set(frames.instruction)):
         policy.instructions(instruction)

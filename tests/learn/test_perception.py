@@ -67,7 +67,7 @@ def test_the_estimator_learns_and_its_checkpoint_says_the_same(trained):
     # It learnt something: the training loss fell by far.
     assert np.mean(result.losses[-20:]) < np.mean(result.losses[:20]) / 3
     estimator = PoseEstimator.from_pretrained(out)
-    frames = gather_frames([dataset], estimator.config.image_size)
+    frames = gather_frames([dataset])
     rows = slice(0, 8)
     images = {c: frames.images[c][rows] for c in estimator.config.cameras}
     again = PoseEstimator.from_pretrained(out).estimate(images, frames.state[rows])

@@ -59,10 +59,6 @@ class EstimatorConfig:
     trained_on: list[str] = field(default_factory=list)  # the datasets it learnt from
 
     @property
-    def tcp_index(self) -> int:
-        return self.state_names.index("tcp.x")
-
-    @property
     def output_dim(self) -> int:
         return 9 * len(self.objects)
 
@@ -110,6 +106,7 @@ class PoseEstimator(nn.Module):
         )
         self.register_buffer("proprio_mean", torch.tensor(config.proprio_mean))
         self.register_buffer("proprio_std", torch.tensor(config.proprio_std))
+        self.proprio_columns = [config.state_names.index(n) for n in config.proprio_names]
         self._backbone: FrozenBackbone | None = None
 
     @property
@@ -120,9 +117,7 @@ class PoseEstimator(nn.Module):
 
     def proprio(self, state: torch.Tensor) -> torch.Tensor:
         """The normalised proprio entries of raw ``observation.state`` rows."""
-        names = self.config.state_names
-        columns = [names.index(n) for n in self.config.proprio_names]
-        return (state[:, columns] - self.proprio_mean) / self.proprio_std
+        return (state[:, self.proprio_columns] - self.proprio_mean) / self.proprio_std
 
     def forward(
         self, features: dict[str, tuple[torch.Tensor, torch.Tensor]], state: torch.Tensor
@@ -132,13 +127,18 @@ class PoseEstimator(nn.Module):
         parts.append(self.proprio(state))
         return self.mlp(torch.cat(parts, dim=-1))
 
-    def features(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Backbone features of uint8 images (B, H, W, 3) at the estimator's size."""
+    def prepared(self, images: torch.Tensor) -> torch.Tensor:
+        """uint8 images (B, H, W, 3) as the backbone reads them: float (B, 3, S, S) in
+        [0, 1] at the estimator's size."""
         x = images.permute(0, 3, 1, 2).float() / 255.0
         size = self.config.image_size
         if x.shape[-1] != size or x.shape[-2] != size:
             x = F.interpolate(x, size=(size, size), mode="bilinear", antialias=True)
-        return self.backbone(x)
+        return x
+
+    def features(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Backbone features of uint8 images (B, H, W, 3) at the estimator's size."""
+        return self.backbone(self.prepared(images))
 
     @torch.no_grad()
     def estimate(

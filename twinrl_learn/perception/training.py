@@ -60,9 +60,10 @@ class Frames:
     environment_names: list[str]
 
 
-def gather_frames(sources: Sequence[str | Path], image_size: int = 128) -> Frames:
+def gather_frames(sources: Sequence[str | Path]) -> Frames:
     """Every frame of the episodes of ``sources`` (LeRobot datasets, sessions, catalogs),
-    images at ``image_size``; episodes must hold the true object poses."""
+    images as recorded (the estimator resizes them); episodes must hold the true object
+    poses."""
     states, envs, episode_index = [], [], []
     images: dict[str, list[np.ndarray]] = {c: [] for c in CAMERAS}
     names: dict[str, list[str]] = {}
@@ -84,7 +85,7 @@ def gather_frames(sources: Sequence[str | Path], image_size: int = 128) -> Frame
             states.append(np.asarray(episode.data[contract.STATE], np.float32))
             envs.append(np.asarray(env, np.float32))
             for camera in CAMERAS:
-                images[camera].append(_resized(episode.images[camera], image_size))
+                images[camera].append(episode.images[camera])
             episode_index.append(np.full(len(episode), len(states) - 1))
     if not states:
         raise LearnError("the given sources hold no episodes")
@@ -97,14 +98,6 @@ def gather_frames(sources: Sequence[str | Path], image_size: int = 128) -> Frame
         state_names=list(names[contract.STATE]),
         environment_names=list(names[contract.ENVIRONMENT_STATE]),
     )
-
-
-def _resized(frames: np.ndarray, size: int) -> np.ndarray:
-    if frames.shape[1] == size and frames.shape[2] == size:
-        return np.ascontiguousarray(frames)
-    x = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).float()
-    x = F.interpolate(x, size=(size, size), mode="bilinear", antialias=True)
-    return x.round().clamp(0, 255).byte().permute(0, 2, 3, 1).numpy()
 
 
 def object_layout(frames: Frames) -> tuple[list[str], list[int], int]:
@@ -137,18 +130,21 @@ def cached_features(
     the backbone is frozen)."""
     total = len(frames.state) * len(estimator.config.cameras)
     done = 0
+
+    def advance(images: int) -> None:
+        nonlocal done
+        done += images
+        if progress is not None:
+            progress(done, total)
+
     out = {}
     for camera in estimator.config.cameras:
-        fine, coarse = [], []
-        for start in range(0, len(frames.state), FEATURE_BATCH):
-            batch = torch.from_numpy(frames.images[camera][start : start + FEATURE_BATCH])
-            f, c = estimator.features(batch)
-            fine.append(f.half())
-            coarse.append(c.half())
-            done += len(batch)
-            if progress is not None:
-                progress(done, total)
-        out[camera] = (torch.cat(fine), torch.cat(coarse))
+        images = frames.images[camera]
+        batches = (
+            estimator.prepared(torch.from_numpy(images[start : start + FEATURE_BATCH]))
+            for start in range(0, len(images), FEATURE_BATCH)
+        )
+        out[camera] = estimator.backbone.cached(batches, advance)
     return out
 
 
@@ -202,7 +198,7 @@ def train_estimator(
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} already exists and is not empty; choose another folder")
     started = time.perf_counter()
-    frames = gather_frames(settings.datasets, image_size)
+    frames = gather_frames(settings.datasets)
     estimator = new_estimator(frames, settings, image_size)
     features = cached_features(
         estimator, frames, None if progress is None else lambda d, t: progress("features", d, t, {})
@@ -313,17 +309,20 @@ def pose_errors(
     predicted: torch.Tensor, true: torch.Tensor, objects: list[str]
 ) -> dict[str, dict[str, float]]:
     """Per object: median planar and 3-D position errors (cm) and orientation error (deg)."""
+    if len(true) == 0:
+        nothing = {"planar_cm": math.nan, "position_cm": math.nan, "orientation_deg": math.nan}
+        return {name: dict(nothing) for name in objects}
     out = {}
     k = len(objects)
     for i, name in enumerate(objects):
         delta = (predicted[:, 3 * i : 3 * i + 3] - true[:, 3 * i : 3 * i + 3]) * 10.0  # dm->cm
         code = slice(3 * k + 6 * i, 3 * k + 6 * i + 6)
         out[name] = {
-            "planar_cm": float(delta[:, :2].norm(dim=-1).median()) if len(delta) else math.nan,
-            "position_cm": float(delta.norm(dim=-1).median()) if len(delta) else math.nan,
-            "orientation_deg": float(rotation_error_deg(predicted[:, code], true[:, code]).median())
-            if len(delta)
-            else math.nan,
+            "planar_cm": float(delta[:, :2].norm(dim=-1).median()),
+            "position_cm": float(delta.norm(dim=-1).median()),
+            "orientation_deg": float(
+                rotation_error_deg(predicted[:, code], true[:, code]).median()
+            ),
         }
     return out
 

@@ -40,7 +40,7 @@ class Policy(nn.Module):
 
             self.estimator = PoseEstimator(EstimatorConfig(**c.estimator))
             self.estimator.requires_grad_(False)
-            proprio = self.state_width + 9 * len(self.estimator.config.objects)
+            proprio = self.state_width + self.estimator.config.output_dim
         elif c.kind == "vla":
             for camera in c.cameras:
                 self.encoders[camera] = FiLMConvEncoder(stem_stride=c.stem_stride)
@@ -70,6 +70,12 @@ class Policy(nn.Module):
         """Whether the image policy acts through a pose estimator
         (:mod:`twinrl_learn.perception`) rather than its own image encoders."""
         return self.config.kind == "vla" and self.config.estimator is not None
+
+    @property
+    def encodes_images(self) -> bool:
+        """Whether the policy has image encoders of its own (the image policy that does
+        not act through a pose estimator)."""
+        return self.config.kind == "vla" and not self.perceives
 
     @property
     def locates(self) -> bool:
@@ -105,7 +111,7 @@ class Policy(nn.Module):
         (None for the state policy). They are most of an image policy's cost, so an RL
         update computes them once per batch and hands them to :meth:`features` and
         :meth:`critic_inputs`."""
-        if self.config.kind != "vla" or self.perceives:
+        if not self.encodes_images:
             return None
         text = batch["text"]
         return torch.cat(
@@ -118,7 +124,7 @@ class Policy(nn.Module):
     ) -> torch.Tensor:
         """Trunk features of a normalised batch (``keypoints``: the batch's
         :meth:`keypoints`, when already computed)."""
-        if self.config.kind == "vla" and not self.perceives:
+        if self.encodes_images:
             keypoints = self.keypoints(batch) if keypoints is None else keypoints
             parts = [keypoints, self.proprio(batch["state"])]
         else:
@@ -132,7 +138,7 @@ class Policy(nn.Module):
         """What a critic reads: the image encoders' keypoints (no gradient: the critic
         sits on frozen encoder features, as in TwinRL) or the privileged state, plus
         proprio and the instruction embedding (``keypoints``: as for :meth:`features`)."""
-        if self.config.kind == "vla" and not self.perceives:
+        if self.encodes_images:
             if keypoints is None:
                 with torch.no_grad():
                     keypoints = self.keypoints(batch)
@@ -145,7 +151,7 @@ class Policy(nn.Module):
     def critic_input_dim(self) -> int:
         c = self.config
         if self.perceives:
-            width = self.state_width + 9 * len(self.estimator.config.objects)
+            width = self.state_width + self.estimator.config.output_dim
         elif c.kind == "vla":
             width = sum(e.out_dim for e in self.encoders.values()) + self.state_width
         else:
