@@ -18,6 +18,11 @@ An update runs an image policy's encoders once on the batch's observations and o
 its next observations (:meth:`Policy.keypoints`) and shares the keypoints between all
 its terms; only the imitation term's shifted images are encoded anew.
 
+The agent runs where its policy's weights are (:meth:`Policy.from_pretrained`'s
+``device``): critics and temperature go there, and on a GPU the losses' forward passes
+run under bfloat16 autocast (:mod:`twinrl_learn.compute`). Its random generator stays
+on the CPU, so a seed draws the same batches and noise on every device.
+
 Three settings (``RLConfig.method``) give the methods compared in TwinRL:
 ``twinrl`` / ``conrft`` (the objective above, offline Cal-QL then online) and
 ``hil-serl`` (SAC with entropy, no imitation term, no offline phase).
@@ -34,6 +39,7 @@ import torch
 from torch import nn
 
 from twinrl_data.atomic import write_text_atomic
+from twinrl_learn.compute import mixed_precision
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import TransitionBatch
@@ -61,22 +67,25 @@ class CriticEnsemble(nn.Module):
 
     def forward(self, inputs: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
         x = torch.cat([inputs, actions.flatten(1)], dim=-1)
-        return torch.stack([m(x).squeeze(-1) for m in self.members])
+        # float32 values: TD errors in bfloat16 (under a GPU's autocast) would be coarse.
+        return torch.stack([m(x).squeeze(-1) for m in self.members]).float()
 
 
 class Agent:
-    """Actor (a :class:`Policy`), critic ensemble, targets, optimizers and counters."""
+    """Actor (a :class:`Policy`), critic ensemble, targets, optimizers and counters, on
+    the policy's device."""
 
     def __init__(self, policy: Policy, config: RLConfig) -> None:
         self.policy = policy
         self.config = config
+        self.device = policy.device
         torch.manual_seed(config.seed)
         c = policy.config
         self.critic = CriticEnsemble(
             policy.critic_input_dim, c.chunk * c.action_dim, config.critics, config.hidden
-        )
+        ).to(self.device)
         self.target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.log_alpha = torch.zeros((), requires_grad=True)
+        self.log_alpha = torch.zeros((), device=self.device, requires_grad=True)
         self.actor_opt = torch.optim.Adam(policy.parameters(), lr=config.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=config.actor_lr)
@@ -87,7 +96,9 @@ class Agent:
     # ------------------------------------------------------------------ helpers
     @property
     def alpha(self) -> torch.Tensor:
-        return self.log_alpha.exp().detach() if self.config.entropy else torch.zeros(())
+        if self.config.entropy:
+            return self.log_alpha.exp().detach()
+        return torch.zeros((), device=self.device)
 
     def online(self) -> bool:
         return self.updates >= self.config.offline_steps
@@ -127,11 +138,16 @@ class Agent:
             "next": following,
             "keypoints": keypoints,
             "next_keypoints": next_keypoints,
-            "actions": p.normalize("action", torch.from_numpy(batch.actions)).clamp(-1, 1),
-            "reward": torch.from_numpy(batch.reward),
-            "discount": torch.from_numpy(batch.discount),
-            "mc_return": torch.from_numpy(batch.mc_return),
+            "actions": self._on_device(
+                p.normalize("action", torch.from_numpy(batch.actions))
+            ).clamp(-1, 1),
+            "reward": self._on_device(torch.from_numpy(batch.reward)),
+            "discount": self._on_device(torch.from_numpy(batch.discount)),
+            "mc_return": self._on_device(torch.from_numpy(batch.mc_return)),
         }
+
+    def _on_device(self, tensor: torch.Tensor) -> torch.Tensor:
+        return tensor.to(self.device, non_blocking=True)
 
     # ------------------------------------------------------------------ losses
     def critic_loss(self, t: dict, online: bool) -> tuple[torch.Tensor, dict[str, float]]:
@@ -159,7 +175,7 @@ class Agent:
         clipped from below by the Monte-Carlo return) minus Q of the data's actions."""
         n, (b, h, a) = self.config.cql_actions, t["actions"].shape
         repeated = inputs.repeat(n, 1)
-        uniform = torch.rand((n * b, h, a), generator=self.generator) * 2 - 1
+        uniform = self._on_device(torch.rand((n * b, h, a), generator=self.generator) * 2 - 1)
         with torch.no_grad():  # n draws per observation from its features
             features = self.policy.features(t["obs"], t["keypoints"]).repeat(n, 1)
             policy_actions, _ = self.policy.rsample(t["obs"], features)
@@ -173,7 +189,7 @@ class Agent:
         """beta * L_IL(demo rows) + eta * L_Q (+ alpha * log pi with entropy)."""
         beta, eta = self.weights()
         p = self.policy
-        loss = torch.zeros(())
+        loss = torch.zeros((), device=self.device)
         metrics: dict[str, float] = {}
         if self.actor_reads_q():
             actions, log_prob = p.rsample(t["obs"], p.features(t["obs"], t["keypoints"]))
@@ -203,13 +219,16 @@ class Agent:
         its ``demo`` rows: demonstrations and interventions)."""
         online = self.online()
         self.policy.train()
-        t = self._tensors(batch)
-        critic_loss, metrics = self.critic_loss(t, online)
+        with mixed_precision(self.device):
+            t = self._tensors(batch)
+            critic_loss, metrics = self.critic_loss(t, online)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
         nn.utils.clip_grad_norm_(self.critic.parameters(), 10.0)
         self.critic_opt.step()
-        actor_loss, actor_metrics = self.actor_loss(t, torch.from_numpy(batch.demo))
+        with mixed_precision(self.device):
+            demo_rows = self._on_device(torch.from_numpy(batch.demo))
+            actor_loss, actor_metrics = self.actor_loss(t, demo_rows)
         if actor_loss.requires_grad:
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()
@@ -282,10 +301,11 @@ class Agent:
         return folder
 
     @classmethod
-    def load(cls, folder: str | Path) -> Agent:
+    def load(cls, folder: str | Path, device: str | torch.device = "cpu") -> Agent:
+        """The RL checkpoint in ``folder``, on ``device`` (wherever it was trained)."""
         folder = Path(folder)
         if not (folder / "agent.pt").is_file():
             raise LearnError(f"{folder} holds no agent.pt; it is not an RL checkpoint")
-        agent = cls(Policy.from_pretrained(folder), RLConfig.load(folder))
+        agent = cls(Policy.from_pretrained(folder, device), RLConfig.load(folder))
         agent.load_state_dict(load_state(folder / "agent.pt"))
         return agent

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode
@@ -85,15 +86,20 @@ class OnlineRun:
 
     @classmethod
     def resume(
-        cls, out: str | Path, demo: ReplayBuffer, online: ReplayBuffer | None = None
+        cls,
+        out: str | Path,
+        demo: ReplayBuffer,
+        online: ReplayBuffer | None = None,
+        device: str | torch.device = "cpu",
     ) -> OnlineRun:
-        """Continue the run in ``out`` from its last checkpoint (between two rounds);
-        ``online`` is the same pre-filled buffer the run started with, if any."""
+        """Continue the run in ``out`` from its last checkpoint (between two rounds), its
+        agent on ``device``; ``online`` is the same pre-filled buffer the run started
+        with, if any."""
         out = Path(out)
         if not (out / RUN_FILE).is_file():
             raise LearnError(f"{out / RUN_FILE} does not exist: there is no run to resume")
         state = json.loads((out / RUN_FILE).read_text())
-        agent = Agent.load(out / "agent")
+        agent = Agent.load(out / "agent", device)
         session = Session(out / "session")
         kept = state["episodes_logged"]
         session.truncate(kept)  # episodes of a round the interruption cut short

@@ -63,6 +63,7 @@ from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import STATE
 from twinrl_learn.agent import Agent
+from twinrl_learn.compute import resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
@@ -289,7 +290,7 @@ class RealRL:
         classifier = checked_classifier(settings, terminal)  # fail before anything is written
         if settings.targets:
             load_targets(settings.targets)  # fail before anything is written
-        policy = Policy.from_pretrained(settings.init)
+        policy = Policy.from_pretrained(settings.init, resolve_device(settings.device))
         demo, twin = _buffers(settings, policy)
         agent = Agent(policy, settings.rl)
         if settings.keep_critic and not agent.adopt_critic(settings.init):
@@ -317,11 +318,12 @@ class RealRL:
         out = Path(settings.out)
         if not (out / RUN_FILE).is_file():
             raise LearnError(f"{out / RUN_FILE} does not exist: there is no run to resume")
-        policy = Policy.from_pretrained(out / "agent")
+        device = resolve_device(settings.device)
+        policy = Policy.from_pretrained(out / "agent", device)
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)
         classifier = checked_classifier(settings, terminal)
-        run = OnlineRun.resume(out, demo, twin)
+        run = OnlineRun.resume(out, demo, twin, device)
         return cls(settings, run, _operator(settings, operator), terminal, on_wait, classifier)
 
     def checkpoint(self) -> None:

@@ -34,6 +34,7 @@ from twinrl_data.catalog import discover
 from twinrl_data.lerobot_io import iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode, read_meta
 from twinrl_data.schema import STATE, SUCCESS, Episode, image_field
+from twinrl_learn.compute import mixed_precision, module_device, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy.augmentation import random_shift
 
@@ -203,13 +204,16 @@ def success_net(settings: ClassifierSettings) -> SuccessNet | PretrainedSuccessN
 
 def _encoded(net: PretrainedSuccessNet, images: np.ndarray) -> list[tuple[torch.Tensor, ...]]:
     """Every frame's backbone features per camera, in half precision, computed once."""
-    return [
-        net.backbone.cached(
-            torch.from_numpy(images[i : i + 128, 3 * camera : 3 * camera + 3]).float() / 255.0
-            for i in range(0, len(images), 128)
-        )
-        for camera in range(len(net.heads))
-    ]
+    device = module_device(net)
+    with mixed_precision(device):
+        return [
+            net.backbone.cached(
+                torch.from_numpy(images[i : i + 128, 3 * camera : 3 * camera + 3]).to(device)
+                .float() / 255.0
+                for i in range(0, len(images), 128)
+            )
+            for camera in range(len(net.heads))
+        ]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -245,8 +249,10 @@ def train_reward_classifier(
     out: str | Path,
     settings: ClassifierSettings = ClassifierSettings(),
     progress: Callable[[int, float], None] | None = None,
+    device: str = "auto",
 ) -> ClassifierReport:
-    """Train on ``episodes``, write the classifier and its report into ``out``."""
+    """Train on ``episodes`` (on ``device``: see :mod:`twinrl_learn.compute`), write the
+    classifier and its report into ``out``."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} exists and is not empty; choose another `out`")
@@ -267,25 +273,28 @@ def train_reward_classifier(
     fitted, heldout = frames.take(~is_held), frames.take(is_held)
     if not fitted.labels.any():
         raise LearnError("the fitted episodes hold no success; record more successful ones")
+    on = resolve_device(device)
     torch.manual_seed(settings.seed)
     generator = torch.Generator().manual_seed(settings.seed)
-    net = success_net(settings)
+    net = success_net(settings).to(on)
     optimizer = torch.optim.Adam(net.parameters(), lr=settings.lr)
-    images = torch.from_numpy(fitted.images)
     encoded = _encoded(net, fitted.images) if isinstance(net, PretrainedSuccessNet) else None
-    gripper = torch.from_numpy(fitted.gripper)
+    images = None if encoded is not None else torch.from_numpy(fitted.images).to(on)
+    gripper = torch.from_numpy(fitted.gripper).to(on)
     labels = torch.from_numpy(fitted.labels.astype(np.float32))
     # Balanced batches: successes are a few frames an episode.
     weights = torch.where(labels > 0, 0.5 / labels.sum(), 0.5 / (1 - labels).sum())
+    labels = labels.to(on)
     for step in range(settings.steps):
-        rows = torch.multinomial(weights, settings.batch_size, True, generator=generator)
-        if encoded is not None:
-            features = [(fine[rows], coarse[rows]) for fine, coarse in encoded]
-            logits = net.classify(features, gripper[rows])
-        else:
-            batch = random_shift(images[rows].float(), generator)  # a camera nudged
-            logits = net(batch, gripper[rows])
-        loss = F.binary_cross_entropy_with_logits(logits, labels[rows])
+        rows = torch.multinomial(weights, settings.batch_size, True, generator=generator).to(on)
+        with mixed_precision(on):
+            if encoded is not None:
+                features = [(fine[rows], coarse[rows]) for fine, coarse in encoded]
+                logits = net.classify(features, gripper[rows])
+            else:
+                batch = random_shift(images[rows].float(), generator)  # a camera nudged
+                logits = net(batch, gripper[rows])
+            loss = F.binary_cross_entropy_with_logits(logits.float(), labels[rows])
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -331,12 +340,16 @@ def episodes_under(
 def _predict(
     net: SuccessNet | PretrainedSuccessNet, images: np.ndarray, gripper: np.ndarray
 ) -> np.ndarray:
-    with torch.no_grad():
+    device = module_device(net)
+    with torch.no_grad(), mixed_precision(device):
         logits = [
-            net(torch.from_numpy(images[i : i + 256]), torch.from_numpy(gripper[i : i + 256]))
+            net(
+                torch.from_numpy(images[i : i + 256]).to(device),
+                torch.from_numpy(gripper[i : i + 256]).to(device),
+            ).float()
             for i in range(0, len(images), 256)
         ]
-    return torch.sigmoid(torch.cat(logits)).numpy() if logits else np.zeros(0)
+    return torch.sigmoid(torch.cat(logits)).cpu().numpy() if logits else np.zeros(0)
 
 
 def _write(

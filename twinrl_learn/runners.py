@@ -55,12 +55,14 @@ class TwinrlRunner:
     """A twinrl policy: a checkpoint folder, or a policy in memory (``name`` then
     labels its episodes) such as the one an RL run is training."""
 
-    def __init__(self, policy: str | Path | Policy, name: str | None = None) -> None:
+    def __init__(
+        self, policy: str | Path | Policy, name: str | None = None, device: str = "cpu"
+    ) -> None:
         if isinstance(policy, Policy):
             self.policy = policy
             self.name = name or "twinrl:in-memory"
         else:
-            self.policy = Policy.from_pretrained(policy)
+            self.policy = Policy.from_pretrained(policy, device)
             self.name = name or f"twinrl:{Path(policy).name}"
         self.needs_images = self.policy.needs_images
         self.cameras = tuple(self.policy.config.cameras) if self.needs_images else ()
@@ -95,13 +97,13 @@ class ExpertRunner:
 class LeRobotRunner:
     """A lerobot policy checkpoint (the ``pretrained_model`` folder lerobot-train writes)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, device: str = "cpu") -> None:
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
 
         path = Path(path)
         config = PreTrainedConfig.from_pretrained(path)
-        config.device = "cpu"
+        config.device = device
         policy_class = get_policy_class(config.type)
         self.policy = policy_class.from_pretrained(path, config=config)
         self.policy.eval()
@@ -135,9 +137,15 @@ class LeRobotRunner:
 
 
 def load_runner(
-    spec: str | Path, *, open_loop: bool = False, grasp_hold: bool | None = None
+    spec: str | Path,
+    *,
+    open_loop: bool = False,
+    grasp_hold: bool | None = None,
+    device: str = "cpu",
 ) -> Runner:
-    """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder.
+    """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder,
+    its network on ``device`` (a torch device name; :func:`~twinrl_learn.compute.
+    resolve_device` turns auto into one).
     ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
     its predictions for each step (``PolicyConfig.temporal_ensemble``); ``grasp_hold``
     turns the arm's hold while the gripper closes on or off (``None``: as the
@@ -153,7 +161,7 @@ def load_runner(
     if str(spec) == "expert":
         return ExpertRunner()
     if is_checkpoint(path):
-        runner = TwinrlRunner(path)
+        runner = TwinrlRunner(path, device=device)
         config = runner.policy.config
         # Named apart: mining reuses logged evaluations of a policy by its name.
         if open_loop:
@@ -166,7 +174,7 @@ def load_runner(
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()
     ):
-        return LeRobotRunner(path)
+        return LeRobotRunner(path, device)
     raise LearnError(
         f"{path} is not a policy checkpoint: give a twinrl SFT output folder, a lerobot "
         "pretrained_model folder, or 'expert'"

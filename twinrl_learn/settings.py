@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from twinrl_data.errors import SettingError
+from twinrl_learn.compute import check_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import RewardSettings
 from twinrl_robot.operator import OperatorRule
@@ -104,8 +105,11 @@ class SFTConfig:
     """Steps between checkpoints."""
     log_every: int = 25
     """Steps between progress reports."""
+    device: str = "auto"
+    """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         if self.policy not in DEFAULTS:
             raise SettingError(
                 "policy", f"must be one of {', '.join(DEFAULTS)}, got '{self.policy}'"
@@ -169,8 +173,11 @@ class PerceptionSettings:
     """Seed (initialisation, held-out episodes, sampling)."""
     log_every: int = 100
     """Steps between progress reports and held-out checks."""
+    device: str = "auto"
+    """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         if not self.datasets:
             raise SettingError("datasets", "is empty; pass twin episodes that hold object poses")
         for name in ("steps", "batch_size", "log_every"):
@@ -295,10 +302,13 @@ class TwinRLSettings:
     """Regions the configurations are drawn from."""
     failures: int = 0
     """Failed rollouts to add to the exported twin buffer (at most)."""
+    device: str = "auto"
+    """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
     rl: RLConfig = field(default_factory=RLConfig)
     """The agent's settings."""
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         task_class(self.task)  # an unknown task: the nearest name
         for name in ("envs", "steps"):
             if getattr(self, name) < 1:
@@ -382,10 +392,13 @@ class RealRLSettings:
     """Between episodes, wait for the learner (its own thread) to run every update the
     episode bought, so a seed gives the same run; off, take the weights it has reached.
     The robot loop never waits for an update either way."""
+    device: str = "auto"
+    """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
     rl: RLConfig = field(default_factory=RLConfig)
     """The agent's settings."""
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         task_class(self.task)  # an unknown task: the nearest name
         if self.robot not in LEARNING_ROBOTS:
             raise SettingError(

@@ -14,7 +14,8 @@ Outputs, in the folder ``out``::
     out/training_state.pt                      optimizer, step, RNG and loss history
     out/loss.png                               the loss curve
 
-``resume=True`` continues from ``training_state.pt`` exactly: the weights after N steps
+``device`` picks where it trains (:mod:`twinrl_learn.compute`); the checkpoint loads on
+any device. ``resume=True`` continues from ``training_state.pt`` exactly: the weights after N steps
 are the same whether or not the run was interrupted (given the same ``steps``).
 """
 
@@ -31,6 +32,7 @@ import torch
 
 from twinrl_data.errors import SettingError
 from twinrl_data.training import FrameTable, load_frames
+from twinrl_learn.compute import mixed_precision, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy, PolicyConfig
@@ -75,6 +77,7 @@ def _batch(
     )
     actions = policy.normalize("action", torch.from_numpy(frames.action_chunks(rows, chunk)))
     batch = policy.augment(batch, generator)
+    actions = actions.to(policy.device, non_blocking=True)
     if policy.locates:
         batch |= policy.locating_targets(frames.state[rows], frames.environment_state[rows])
     return batch, actions
@@ -118,13 +121,16 @@ def train_sft(
         _check_same_network(saved["config"], config.resolved(), out)
         config = _own_settings(config, saved["config"], out)
     config = config.resolved()
+    device = resolve_device(config.device)
     weights = _given_weights(config, None if saved is None else saved["config"])
     frames = frames or _frames(config)
     if weights is None:  # as if the datasets were one
         weights = np.bincount(frames.source, minlength=len(config.datasets)) / len(frames.source)
     config = replace(config, weights=weights.tolist())
     estimator = (
-        None if config.perception is None else PoseEstimator.from_pretrained(config.perception)
+        None
+        if config.perception is None
+        else PoseEstimator.from_pretrained(config.perception, device)
     )
     if estimator is not None and estimator.config.state_names != frames.state_names:
         raise LearnError(
@@ -177,7 +183,7 @@ def train_sft(
         seed=config.seed,
         stats={k: {s: v.tolist() for s, v in d.items()} for k, d in frames.stats.items()},
     )
-    policy = Policy(policy_config)
+    policy = Policy(policy_config).to(device)
     estimates = None
     if estimator is not None:
         policy.estimator.load_state_dict(estimator.state_dict())
@@ -200,7 +206,8 @@ def train_sft(
     while step < config.steps:
         rows = _sample_rows(frames, weights, config.batch_size, generator)
         batch, actions = _batch(policy, frames, rows, generator, config.chunk, estimates)
-        loss = policy.sft_loss(batch, actions)
+        with mixed_precision(device):
+            loss = policy.sft_loss(batch, actions)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)

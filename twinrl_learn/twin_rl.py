@@ -28,6 +28,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import step_record
 from twinrl_learn.agent import Agent
+from twinrl_learn.compute import resolve_device
 from twinrl_learn.online import OnlineRun, RoundRecord, plot_curve
 from twinrl_learn.policy import Policy
 from twinrl_learn.replay import ReplayBuffer
@@ -49,20 +50,22 @@ def run_twin_rl(
     on_update: Callable[[int], None] | None = None,
 ) -> OnlineRun:
     """Run (or continue) Stage II; returns the finished :class:`OnlineRun`."""
+    device = resolve_device(settings.device)
     task = make_task(settings.task)
     for region in settings.regions:
         task.region(region)
     if resume:
         # A resumed run keeps the RL settings it started with.
         settings.rl = RLConfig.load(Path(settings.out) / "agent")
-        policy = Policy.from_pretrained(Path(settings.out) / "agent")
-        run = OnlineRun.resume(settings.out, load_demo_buffer(settings.demos, policy, settings.rl))
+        policy = Policy.from_pretrained(Path(settings.out) / "agent", device)
+        demo = load_demo_buffer(settings.demos, policy, settings.rl)
+        run = OnlineRun.resume(settings.out, demo, device=device)
     else:
         if not settings.init:
             raise SettingError(
                 "init", "is needed to start a run: a policy checkpoint to start from"
             )
-        policy = Policy.from_pretrained(settings.init)
+        policy = Policy.from_pretrained(settings.init, device)
         demo = load_demo_buffer(settings.demos, policy, settings.rl)
         run = OnlineRun.start(settings.out, Agent(policy, settings.rl), demo)
         run.pretrain(on_update)

@@ -11,7 +11,7 @@ from rich.table import Table
 from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.errors import UsageError
 from twinrl_data.settings_cli import parse_ints
-from twinrl_learn.cli.common import console
+from twinrl_learn.cli.common import DeviceOption, console
 from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:
@@ -24,7 +24,8 @@ def demo_command(
         str,
         typer.Option(
             help="smoke (every stage, minutes), quick (state policy, ~16 min) or paper "
-            "(image policy; about 15 hours of RL updates on 2 cores: meant for a GPU)."
+            "(image policy; about 12 hours of RL updates on 2 cores, 5 on an H100: meant for "
+            "a GPU, see --device)."
         ),
     ] = "quick",
     out: Annotated[Path, typer.Option(help="Folder for the report, logs and policies.")] = Path(
@@ -46,6 +47,7 @@ def demo_command(
     resume: Annotated[
         bool, typer.Option(help="Continue a stopped run in --out (finished stages are kept).")
     ] = False,
+    device: DeviceOption = "auto",
 ) -> None:
     """The whole TwinRL pipeline in the plant, then its baselines; report.md and .json.
 
@@ -86,6 +88,7 @@ def demo_command(
             inputs=inputs,
             workers=workers,
             resume=resume,
+            device=device,
             log=lambda text: bar.console.print(text),
             on_progress=on_progress,
         )

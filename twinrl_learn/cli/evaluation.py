@@ -11,7 +11,7 @@ from rich.table import Table
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
 from twinrl_data.settings_cli import parse_grid
-from twinrl_learn.cli.common import console
+from twinrl_learn.cli.common import DeviceOption, console
 from twinrl_robot.backends import WORLDS
 from twinrl_robot.cli import CellOption, EmulatedOption, check_real
 from twinrl_sim.tasks import TASKS, make_task
@@ -46,8 +46,10 @@ def eval_command(
             "the checkpoint says; checkpoints hold)."
         ),
     ] = None,
+    device: DeviceOption = "auto",
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
+    from twinrl_learn.compute import resolve_device
     from twinrl_learn.evaluate import evaluate
     from twinrl_learn.runners import load_runner
 
@@ -60,7 +62,12 @@ def eval_command(
         raise UsageError("--effects applies to --world plant only")
     if effects is not None and not effects.is_file():
         raise UsageError(f"--effects {effects} does not exist")
-    runner = load_runner(checkpoint, open_loop=open_loop, grasp_hold=grasp_hold)
+    runner = load_runner(
+        checkpoint,
+        open_loop=open_loop,
+        grasp_hold=grasp_hold,
+        device=str(resolve_device(device)),
+    )
     with progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")
         done = {"n": 0, "ok": 0}

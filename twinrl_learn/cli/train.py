@@ -15,7 +15,7 @@ import typer
 
 from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.settings_cli import options, settings_command
-from twinrl_learn.cli.common import console
+from twinrl_learn.cli.common import DeviceOption, console
 from twinrl_learn.replay import RewardSettings
 from twinrl_learn.settings import (
     PerceptionSettings,
@@ -90,7 +90,7 @@ def sft(settings: dict[str, Any], resume: bool) -> None:
 
 SFT_FIELDS = (
     "datasets", "out", "policy", "weights", "steps", "batch_size", "lr", "lr_schedule",
-    "chunk", "inputs", "image_size", "locate_weight", "perception", "seed",
+    "chunk", "inputs", "image_size", "locate_weight", "perception", "seed", "device",
 )  # fmt: skip
 settings_command(
     app,
@@ -187,7 +187,7 @@ def twin_rl(settings: dict[str, Any], resume: bool) -> None:
     )
 
 
-TWIN_RL_FIELDS = ("task", "out", "init", "demos", "envs", "steps", "failures")
+TWIN_RL_FIELDS = ("task", "out", "init", "demos", "envs", "steps", "failures", "device")
 settings_command(
     app,
     "twin-rl",
@@ -291,7 +291,7 @@ REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
     "classifier", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "plant_steps", "eval_every", "eval_grid",
-    "eval_episodes", "learner_sync", "show_resets", "view",
+    "eval_episodes", "learner_sync", "show_resets", "view", "device",
 )  # fmt: skip
 settings_command(
     app,
@@ -342,6 +342,7 @@ def reward_classifier(
         ),
     ] = "scratch",
     seed: Annotated[int, typer.Option(help="Seed of the split and the training.")] = 0,
+    device: DeviceOption = "auto",
 ) -> None:
     """Learn a task's success from its episodes' cameras (a reward for real RL on a cell
     without ground truth); reports held-out accuracy, precision, recall and mistakes."""
@@ -369,6 +370,7 @@ def reward_classifier(
             out,
             settings,
             progress=lambda step, loss: bar.update(job, completed=step, loss=f"{loss:.3f}"),
+            device=device,
         )
     console.print(
         f"{out}: held out {report.heldout_frames} frames of {report.heldout_episodes} episodes: "

@@ -33,6 +33,7 @@ from safetensors.torch import load_file, save
 from torch import nn
 
 from twinrl_data.atomic import write_atomic
+from twinrl_learn.compute import mixed_precision, module_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.backbone import CHANNELS, FrozenBackbone
 from twinrl_learn.policy.networks import SpatialSoftmax
@@ -144,16 +145,21 @@ class PoseEstimator(nn.Module):
     def estimate(
         self, images: dict[str, np.ndarray | torch.Tensor], state: np.ndarray | torch.Tensor
     ) -> torch.Tensor:
-        """Relative poses (B, 9 x objects) of raw rows: uint8 images per camera and raw
-        ``observation.state``."""
+        """Relative poses (B, 9 x objects, on the CPU) of raw rows: uint8 images per
+        camera and raw ``observation.state``, run on the estimator's device."""
         missing = [c for c in self.config.cameras if c not in images]
         if missing:
             raise LearnError(
                 f"the pose estimator needs the camera(s) {missing}; the observation has "
                 f"{sorted(images)}"
             )
-        features = {c: self.features(torch.as_tensor(images[c])) for c in self.config.cameras}
-        return self(features, torch.as_tensor(np.asarray(state, np.float32)))
+        device = module_device(self)
+        state = torch.as_tensor(np.asarray(state, np.float32)).to(device)
+        with mixed_precision(device):
+            features = {
+                c: self.features(torch.as_tensor(images[c]).to(device)) for c in self.config.cameras
+            }
+            return self(features, state).float().cpu()
 
     def estimate_rows(
         self, images: dict[str, np.ndarray], state: np.ndarray, batch: int = 128
@@ -178,7 +184,8 @@ class PoseEstimator(nn.Module):
         return path
 
     @classmethod
-    def from_pretrained(cls, path: str | Path) -> PoseEstimator:
+    def from_pretrained(cls, path: str | Path, device: str | torch.device = "cpu") -> PoseEstimator:
+        """The estimator in ``path``, on ``device``."""
         path = Path(path)
         if not (path / CONFIG_FILE).is_file() or not (path / WEIGHTS_FILE).is_file():
             raise LearnError(
@@ -189,7 +196,7 @@ class PoseEstimator(nn.Module):
         estimator = cls(config)
         estimator.load_state_dict(load_file(path / WEIGHTS_FILE))
         estimator.eval()
-        return estimator
+        return estimator.to(device)
 
 
 def rotation_error_deg(predicted: torch.Tensor, true: torch.Tensor) -> torch.Tensor:

@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from twinrl_data import schema as contract
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.sources import open_episodes
+from twinrl_learn.compute import mixed_precision, module_device, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.estimator import EstimatorConfig, PoseEstimator, rotation_error_deg
 from twinrl_learn.policy.inputs import relative_poses
@@ -126,8 +127,9 @@ def cached_features(
     frames: Frames,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict[str, tuple[torch.Tensor, torch.Tensor]]:
-    """Every frame's backbone features per camera, in half precision (computed once:
-    the backbone is frozen)."""
+    """Every frame's backbone features per camera, in half precision on the estimator's
+    device (computed once: the backbone is frozen)."""
+    device = module_device(estimator)
     total = len(frames.state) * len(estimator.config.cameras)
     done = 0
 
@@ -141,10 +143,11 @@ def cached_features(
     for camera in estimator.config.cameras:
         images = frames.images[camera]
         batches = (
-            estimator.prepared(torch.from_numpy(images[start : start + FEATURE_BATCH]))
+            estimator.prepared(torch.from_numpy(images[start : start + FEATURE_BATCH]).to(device))
             for start in range(0, len(images), FEATURE_BATCH)
         )
-        out[camera] = estimator.backbone.cached(batches, advance)
+        with mixed_precision(device):
+            out[camera] = estimator.backbone.cached(batches, advance)
     return out
 
 
@@ -198,23 +201,24 @@ def train_estimator(
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} already exists and is not empty; choose another folder")
     started = time.perf_counter()
+    device = resolve_device(settings.device)
     frames = gather_frames(settings.datasets)
-    estimator = new_estimator(frames, settings, image_size)
+    estimator = new_estimator(frames, settings, image_size).to(device)
     features = cached_features(
         estimator, frames, None if progress is None else lambda d, t: progress("features", d, t, {})
     )
-    true = targets(frames)
+    true = targets(frames).to(device)
     generator = torch.Generator().manual_seed(settings.seed)
     episodes = frames.episodes
     # A tenth of the episodes, at least one, held out (none when there is only one).
     count = max(1, round(HELD_OUT * episodes)) if episodes > 1 else 0
     held = torch.randperm(episodes, generator=generator)[:count]
     is_held = np.isin(frames.episode, held.numpy())
-    train_rows = torch.from_numpy(np.flatnonzero(~is_held))
-    held_rows = torch.from_numpy(np.flatnonzero(is_held))
+    train_rows = torch.from_numpy(np.flatnonzero(~is_held)).to(device)
+    held_rows = torch.from_numpy(np.flatnonzero(is_held)).to(device)
     objects = len(estimator.config.objects)
     optimizer = torch.optim.AdamW(estimator.parameters(), lr=settings.lr, weight_decay=1e-4)
-    state = torch.from_numpy(frames.state)
+    state = torch.from_numpy(frames.state).to(device)
     losses: list[float] = []
     checks: list[tuple[int, float]] = []
     best, best_weights = math.inf, None
@@ -224,7 +228,8 @@ def train_estimator(
             torch.randint(0, len(train_rows), (settings.batch_size,), generator=generator)
         ]
         batch = {c: (f[pick], g[pick]) for c, (f, g) in features.items()}
-        loss = pose_loss(estimator(batch, state[pick]), true[pick], objects)
+        with mixed_precision(device):
+            loss = pose_loss(estimator(batch, state[pick]).float(), true[pick], objects)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         for group in optimizer.param_groups:
@@ -244,7 +249,7 @@ def train_estimator(
         estimator.load_state_dict(best_weights)
     estimator.eval()
     estimator.save_pretrained(out)
-    held_errors = _errors_of_rows(estimator, features, frames, true, held_rows)
+    held_errors = _errors_of_rows(estimator, features, state, true, held_rows)
     result = PerceptionResult(
         out, settings.steps, losses, checks, held_errors, time.perf_counter() - started
     )
@@ -275,7 +280,8 @@ def _predict(
     for start in range(0, len(rows), 1024):
         pick = rows[start : start + 1024]
         batch = {c: (f[pick], g[pick]) for c, (f, g) in features.items()}
-        parts.append(estimator(batch, state[pick]))
+        with mixed_precision(state.device):
+            parts.append(estimator(batch, state[pick]).float())
     estimator.train(was_training)
     return torch.cat(parts) if parts else torch.zeros(0, estimator.config.output_dim)
 
@@ -297,11 +303,11 @@ def _loss_on(
 def _errors_of_rows(
     estimator: PoseEstimator,
     features: dict[str, tuple[torch.Tensor, torch.Tensor]],
-    frames: Frames,
+    state: torch.Tensor,
     true: torch.Tensor,
     rows: torch.Tensor,
 ) -> dict[str, Any]:
-    predicted = _predict(estimator, features, torch.from_numpy(frames.state), rows)
+    predicted = _predict(estimator, features, state, rows)
     return pose_errors(predicted, true[rows], estimator.config.objects)
 
 

@@ -14,7 +14,8 @@ def augment(
 ) -> dict[str, torch.Tensor]:
     """A training copy of a normalised batch: images shifted by up to IMAGE_SHIFT
     pixels, states with STATE_NOISE std units of noise (robustness to the small state
-    errors a rollout makes)."""
+    errors a rollout makes). ``generator`` lives on the CPU wherever the batch is, so a
+    seed draws the same augmentation on every device."""
     out = dict(batch)
     for camera in config.cameras:
         if f"image.{camera}" in out:
@@ -22,7 +23,7 @@ def augment(
     for key in ("state", "env", "relative"):
         if key in out:
             noise = torch.randn(out[key].shape, generator=generator) * STATE_NOISE
-            out[key] = out[key] + noise
+            out[key] = out[key] + noise.to(out[key].device)
     return out
 
 

@@ -3,7 +3,7 @@ the tool, resized images and the instruction's embedding, as one batch of tensor
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -79,22 +79,6 @@ class InputEncoder:
             batch["env"] = self.normalizer.normalize("env", env)
             batch["relative"] = self.relative_poses(state, env)
         return batch
-
-    def observation_inputs(
-        self, observations: dict[str, Any], instructions: list[str]
-    ) -> dict[str, torch.Tensor]:
-        """:meth:`inputs` from a batch of contract observations (leading batch axis)."""
-        images = {}
-        if self.config.kind == "vla":
-            images = {
-                c: np.asarray(observations[f"observation.images.{c}"]) for c in self.config.cameras
-            }
-        return self.inputs(
-            observations["observation.state"],
-            observations.get("observation.environment_state"),
-            images,
-            instructions,
-        )
 
 
 def relative_poses(

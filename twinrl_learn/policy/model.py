@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from twinrl_learn.compute import module_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 from twinrl_learn.policy.acting import ChunkedActing
@@ -81,6 +82,11 @@ class Policy(nn.Module):
     def locates(self) -> bool:
         """Whether the image policy has the auxiliary head that locates the objects."""
         return self.config.kind == "vla" and self.config.locate_weight > 0
+
+    @property
+    def device(self) -> torch.device:
+        """Where the policy's weights live; :meth:`inputs` builds its batches there."""
+        return module_device(self)
 
     @property
     def state_width(self) -> int:
@@ -164,7 +170,9 @@ class Policy(nn.Module):
         """Mean and log-std of the pre-tanh Gaussian, shape (B, chunk, action_dim)
         (``features``: the batch's trunk features, when already computed)."""
         features = self.features(batch) if features is None else features
-        out = self.head(features).view(-1, self.config.chunk, 2, self.config.action_dim)
+        # float32 from here on: under a GPU's bfloat16 autocast the log-likelihood
+        # would otherwise be computed to three digits.
+        out = self.head(features).float().view(-1, self.config.chunk, 2, self.config.action_dim)
         mean, log_std = out[:, :, 0], out[:, :, 1].clamp(*LOG_STD_RANGE)
         return mean, log_std
 
@@ -211,7 +219,7 @@ class Policy(nn.Module):
         loss = self.imitation_loss(batch, actions, features=features)
         known = batch.get("objects_known")
         if self.locates and known is not None and bool(known.any()):
-            located = self.locator(features[known])
+            located = self.locator(features[known]).float()
             loss = loss + self.config.locate_weight * F.mse_loss(located, batch["objects"][known])
         return loss
 
@@ -225,8 +233,8 @@ class Policy(nn.Module):
         known = ~torch.isnan(env).any(dim=-1)
         state = torch.as_tensor(np.asarray(state, np.float32))
         return {
-            "objects": self.relative_poses(state, torch.nan_to_num(env)),
-            "objects_known": known,
+            "objects": self.relative_poses(state, torch.nan_to_num(env)).to(self.device),
+            "objects_known": known.to(self.device),
         }
 
     def locate(self, batch: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -234,7 +242,7 @@ class Policy(nn.Module):
         in decimetres along the base axes, the scale of :meth:`relative_poses`."""
         if not self.locates:
             raise LearnError("this policy has no locating head (trained with locate_weight 0)")
-        return self.locator(self.features(batch))
+        return self.locator(self.features(batch)).float()
 
     def rsample(
         self, batch: dict[str, torch.Tensor], features: torch.Tensor | None = None
@@ -261,7 +269,7 @@ class Policy(nn.Module):
         mean, log_std = self.distribution(batch)
         if deterministic:
             return torch.tanh(mean)
-        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        noise = torch.randn(mean.shape, generator=generator, dtype=mean.dtype).to(mean.device)
         return torch.tanh(mean + std_scale * log_std.exp() * noise)
 
     # --------------------------------------------- inputs (see policy.inputs)
@@ -285,9 +293,11 @@ class Policy(nn.Module):
         instructions: list[str],
         estimates: np.ndarray | torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
-        """A normalised input batch from raw arrays (B rows): what :meth:`features` reads
-        (``estimates``: see :meth:`InputEncoder.inputs`)."""
-        return self.input_encoder.inputs(state, environment_state, images, instructions, estimates)
+        """A normalised input batch from raw arrays (B rows) on the policy's device: what
+        :meth:`features` reads (``estimates``: see :meth:`InputEncoder.inputs`)."""
+        batch = self.input_encoder.inputs(state, environment_state, images, instructions, estimates)
+        device = self.device
+        return {key: value.to(device, non_blocking=True) for key, value in batch.items()}
 
     def augment(
         self, batch: dict[str, torch.Tensor], generator: torch.Generator
@@ -299,7 +309,17 @@ class Policy(nn.Module):
         self, observations: dict[str, Any], instructions: list[str]
     ) -> dict[str, torch.Tensor]:
         """:meth:`inputs` from a batch of contract observations (leading batch axis)."""
-        return self.input_encoder.observation_inputs(observations, instructions)
+        images = {}
+        if self.needs_images:
+            images = {
+                c: np.asarray(observations[f"observation.images.{c}"]) for c in self.config.cameras
+            }
+        return self.inputs(
+            observations["observation.state"],
+            observations.get("observation.environment_state"),
+            images,
+            instructions,
+        )
 
     @torch.no_grad()
     def act_chunks(
@@ -314,7 +334,7 @@ class Policy(nn.Module):
         (sampled from ``generator`` unless ``deterministic``; see :meth:`sample`)."""
         batch = self.observation_inputs(observations, instructions)
         actions = self.sample(batch, deterministic, std_scale, generator)
-        return self.unnormalize_action(actions).numpy().astype(np.float32)
+        return self.unnormalize_action(actions.float().cpu()).numpy().astype(np.float32)
 
     def act(
         self, observation: dict[str, Any], instruction: str, deterministic: bool = True
@@ -352,9 +372,10 @@ class Policy(nn.Module):
         return save_checkpoint(path, self.config, self.state_dict())
 
     @classmethod
-    def from_pretrained(cls, path: str | Path) -> Policy:
+    def from_pretrained(cls, path: str | Path, device: str | torch.device = "cpu") -> Policy:
+        """The checkpoint in ``path``, on ``device`` (wherever it was trained)."""
         config, weights = load_checkpoint(path)
         policy = cls(config)
         policy.load_state_dict(weights)
         policy.eval()
-        return policy
+        return policy.to(device)

@@ -49,6 +49,7 @@ from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import quiet_encoders
 from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
+from twinrl_learn.compute import check_device, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
@@ -84,6 +85,7 @@ def run_demo(
     inputs: str | None = None,
     workers: int = 2,
     resume: bool = False,
+    device: str = "auto",
     log: Log = print,
     on_progress: Callable[[RunProgress], None] | None = None,
 ) -> dict[str, Any]:
@@ -91,8 +93,10 @@ def run_demo(
     ``preset`` is a name of :data:`PRESETS` or a :class:`Preset` of one's own (e.g.
     ``replace(PRESETS["quick"], twin_id=30)``; its report calls it ``custom``).
     ``inputs`` overrides the preset's state-policy inputs (``absolute``/``relative``);
-    ``on_progress`` hears from every real-RL run after each of its episodes."""
+    ``on_progress`` hears from every real-RL run after each of its episodes; ``device``
+    is where every stage's networks run (:mod:`twinrl_learn.compute`)."""
     make_task(task)
+    check_device(device)
     if workers < 1:
         raise SettingError("workers", f"must be at least 1, got {workers}")
     if isinstance(preset, Preset):
@@ -115,16 +119,16 @@ def run_demo(
         recorded["settings"] = json.loads(json.dumps(asdict(p)))
     _check_same_run(out / "run.json", recorded)
     out.mkdir(parents=True, exist_ok=True)
-    stage1 = _stage1(task, p, out / "stage1", log)
-    stage2 = _stage2(task, p, out, stage1, log)
-    targets = _mining(task, p, out, stage2, log)
+    stage1 = _stage1(task, p, out / "stage1", log, device)
+    stage2 = _stage2(task, p, out, stage1, log, device)
+    targets = _mining(task, p, out, stage2, log, device)
     runs: dict[str, dict[int, Path]] = {}
     jobs = []
     for method in METHOD_TABLE:
         for seed in seeds:
             folder = out / "real_rl" / method.slug / f"seed{seed}"
             runs.setdefault(method.name, {})[seed] = folder
-            jobs.append(RealRLJob(task, p, method, seed, folder, stage1, stage2, targets))
+            jobs.append(RealRLJob(task, p, method, seed, folder, stage1, stage2, targets, device))
     _run_jobs(jobs, workers, log, on_progress)
     log("writing the report")
     return write_report(task, preset, p, out, stage1, runs, seeds)
@@ -176,7 +180,7 @@ def run_preset(out: Path) -> Preset:
     return replace(PRESETS[recorded["preset"]], inputs=recorded["inputs"])
 
 
-def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
+def _stage1(task: str, p: Preset, folder: Path, log: Log, device: str) -> dict[str, Path]:
     paths = stage1_paths(folder, p.policy)
     if _done(folder):
         return paths
@@ -204,17 +208,18 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log) -> dict[str, Path]:
                 policy=p.policy,
                 steps=p.sft_steps,
                 inputs=p.inputs,
+                device=device,
             )
         )
-        _plant_eval(paths[name], task, p, eval_folder(paths[name]))
+        _plant_eval(paths[name], task, p, eval_folder(paths[name]), device)
     _mark_done(folder)
     return paths
 
 
-def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path) -> None:
+def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path, device: str) -> None:
     """A starting policy's success in the plant, on the real-RL runs' evaluation grid."""
     evaluate(
-        TwinrlRunner(checkpoint),
+        TwinrlRunner(checkpoint, device=str(resolve_device(device))),
         task,
         world="plant",
         grid=p.eval_grid,
@@ -231,7 +236,9 @@ def _demos(stage1: dict[str, Path], *, twin: bool) -> list[str]:
     return [str(stage1["real"])] + ([str(stage1["twin"])] if twin else [])
 
 
-def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) -> Path:
+def _stage2(
+    task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log, device: str
+) -> Path:
     folder = out / "stage2"
     if not _done(folder):
         log(f"Stage II: twin RL, {p.twin_envs} envs, {p.twin_rl_steps} steps")
@@ -243,23 +250,24 @@ def _stage2(task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log) 
                 demos=_demos(stage1, twin=True),
                 envs=p.twin_envs,
                 steps=p.twin_rl_steps,
+                device=device,
                 rl=twin_rl_config(p),
             )
         )
         _mark_done(folder)
     if not (folder / "plant_eval" / "eval.json").is_file():  # also for runs made before it
         log("Stage II: evaluating the twin-RL policy in the plant")
-        _plant_eval(folder / "agent", task, p, folder / "plant_eval")
+        _plant_eval(folder / "agent", task, p, folder / "plant_eval", device)
     return folder
 
 
-def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log) -> Path:
+def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str) -> Path:
     path = out / "targets.json"
     if not path.is_file():
         log("Stage III: mining failure-prone configurations in the twin")
         _fresh(out / "targets")
         mine(
-            TwinrlRunner(stage2 / "agent", name="stage2"),
+            TwinrlRunner(stage2 / "agent", name="stage2", device=str(resolve_device(device))),
             task,
             out=path,
             grid=p.mining_grid,
@@ -290,6 +298,7 @@ class RealRLJob:
     stage1: dict[str, Path]
     stage2: Path
     targets: Path
+    device: str = "auto"
 
 
 def _run_jobs(
@@ -344,6 +353,7 @@ def real_rl_settings(job: RealRLJob) -> RealRLSettings:
         eval_grid=p.eval_grid,
         eval_episodes=p.eval_episodes,
         operator=OperatorRule(),
+        device=job.device,
         rl=real_rl_config(method, p, seed),
     )
 

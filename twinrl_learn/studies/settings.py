@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twinrl_data.errors import SettingError
+from twinrl_learn.compute import check_device
 from twinrl_learn.settings import check_inputs
 
 
@@ -46,8 +47,11 @@ class Stage1Settings:
     frame)."""
     seed: int = 0
     """Seed for demos, SFT and evaluation."""
+    device: str = "auto"
+    """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
 
     def __post_init__(self) -> None:
+        check_device(self.device)
         check_inputs(self.state_inputs, "state")
         if self.episodes_per_cell < 1:
             raise SettingError(

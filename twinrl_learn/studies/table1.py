@@ -40,6 +40,7 @@ from twinrl_data.atomic import write_text_atomic
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
+from twinrl_learn.compute import resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.perception.training import train_estimator
@@ -130,7 +131,10 @@ def train_task_estimator(
     folder = base / "estimator"
     train_estimator(
         PerceptionSettings(
-            datasets=[str(base / "perception" / "session")], out=str(folder), seed=settings.seed
+            datasets=[str(base / "perception" / "session")],
+            out=str(folder),
+            seed=settings.seed,
+            device=settings.device,
         )
     )
     return folder
@@ -208,10 +212,11 @@ def run_stage1(
                         inputs=settings.state_inputs if kind == "state" else "absolute",
                         perception=None if kind != "vla" or estimator is None else str(estimator),
                         seed=settings.seed,
+                        device=settings.device,
                     )
                 )
                 report = evaluate(
-                    TwinrlRunner(base / name),
+                    TwinrlRunner(base / name, device=str(resolve_device(settings.device))),
                     task,
                     world="plant",
                     grid=settings.grid,
