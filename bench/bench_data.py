@@ -7,6 +7,8 @@
   memory; seconds of work per second of episode, and the ratio.
 - Import: a LeRobotDataset back into episodes, with and without decoding the videos.
 - Catalog: a filtered query over 10 000 synthetic episode rows.
+- The Rerun view: seconds and megabytes to save a 60-s, 10 Hz episode with both cameras
+  as an .rrd, with and without the cell in 3D (``twinrl view --save``).
 
 Camera frames are real twin renders (cycled), so compression sees realistic images.
 Usage::
@@ -107,6 +109,26 @@ def lerobot_loop(episodes, root: Path) -> float:
     return time.perf_counter() - start
 
 
+def view_costs(
+    frames: list[dict], meta: EpisodeMeta, steps: int, work: Path
+) -> dict[str, tuple[float, float]]:
+    """Seconds and megabytes of ``twinrl view --save`` on one episode of ``steps``
+    (the rendered frames cycled), without and with the cell in 3D."""
+    from twinrl_data.view import save_rrd
+    from twinrl_sim.cli.view import twin_cell
+
+    path = work / "view.mcap"
+    record(path, [frames[t % len(frames)] for t in range(steps)], meta)
+    episode = read_episode(path)
+    out = {}
+    for label, cell in (("cameras and plots", None), ("with the cell in 3D", twin_cell(episode))):
+        rrd = work / f"view_{cell is not None}.rrd"
+        start = time.perf_counter()
+        save_rrd([episode], rrd, cell=cell)
+        out[label] = (time.perf_counter() - start, rrd.stat().st_size / 1e6)
+    return out
+
+
 def synthetic_catalog(path: Path, rows: int) -> None:
     rng = np.random.default_rng(0)
     table = pa.table(
@@ -133,6 +155,7 @@ def main(
     episodes: Annotated[int, typer.Option(help="Episodes to record and export.")] = 4,
     steps: Annotated[int, typer.Option(help="Steps per episode (10 Hz).")] = 100,
     catalog_rows: Annotated[int, typer.Option(help="Rows of the synthetic catalog.")] = 10_000,
+    view_steps: Annotated[int, typer.Option(help="Steps of the episode the view saves.")] = 600,
 ) -> None:
     os.environ.setdefault("SVT_LOG", "1")
     import datasets
@@ -187,6 +210,7 @@ def main(
             where="length > 50",
         )
         timings.append(time.perf_counter() - start)
+    view = view_costs(frames, metas[0], view_steps, work)
     shutil.rmtree(work)
 
     share = 100 * cpu_per_step
@@ -216,6 +240,16 @@ def main(
             f"{1000 * np.median(timings):.1f} ms",
         ),
     ]
+    seconds = view_steps / 10.0
+    for label, (wall, size) in view.items():
+        rows.append(
+            (f"view of a {seconds:.0f}-s episode, {label}: s / MB", f"{wall:.2f} / {size:.1f}")
+        )
+    (plain_wall, plain_size), (cell_wall, cell_size) = view.values()
+    more_time, more_size = 100 * (cell_wall / plain_wall - 1), 100 * (cell_size / plain_size - 1)
+    rows.append(
+        ("view: the cell in 3D adds (time / size)", f"{more_time:+.0f} % / {more_size:+.0f} %")
+    )
     print(
         f"{episodes} episodes x {steps} steps, 2 cameras 128x128 (JPEG in MCAP, AV1 in LeRobot)\n"
     )

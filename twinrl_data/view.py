@@ -1,21 +1,27 @@
-"""Rerun inspection of episodes: cameras, signals, intervention spans and 3D poses.
+"""Rerun inspection of episodes: cameras, signals, intervention spans and the cell in 3D.
 
 :func:`log_episodes` writes one or more episodes into a Rerun recording on the timeline
 ``step`` (and ``time`` in seconds), under a blueprint:
 
 - left: each camera (``cameras/<label>/<camera>``);
-- middle: the 3D scene (``world``): TCP path and pose, object poses, robot link frames;
+- middle: the 3D scene (``world``): TCP path and pose, object poses and, given a
+  :class:`CellModel` (the twin supplies one), the cell itself: the arm's links, the
+  gripper's fingers, the table and the objects as shapes logged once
+  (``world/<label>/cell/<body>/<i>``, static) and moved by one transform per body and
+  step (``world/<label>/cell/<body>``), so a long episode stays small;
 - right: time series of joint positions against joint targets, executed against
   policy-proposed actions, reward and success, with intervention spans in red.
 
 With two or more episodes (e.g. measured vs twin replay of one configuration) every
-series is logged once per episode label under the same plot, so they overlay.
+series is logged once per episode label under the same plot, so they overlay; every
+cell after the first is drawn translucent, a ghost over the first.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import rerun as rr
@@ -25,9 +31,25 @@ from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
 from twinrl_data.mcap_log import pose_groups
 
-LinkFrames = Callable[[np.ndarray], dict[str, tuple[np.ndarray, np.ndarray]]]
-"""``link_frames(state_row) -> {link: (position xyz, quaternion wxyz)}`` in the base
-frame; supplied by the twin (this layer knows no robot model)."""
+Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
+
+
+class CellModel(Protocol):
+    """A cell's geometry and its kinematics, supplied by the twin (this layer knows no
+    robot model): see :class:`twinrl_sim.cell_view.TwinCell`."""
+
+    def geometry(self, opacity: int = 255) -> dict[str, list[object]]:
+        """Each drawn body's Rerun shapes in its own frame, by body name, at ``opacity``
+        (0-255)."""
+
+    def fixed_poses(self) -> dict[str, Pose]:
+        """The poses of the drawn bodies that never move."""
+
+    def __call__(self, state: np.ndarray, environment: np.ndarray | None) -> dict[str, Pose]:
+        """The moving bodies' poses at one step (its state and object-pose rows)."""
+
+
+GHOST_ALPHA = 90  # opacity (of 255) of every cell after the first
 
 COLORS = ([230, 120, 40], [40, 140, 230], [90, 190, 90], [200, 80, 200])
 INTERVENTION_COLOR = [220, 30, 30]
@@ -53,13 +75,16 @@ def log_episodes(
     episodes: Sequence[contract.Episode],
     recording: rr.RecordingStream,
     *,
-    link_frames: LinkFrames | None = None,
+    cell: CellModel | None = None,
 ) -> None:
-    """Log ``episodes`` (overlaid on one timeline) and send the blueprint."""
+    """Log ``episodes`` (overlaid on one timeline), each with ``cell`` in 3D when given,
+    and send the blueprint."""
     labels = labels_for(episodes)
     rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, recording=recording)
-    for color, label, episode in zip(COLORS * 4, labels, episodes, strict=False):
-        _log_one(episode, label, color, recording, link_frames)
+    for i, (color, label, episode) in enumerate(zip(COLORS * 4, labels, episodes, strict=False)):
+        if cell is not None:
+            _log_cell_geometry(cell, label, recording, ghost=i > 0)
+        _log_one(episode, label, color, recording, cell)
     recording.send_blueprint(_blueprint(episodes, labels))
 
 
@@ -68,7 +93,7 @@ def _log_one(
     label: str,
     color: list[int],
     recording: rr.RecordingStream,
-    link_frames: LinkFrames | None,
+    cell: CellModel | None,
 ) -> None:
     data = episode.data
 
@@ -146,14 +171,29 @@ def _log_one(
                     f"{path}/marker",
                     rr.Points3D([[0, 0, 0]], radii=0.01, colors=[color], labels=[frame]),
                 )
-        if link_frames is not None:
-            for link, (pos, quat) in link_frames(state).items():
-                path = f"world/{label}/links/{link}"
+        if cell is not None:
+            env_row = data[contract.ENVIRONMENT_STATE][t] if env_poses else None
+            for body, (pos, quat) in cell(state, env_row).items():
                 log(
-                    path,
+                    f"world/{label}/cell/{body}",
                     rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
                 )
-                log(f"{path}/axes", rr.TransformAxes3D(0.04))
+
+
+def _log_cell_geometry(
+    cell: CellModel, label: str, recording: rr.RecordingStream, ghost: bool
+) -> None:
+    """The cell's shapes, once (static), and where its fixed bodies are."""
+    for body, shapes in cell.geometry(GHOST_ALPHA if ghost else 255).items():
+        for i, shape in enumerate(shapes):
+            rr.log(f"world/{label}/cell/{body}/{i}", shape, static=True, recording=recording)
+    for body, (pos, quat) in cell.fixed_poses().items():
+        rr.log(
+            f"world/{label}/cell/{body}",
+            rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
+            static=True,
+            recording=recording,
+        )
 
 
 def _blueprint(episodes: Sequence[contract.Episode], labels: list[str]) -> rrb.Blueprint:
@@ -178,7 +218,7 @@ def save_rrd(
     episodes: Sequence[contract.Episode],
     path: str | Path,
     *,
-    link_frames: LinkFrames | None = None,
+    cell: CellModel | None = None,
     force: bool = False,
 ) -> Path:
     """Write ``episodes`` with their blueprint to an .rrd file."""
@@ -187,17 +227,15 @@ def save_rrd(
         raise DataError(f"{path} already exists; choose another path or overwrite it (`force`)")
     recording = rr.RecordingStream("twinrl", recording_id=episodes[0].meta.episode_id)
     recording.save(str(path))
-    log_episodes(episodes, recording, link_frames=link_frames)
+    log_episodes(episodes, recording, cell=cell)
     recording.flush()
     recording.disconnect()
     return path
 
 
-def spawn_viewer(
-    episodes: Sequence[contract.Episode], *, link_frames: LinkFrames | None = None
-) -> None:
+def spawn_viewer(episodes: Sequence[contract.Episode], *, cell: CellModel | None = None) -> None:
     """Open the Rerun viewer on ``episodes``."""
     recording = rr.RecordingStream("twinrl", recording_id=episodes[0].meta.episode_id)
     recording.spawn()
-    log_episodes(episodes, recording, link_frames=link_frames)
+    log_episodes(episodes, recording, cell=cell)
     recording.flush()

@@ -146,8 +146,8 @@ def replay(
     )
     if rerun is not None:
         from twinrl_data.view import save_rrd
-        from twinrl_sim.cli.view import twin_link_frames
+        from twinrl_sim.cli.view import twin_cell
 
         replayed = open_episode(result.path)
-        save_rrd([logged, replayed], rerun, link_frames=twin_link_frames(logged), force=True)
+        save_rrd([logged, replayed], rerun, cell=twin_cell(logged), force=True)
         console.print(f"{rerun}: the logged and the replayed episode, overlaid")

@@ -1,4 +1,4 @@
-"""``twinrl view``: episodes in Rerun, with the twin's link frames."""
+"""``twinrl view``: episodes in Rerun, with the twin's cell in 3D."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import typer
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.errors import UsageError
-from twinrl_data.schema import STATE, Episode
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE, Episode
 from twinrl_sim.cli.common import console
 from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:
-    from twinrl_data.view import LinkFrames
+    from twinrl_sim.cell_view import TwinCell
 
 
 def load_target(target: str, default_episode: int) -> Episode:
@@ -25,17 +25,26 @@ def load_target(target: str, default_episode: int) -> Episode:
     return open_episode(target, default_episode)
 
 
-def twin_link_frames(episode: Episode) -> LinkFrames | None:
-    """FK of the built-in twin for episodes of a built-in task with joint names logged."""
+def twin_cell(episode: Episode) -> TwinCell | None:
+    """The built-in twin's cell in 3D for episodes of a built-in task with joint names
+    logged; ``None`` (with the reason printed) for any other."""
     from twinrl_sim.build import compile_scene
-    from twinrl_sim.kinematics import LinkFrames as TwinLinkFrames
+    from twinrl_sim.cell_view import TwinCell
 
     if episode.meta.task not in TASKS or episode.meta.robot != "ur5e":
+        console.print(
+            f"no cell in 3D: the episodes are of {episode.meta.robot or 'an unnamed robot'} "
+            f"doing {episode.meta.task or 'an unnamed task'}, not a built-in twin's"
+        )
         return None
-    names = episode.meta.names.get(STATE, [])
     try:
-        return TwinLinkFrames(compile_scene(make_task(episode.meta.task).scene), names)
-    except ValueError:
+        return TwinCell(
+            compile_scene(make_task(episode.meta.task).scene),
+            episode.meta.names.get(STATE, []),
+            episode.meta.names.get(ENVIRONMENT_STATE, []),
+        )
+    except ValueError as error:
+        console.print(f"no cell in 3D: {error}")
         return None
 
 
@@ -54,11 +63,11 @@ def view(
     from twinrl_data.view import save_rrd, spawn_viewer
 
     episodes = [load_target(t, episode) for t in targets]
-    link_frames = twin_link_frames(episodes[0])
+    cell = twin_cell(episodes[0])
     if save is not None:
         if save.suffix != ".rrd":
             raise UsageError(f"--save must end in .rrd, got {save}")
-        save_rrd(episodes, save, link_frames=link_frames, force=force)
+        save_rrd(episodes, save, cell=cell, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
     else:
-        spawn_viewer(episodes, link_frames=link_frames)
+        spawn_viewer(episodes, cell=cell)

@@ -1,0 +1,87 @@
+"""`twinrl view` draws the cell in 3D: the twin's shapes logged once, moved per step by
+the logged joints, gripper opening and object poses, read back with Rerun's own reader."""
+
+from dataclasses import replace
+
+import mujoco
+import numpy as np
+from rerun.experimental import RrdReader
+
+from tests.conftest import record_demos
+from tests.test_cli import twinrl
+from twinrl_data import schema
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.session import Session
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cli.view import twin_cell
+from twinrl_sim.tasks import make_task
+
+
+def _chunks(path):
+    """{entity path: [record batches]} of an .rrd file."""
+    out = {}
+    for chunk in RrdReader(path).store().stream().to_chunks():
+        out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def _column(batches, name):
+    return [row for b in batches if name in b.schema.names for row in b.column(name).to_pylist()]
+
+
+def test_the_view_draws_the_cell_moved_by_the_logged_joints(tmp_path):
+    record_demos(tmp_path, seed=3)  # one twin episode per region, both cameras
+    saved = twinrl("view", "session#0", "session#1", "--save", "cell.rrd", cwd=tmp_path)
+    assert saved.returncode == 0, saved.stderr
+    chunks = _chunks(tmp_path / "cell.rrd")
+    label = "twin_twin_demo_0"
+    cell = f"/world/{label}/cell"
+    # Static shapes: the arm's links, the gripper and its fingers, the table, the objects.
+    for body in ("link1", "link3", "link6", "gripper_finger_left", "gripper_finger_right",
+                 "table", "banana", "plate"):  # fmt: skip
+        shapes = [p for p in chunks if p.startswith(f"{cell}/{body}/")]
+        assert shapes, body
+        assert all(b.num_rows == 1 for p in shapes for b in chunks[p])  # logged once
+    # A link's logged pose is the forward kinematics of the logged joints.
+    episode = read_episode(Session(tmp_path / "session").episode_paths()[0])
+    state, names = episode.data[schema.STATE], episode.meta.names[schema.STATE]
+    scene = compile_scene(make_task("pick_place").scene)
+    model, data = scene.model, mujoco.MjData(scene.model)
+    translations = np.array(_column(chunks[f"{cell}/link3"], "Transform3D:translation"))[:, 0]
+    assert len(translations) == len(episode)
+    for t in (0, len(episode) // 2, len(episode) - 1):
+        for joint in scene.layout.arm_joints:
+            data.qpos[model.joint(joint).qposadr[0]] = state[t, names.index(f"q.{joint}")]
+        mujoco.mj_kinematics(model, data)
+        assert np.allclose(translations[t], data.xpos[model.body("link3").id], atol=1e-5)
+    # The fingers follow the logged opening: their frames close in one for one as it
+    # opens wider (each finger's frame sits at the far side of its pad).
+    left, right = (
+        np.array(_column(chunks[f"{cell}/gripper_finger_{side}"], "Transform3D:translation"))[:, 0]
+        for side in ("left", "right")
+    )
+    opening = state[:, names.index("gripper.opening")]
+    gap = np.linalg.norm(left - right, axis=1)
+    assert np.ptp(opening) > 0.01
+    assert np.allclose(gap + opening, gap[0] + opening[0], atol=1e-4)
+    # The banana is drawn where the episode logged it.
+    banana = np.array(_column(chunks[f"{cell}/banana"], "Transform3D:translation"))[:, 0]
+    env_names = episode.meta.names[schema.ENVIRONMENT_STATE]
+    logged = episode.data[schema.ENVIRONMENT_STATE][:, env_names.index("banana.x") :][:, :3]
+    assert np.allclose(banana, logged, atol=1e-5)
+    # The second episode's cell is a translucent ghost over the first.
+    first = _column(chunks[f"{cell}/link3/0"], "Capsules3D:colors")[0][0]
+    ghost = _column(chunks["/world/twin_twin_demo_1/cell/link3/0"], "Capsules3D:colors")[0][0]
+    assert first & 0xFF == 255 and ghost & 0xFF < 128
+
+
+def test_episodes_of_no_built_in_twin_open_without_3d_and_say_why(tmp_path, capsys):
+    record_demos(tmp_path, seed=3)
+    episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)
+    foreign = replace(episode, meta=replace(episode.meta, task="fold_towel", robot="so101"))
+    assert twin_cell(foreign) is None
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert len(printed) == 1 and "no cell in 3D" in printed[0] and "so101" in printed[0]
+    no_joints = replace(episode, meta=replace(episode.meta, names={}))
+    assert twin_cell(no_joints) is None
+    assert "lacks joint positions" in capsys.readouterr().out

@@ -1,0 +1,205 @@
+"""The twin's cell as Rerun geometry, posed by logged episodes: what ``twinrl view`` draws.
+
+:class:`TwinCell` turns every visible geom of the twin's model (the arm's links, the
+gripper and its fingers, the table, the objects) into Rerun shapes in its body's frame
+(boxes, capsules, cylinders, spheres, planes and meshes), logged once as static
+geometry; per logged step it says where each moving body is, by the twin's forward
+kinematics of the logged joints and gripper opening and the logged object poses, so a
+long episode adds a transform per body and step, never geometry again. Poses are in
+the world frame of the twin, which is the arm's base frame the episodes log poses in.
+It satisfies :class:`twinrl_data.view.CellModel`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+import rerun as rr
+
+from twinrl_data.mcap_log import pose_groups
+from twinrl_sim.build import CompiledScene
+from twinrl_sim.errors import TwinError
+from twinrl_sim.robots.gripper import STROKE
+
+Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz
+PLANE_EXTENT = 1.5  # m: half-size drawn for an infinite plane (the floor)
+PLANE_THICKNESS = 0.001  # m
+HIDDEN_GROUPS = 3  # geoms in group 3 and above are collision-only by MuJoCo convention
+
+
+def _xyzw(wxyz: np.ndarray) -> rr.Quaternion:
+    return rr.Quaternion(xyzw=[wxyz[1], wxyz[2], wxyz[3], wxyz[0]])
+
+
+def _rotate(wxyz: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    out = np.zeros(3)
+    mujoco.mju_rotVecQuat(out, np.asarray(vector, float), np.asarray(wxyz, float))
+    return out
+
+
+class TwinCell:
+    """The twin of ``scene`` posed by episodes whose ``observation.state`` entries are
+    named ``state_names`` and ``observation.environment_state`` ones
+    ``environment_names`` (empty: the objects are not drawn, since nothing says where
+    they are)."""
+
+    def __init__(
+        self,
+        scene: CompiledScene,
+        state_names: Sequence[str],
+        environment_names: Sequence[str] = (),
+    ) -> None:
+        self.model = model = scene.model
+        self.data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, self.data)
+        index = {name: i for i, name in enumerate(state_names)}
+        missing = [j for j in scene.layout.arm_joints if f"q.{j}" not in index]
+        if missing:
+            raise TwinError(
+                f"the logged state lacks joint positions q.{missing[0]} (and maybe more)"
+            )
+        self._arm = [
+            (index[f"q.{j}"], model.joint(j).qposadr[0]) for j in scene.layout.arm_joints
+        ]  # fmt: skip
+        self._fingers = self._finger_joints(scene) if "gripper.opening" in index else []
+        self._opening = index.get("gripper.opening")
+        groups = pose_groups(list(environment_names))
+        self._objects = [
+            (body, groups[model.body(body).name])
+            for body in range(1, model.nbody)
+            if model.body(body).name in groups
+        ]
+        posed = {body for body, _ in self._objects}
+        roots = model.body_rootid
+        # An object whose pose is not logged is not drawn: the twin cannot know where it is.
+        self._hidden = {
+            b
+            for b in range(1, model.nbody)
+            if roots[b] not in posed and b not in posed and self._is_object(b)
+        }
+        self._moving = [
+            b
+            for b in range(1, model.nbody)
+            if b not in self._hidden and (model.body_weldid[b] != 0 or model.body_mocapid[b] >= 0)
+        ]
+
+    def _is_object(self, body: int) -> bool:
+        """A body that is neither welded to the world nor part of the arm: a free object."""
+        model = self.model
+        root = model.body_rootid[body]
+        if model.body_mocapid[root] >= 0:
+            return True
+        return bool(
+            root != 0
+            and model.body_jntnum[root] > 0
+            and model.jnt_type[model.body_jntadr[root]] == mujoco.mjtJoint.mjJNT_FREE
+        )
+
+    def _finger_joints(self, scene: CompiledScene) -> list[tuple[int, float, float]]:
+        """(qpos address, offset, gain) of the driven finger joint and of every joint an
+        equality constraint couples to it (the mirrored finger)."""
+        joint = scene.layout.gripper_joint
+        if joint is None:
+            return []
+        model = self.model
+        driven = model.joint(joint).id
+        out = [(model.jnt_qposadr[driven], 0.0, 1.0)]
+        for e in range(model.neq):
+            if model.eq_type[e] == mujoco.mjtEq.mjEQ_JOINT and model.eq_obj2id[e] == driven:
+                coupled = model.eq_obj1id[e]
+                out.append((model.jnt_qposadr[coupled], model.eq_data[e][0], model.eq_data[e][1]))
+        return out
+
+    # ------------------------------------------------------------------ geometry
+    def geometry(self, opacity: int = 255) -> dict[str, list[object]]:
+        """Every drawn body's shapes in its own frame, by body name (Rerun archetypes),
+        at ``opacity`` (0-255; a ghost drawn over another cell is translucent)."""
+        model = self.model
+        out: dict[str, list[object]] = {}
+        for geom in range(model.ngeom):
+            body = int(model.geom_bodyid[geom])
+            rgba = model.geom_rgba[geom]
+            if body in self._hidden or model.geom_group[geom] >= HIDDEN_GROUPS or rgba[3] == 0:
+                continue
+            color = (np.clip(rgba, 0, 1) * 255).astype(np.uint8)
+            color[3] = min(int(color[3]), opacity)
+            shape = self._shape(geom, color)
+            if shape is not None:
+                out.setdefault(model.body(body).name, []).append(shape)
+        return out
+
+    def _shape(self, geom: int, color: np.ndarray) -> object | None:
+        model = self.model
+        kind, size = model.geom_type[geom], model.geom_size[geom]
+        center, quat = model.geom_pos[geom], model.geom_quat[geom]
+        types = mujoco.mjtGeom
+        if kind == types.mjGEOM_BOX:
+            return rr.Boxes3D(half_sizes=[size], centers=[center], quaternions=[_xyzw(quat)],
+                              colors=[color], fill_mode="solid")  # fmt: skip
+        if kind == types.mjGEOM_PLANE:
+            half = [size[0] or PLANE_EXTENT, size[1] or PLANE_EXTENT, PLANE_THICKNESS]
+            return rr.Boxes3D(half_sizes=[half], centers=[center], quaternions=[_xyzw(quat)],
+                              colors=[color], fill_mode="solid")  # fmt: skip
+        if kind == types.mjGEOM_SPHERE:
+            return rr.Ellipsoids3D(half_sizes=[[size[0]] * 3], centers=[center],
+                                   colors=[color], fill_mode="solid")  # fmt: skip
+        if kind == types.mjGEOM_ELLIPSOID:
+            return rr.Ellipsoids3D(half_sizes=[size], centers=[center], quaternions=[_xyzw(quat)],
+                                   colors=[color], fill_mode="solid")  # fmt: skip
+        if kind == types.mjGEOM_CYLINDER:
+            return rr.Cylinders3D(lengths=[2 * size[1]], radii=[size[0]], centers=[center],
+                                  quaternions=[_xyzw(quat)], colors=[color],
+                                  fill_mode="solid")  # fmt: skip
+        if kind == types.mjGEOM_CAPSULE:
+            # Rerun's capsule runs from its translation along +z; MuJoCo's is centred.
+            start = center - _rotate(quat, [0.0, 0.0, size[1]])
+            return rr.Capsules3D(lengths=[2 * size[1]], radii=[size[0]], translations=[start],
+                                 quaternions=[_xyzw(quat)], colors=[color])  # fmt: skip
+        if kind == types.mjGEOM_MESH:
+            mesh = model.geom_dataid[geom]
+            first, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+            faces = model.mesh_face[model.mesh_faceadr[mesh] : model.mesh_faceadr[mesh]
+                                    + model.mesh_facenum[mesh]]  # fmt: skip
+            vertices = np.array([_rotate(quat, v) for v in model.mesh_vert[first : first + count]])
+            return rr.Mesh3D(vertex_positions=vertices + center, triangle_indices=faces,
+                             albedo_factor=color)  # fmt: skip
+        return None  # heightfields and signed-distance shapes are not drawn
+
+    # ------------------------------------------------------------------ poses
+    def fixed_poses(self) -> dict[str, Pose]:
+        """Where the drawn bodies that never move are (the table, the arm's base)."""
+        moving = set(self._moving)
+        return {
+            self.model.body(b).name: (self.data.xpos[b].copy(), self.data.xquat[b].copy())
+            for b in range(1, self.model.nbody)
+            if b not in moving and b not in self._hidden
+        }
+
+    def __call__(self, state: np.ndarray, environment: np.ndarray | None = None) -> dict[str, Pose]:
+        """Where each moving body is at one logged step (its state row and, when the
+        episode logs them, its object poses)."""
+        data, model = self.data, self.model
+        for column, address in self._arm:
+            data.qpos[address] = state[column]
+        if self._opening is not None:
+            # The pads' distance to the driven finger's travel (the gripper's own mapping).
+            finger = float(np.clip(STROKE - state[self._opening] / 2.0, 0.0, STROKE))
+            for address, offset, gain in self._fingers:
+                data.qpos[address] = offset + gain * finger
+        if environment is not None:
+            for body, columns in self._objects:
+                position, quat = environment[columns[:3]], environment[columns[3:]]
+                if not np.all(np.isfinite(position)):
+                    continue
+                if model.body_mocapid[body] >= 0:
+                    data.mocap_pos[model.body_mocapid[body]] = position
+                    data.mocap_quat[model.body_mocapid[body]] = quat
+                else:
+                    address = model.jnt_qposadr[model.body_jntadr[body]]
+                    data.qpos[address : address + 7] = np.concatenate([position, quat])
+        mujoco.mj_kinematics(model, data)
+        return {
+            model.body(b).name: (data.xpos[b].copy(), data.xquat[b].copy()) for b in self._moving
+        }
