@@ -3,12 +3,15 @@
 :func:`log_episodes` writes one or more episodes into a Rerun recording on the timeline
 ``step`` (and ``time`` in seconds), under a blueprint:
 
-- left: each camera (``cameras/<label>/<camera>``);
+- left: each camera (``cameras/<label>/<camera>``, or its frustum in the cell, below);
 - middle: the 3D scene (``world``): TCP path and pose, object poses and, given a
   :class:`CellModel` (the twin supplies one), the cell itself: the arm's links, the
   gripper's fingers, the table and the objects as shapes logged once
   (``world/<label>/cell/<body>/<i>``, static) and moved by one transform per body and
-  step (``world/<label>/cell/<body>``), so a long episode stays small;
+  step (``world/<label>/cell/<body>``), so a long episode stays small; each camera the
+  cell mounts is a pinhole frustum at its pose with its images inside
+  (``world/<label>/cell/<body>/<camera>``: the wrist camera rides the flange), which
+  the camera views show too, so no image is logged twice;
 - right: time series of joint positions against joint targets, executed against
   policy-proposed actions, reward and success, with intervention spans in red.
 
@@ -20,6 +23,7 @@ cell after the first is drawn translucent, a ghost over the first.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -34,6 +38,16 @@ from twinrl_data.mcap_log import pose_groups
 Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
 
 
+@dataclass(frozen=True)
+class CameraMount:
+    """Where a camera sits on a body of the cell, and how wide it sees."""
+
+    body: str
+    position: np.ndarray  # in the body's frame
+    quaternion: np.ndarray  # wxyz; the camera looks along its -z, y up (MuJoCo's)
+    fov_y_deg: float
+
+
 class CellModel(Protocol):
     """A cell's geometry and its kinematics, supplied by the twin (this layer knows no
     robot model): see :class:`twinrl_sim.cell_view.TwinCell`."""
@@ -44,6 +58,9 @@ class CellModel(Protocol):
 
     def fixed_poses(self) -> dict[str, Pose]:
         """The poses of the drawn bodies that never move."""
+
+    def cameras(self) -> dict[str, CameraMount]:
+        """The cell's cameras by name."""
 
     def __call__(self, state: np.ndarray, environment: np.ndarray | None) -> dict[str, Pose]:
         """The moving bodies' poses at one step (its state and object-pose rows)."""
@@ -81,11 +98,49 @@ def log_episodes(
     and send the blueprint."""
     labels = labels_for(episodes)
     rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, recording=recording)
+    mounts = {} if cell is None else cell.cameras()
     for i, (color, label, episode) in enumerate(zip(COLORS * 4, labels, episodes, strict=False)):
         if cell is not None:
             _log_cell_geometry(cell, label, recording, ghost=i > 0)
-        _log_one(episode, label, color, recording, cell)
-    recording.send_blueprint(_blueprint(episodes, labels))
+            _log_frusta(episode, label, mounts, recording)
+        _log_one(episode, label, color, recording, cell, mounts)
+    recording.send_blueprint(_blueprint(episodes, labels, mounts))
+
+
+def _image_path(label: str, camera: str, mounts: dict[str, CameraMount]) -> str:
+    """Where a camera's images go: inside its frustum in the cell, or on their own."""
+    if camera in mounts:
+        return f"world/{label}/cell/{mounts[camera].body}/{camera}"
+    return f"cameras/{label}/{camera}"
+
+
+def _log_frusta(
+    episode: contract.Episode,
+    label: str,
+    mounts: dict[str, CameraMount],
+    recording: rr.RecordingStream,
+) -> None:
+    """Each mounted camera of the episode as a pinhole at its pose on its body."""
+    for camera, frames in episode.images.items():
+        if camera not in mounts or not len(frames):
+            continue
+        mount, (height, width) = mounts[camera], frames.shape[1:3]
+        path = _image_path(label, camera, mounts)
+        quat = rr.Quaternion(xyzw=_xyzw(mount.quaternion))
+        rr.log(path, rr.Transform3D(translation=mount.position, quaternion=quat),
+               static=True, recording=recording)  # fmt: skip
+        rr.log(
+            path,
+            rr.Pinhole(
+                fov_y=np.radians(mount.fov_y_deg),
+                aspect_ratio=width / height,
+                resolution=[width, height],
+                camera_xyz=rr.ViewCoordinates.RUB,
+                image_plane_distance=0.1,
+            ),
+            static=True,
+            recording=recording,
+        )
 
 
 def _log_one(
@@ -94,6 +149,7 @@ def _log_one(
     color: list[int],
     recording: rr.RecordingStream,
     cell: CellModel | None,
+    mounts: dict[str, CameraMount],
 ) -> None:
     data = episode.data
 
@@ -125,7 +181,7 @@ def _log_one(
         recording.set_time("step", sequence=t)
         recording.set_time("time", duration=t / episode.meta.fps)
         for camera, frames in episode.images.items():
-            log(f"cameras/{label}/{camera}", rr.Image(frames[t]))
+            log(_image_path(label, camera, mounts), rr.Image(frames[t]))
         state = data[contract.STATE][t]
         for i in joints:
             log(f"signals/joints/{state_names[i]}/{label}", rr.Scalars(float(state[i])))
@@ -196,9 +252,11 @@ def _log_cell_geometry(
         )
 
 
-def _blueprint(episodes: Sequence[contract.Episode], labels: list[str]) -> rrb.Blueprint:
+def _blueprint(
+    episodes: Sequence[contract.Episode], labels: list[str], mounts: dict[str, CameraMount]
+) -> rrb.Blueprint:
     cameras = [
-        rrb.Spatial2DView(origin=f"cameras/{label}/{camera}", name=f"{camera} ({label})")
+        rrb.Spatial2DView(origin=_image_path(label, camera, mounts), name=f"{camera} ({label})")
         for label, episode in zip(labels, episodes, strict=True)
         for camera in episode.images
     ]

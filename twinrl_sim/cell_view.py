@@ -19,6 +19,7 @@ import numpy as np
 import rerun as rr
 
 from twinrl_data.mcap_log import pose_groups
+from twinrl_data.view import CameraMount
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.robots.gripper import STROKE
@@ -166,6 +167,20 @@ class TwinCell:
             return rr.Mesh3D(vertex_positions=vertices + center, triangle_indices=faces,
                              albedo_factor=color)  # fmt: skip
         return None  # heightfields and signed-distance shapes are not drawn
+
+    def cameras(self) -> dict[str, CameraMount]:
+        """The model's cameras on their bodies (a camera on a hidden object is left out)."""
+        model = self.model
+        return {
+            model.camera(c).name: CameraMount(
+                body=model.body(int(model.cam_bodyid[c])).name,
+                position=model.cam_pos[c].copy(),
+                quaternion=model.cam_quat[c].copy(),
+                fov_y_deg=float(model.cam_fovy[c]),
+            )
+            for c in range(model.ncam)
+            if int(model.cam_bodyid[c]) not in self._hidden
+        }
 
     # ------------------------------------------------------------------ poses
     def fixed_poses(self) -> dict[str, Pose]:

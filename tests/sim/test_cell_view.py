@@ -69,6 +69,14 @@ def test_the_view_draws_the_cell_moved_by_the_logged_joints(tmp_path):
     env_names = episode.meta.names[schema.ENVIRONMENT_STATE]
     logged = episode.data[schema.ENVIRONMENT_STATE][:, env_names.index("banana.x") :][:, :3]
     assert np.allclose(banana, logged, atol=1e-5)
+    # Each camera is a frustum at its mount, its images inside (logged there only): the
+    # front camera on the world, the wrist camera on the flange, which the arm moves.
+    for camera, body in (("front", "world"), ("wrist", "flange")):
+        frustum = chunks[f"{cell}/{body}/{camera}"]
+        assert _column(frustum, "Pinhole:image_from_camera")
+        assert len(_column(frustum, "Image:buffer")) == len(episode)
+        assert f"/cameras/{label}/{camera}" not in chunks
+    assert len(_column(chunks[f"{cell}/flange"], "Transform3D:translation")) == len(episode)
     # The second episode's cell is a translucent ghost over the first.
     first = _column(chunks[f"{cell}/link3/0"], "Capsules3D:colors")[0][0]
     ghost = _column(chunks["/world/twin_twin_demo_1/cell/link3/0"], "Capsules3D:colors")[0][0]
