@@ -17,7 +17,9 @@
 
 With two or more episodes (e.g. measured vs twin replay of one configuration) every
 series is logged once per episode label under the same plot, so they overlay; every
-cell after the first is drawn translucent, a ghost over the first.
+cell after the first is drawn translucent, a ghost over the first, and a plot shows how
+far each one's joints (rad) and TCP (mm) are from the first's at every step
+(``signals/apart/...``).
 """
 
 from __future__ import annotations
@@ -104,7 +106,57 @@ def log_episodes(
             _log_cell_geometry(cell, label, recording, ghost=i > 0)
             _log_frusta(episode, label, mounts, recording)
         _log_one(episode, label, color, recording, cell, mounts)
+        if i > 0:
+            _log_apart(episodes[0], episode, label, color, recording)
     recording.send_blueprint(_blueprint(episodes, labels, mounts))
+
+
+def _log_apart(
+    first: contract.Episode,
+    other: contract.Episode,
+    label: str,
+    color: list[int],
+    recording: rr.RecordingStream,
+) -> None:
+    """How far ``other``'s joints (each, rad) and TCP (mm) are from ``first``'s, step by
+    step over the steps both have."""
+    names, other_names = _names(first, contract.STATE), _names(other, contract.STATE)
+    joints = [n for n in names if n.startswith("q.") and n in other_names]
+    tcp = [f"tcp.{axis}" for axis in "xyz"]
+    has_tcp = all(n in names and n in other_names for n in tcp)
+    a, b = first.data[contract.STATE], other.data[contract.STATE]
+    columns = {n: (names.index(n), other_names.index(n)) for n in joints + (tcp if has_tcp else [])}
+    for name in joints:
+        rr.log(
+            f"signals/apart/{name}/{label}",
+            rr.SeriesLines(colors=[color], names=f"{name} {label}"),
+            static=True,
+            recording=recording,
+        )
+    if has_tcp:
+        rr.log(
+            f"signals/apart/tcp_mm/{label}",
+            rr.SeriesLines(colors=[color], names=f"TCP mm {label}"),
+            static=True,
+            recording=recording,
+        )
+    for t in range(min(len(first), len(other))):
+        recording.set_time("step", sequence=t)
+        recording.set_time("time", duration=t / first.meta.fps)
+        for name in joints:
+            i, j = columns[name]
+            rr.log(
+                f"signals/apart/{name}/{label}",
+                rr.Scalars(float(b[t, j] - a[t, i])),
+                recording=recording,
+            )
+        if has_tcp:
+            delta = [b[t, columns[n][1]] - a[t, columns[n][0]] for n in tcp]
+            rr.log(
+                f"signals/apart/tcp_mm/{label}",
+                rr.Scalars(1000 * float(np.linalg.norm(delta))),
+                recording=recording,
+            )
 
 
 def _image_path(label: str, camera: str, mounts: dict[str, CameraMount]) -> str:
@@ -260,8 +312,18 @@ def _blueprint(
         for label, episode in zip(labels, episodes, strict=True)
         for camera in episode.images
     ]
+    apart = (
+        [
+            rrb.TimeSeriesView(
+                origin="signals/apart", name=f"apart from {labels[0]}: joints rad, TCP mm"
+            )
+        ]
+        if len(episodes) > 1
+        else []
+    )
     plots = rrb.Vertical(
         rrb.TimeSeriesView(origin="signals/joints", name="joint positions and targets (rad)"),
+        *apart,
         rrb.TimeSeriesView(origin="signals/actions", name="actions: executed vs policy"),
         rrb.TimeSeriesView(origin="signals/outcome", name="reward and success"),
         rrb.TimeSeriesView(origin="signals/intervention", name="interventions"),

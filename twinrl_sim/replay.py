@@ -7,13 +7,22 @@ joint targets?": log-driven debugging, and one window of the twin's replay engin
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from mujoco.rollout import Rollout
 
+from twinrl_data.schema import (
+    ACTION,
+    ENVIRONMENT_STATE,
+    JOINT_TARGET,
+    STATE,
+    SUCCESS,
+    Episode,
+)
 from twinrl_sim.cell import Cell
 from twinrl_sim.errors import TwinError
+from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks.base import Task, TaskConfig
 from twinrl_sim.windowed import Starts, WindowedReplay
 
@@ -74,3 +83,54 @@ def replay(
             env_states.append(cell.environment_vector())
             success.append(tracker.update().success)
     return ReplayResult(np.array(states), np.array(env_states), np.array(success))
+
+
+def replayed_episode(episode: Episode, scene: SceneSpec | None = None) -> Episode:
+    """The twin's answer to a logged ``episode``: its configuration regenerated in the
+    twin of ``scene`` (default: its task's built-in twin) and its logged joint targets
+    and gripper commands re-sent, as an episode of the same length (source ``replay``,
+    world ``twin``), to draw over the logged one."""
+    from twinrl_sim.build import compile_scene
+    from twinrl_sim.tasks import make_task
+
+    missing = [f for f in (JOINT_TARGET, ACTION) if f not in episode.data]
+    if missing:
+        raise TwinError(
+            f"episode {episode.meta.episode_id} has no '{missing[0]}' to replay; only episodes "
+            "recorded by a robot loop carry the joint targets it sent"
+        )
+    if not episode.meta.config:
+        raise TwinError(
+            f"episode {episode.meta.episode_id} does not say its task configuration, so the "
+            "twin cannot set it up"
+        )
+    task = make_task(episode.meta.task)
+    cell = Cell(compile_scene(scene or task.scene))
+    try:
+        result = replay(
+            task,
+            cell,
+            TaskConfig.from_dict(episode.meta.config),
+            episode.data[JOINT_TARGET][:-1],
+            np.asarray(episode.data[ACTION], float)[:-1, -1],
+        )
+    finally:
+        cell.close()
+    meta = replace(
+        episode.meta,
+        episode_id=f"{episode.meta.episode_id}-twin",
+        source="replay",
+        world="twin",
+        names={
+            **episode.meta.names,
+            STATE: cell.state_names,
+            ENVIRONMENT_STATE: cell.environment_names,
+        },
+    )
+    data = {
+        STATE: result.state.astype(np.float32),
+        ENVIRONMENT_STATE: result.environment_state.astype(np.float32),
+        ACTION: np.asarray(episode.data[ACTION], np.float32),
+        SUCCESS: result.success,
+    }
+    return Episode(meta, data)

@@ -93,3 +93,30 @@ def test_episodes_of_no_built_in_twin_open_without_3d_and_say_why(tmp_path, caps
     no_joints = replace(episode, meta=replace(episode.meta, names={}))
     assert twin_cell(no_joints) is None
     assert "lacks joint positions" in capsys.readouterr().out
+
+
+def test_view_replay_draws_the_twin_as_a_ghost_with_how_far_apart_they_are(tmp_path):
+    record_demos(tmp_path, seed=4)
+    saved = twinrl("view", "session#0", "--replay", "--save", "ghost.rrd", cwd=tmp_path)
+    assert saved.returncode == 0, saved.stderr
+    chunks = _chunks(tmp_path / "ghost.rrd")
+    ghost = "/world/twin_replay/cell"
+    assert f"{ghost}/link3/0" in chunks and f"{ghost}/banana/0" in chunks
+    color = _column(chunks[f"{ghost}/link3/0"], "Capsules3D:colors")[0][0]
+    assert color & 0xFF < 128  # translucent
+    # A twin episode replayed in the same twin comes back where it was logged.
+    episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)
+    apart = np.array(_column(chunks["/signals/apart/q.elbow/twin_replay"], "Scalars:scalars"))
+    tcp = np.array(_column(chunks["/signals/apart/tcp_mm/twin_replay"], "Scalars:scalars"))
+    assert len(apart) == len(tcp) == len(episode)
+    assert np.abs(apart).max() < 1e-4 and tcp.max() < 0.1
+    # Bad input: one line, exit 2, nothing written.
+    for args, message in (
+        (("--twin", "fitted.yaml", "--save", "x.rrd"), "add --replay"),
+        (("--replay", "--twin", "missing.yaml", "--save", "x.rrd"), "does not exist"),
+        (("--replay", "--save", "ghost.rrd"), "already exists"),
+    ):
+        result = twinrl("view", "session#0", *args, cwd=tmp_path)
+        assert result.returncode == 2 and message in result.stderr, result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x.rrd").exists()

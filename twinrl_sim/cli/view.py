@@ -58,15 +58,39 @@ def view(
         Path | None, typer.Option(help="Write an .rrd instead of opening the viewer.")
     ] = None,
     force: Annotated[bool, typer.Option(help="Overwrite --save if it exists.")] = False,
+    replay: Annotated[
+        bool,
+        typer.Option(
+            help="Also replay the first episode's logged commands in the twin and draw it "
+            "as a ghost over it, with how far apart they are."
+        ),
+    ] = False,
+    twin: Annotated[
+        Path | None,
+        typer.Option(
+            help="Scene file of the twin to replay in (e.g. a fitted twin); needs --replay."
+        ),
+    ] = None,
 ) -> None:
     """Inspect episodes in Rerun; two or more are overlaid on one timeline."""
     from twinrl_data.view import save_rrd, spawn_viewer
+    from twinrl_sim.replay import replayed_episode
+    from twinrl_sim.spec import load_spec
 
+    if save is not None and save.suffix != ".rrd":
+        raise UsageError(f"--save must end in .rrd, got {save}")
+    if save is not None and save.exists() and not force:
+        raise UsageError(f"--save {save} already exists; choose another path or add --force")
+    if twin is not None and not replay:
+        raise UsageError("--twin says which twin to replay in; add --replay")
+    if twin is not None and not twin.is_file():
+        raise UsageError(f"--twin {twin} does not exist; give a scene file (.yaml)")
     episodes = [load_target(t, episode) for t in targets]
+    if replay:
+        scene = None if twin is None else load_spec(twin)
+        episodes.append(replayed_episode(episodes[0], scene))
     cell = twin_cell(episodes[0])
     if save is not None:
-        if save.suffix != ".rrd":
-            raise UsageError(f"--save must end in .rrd, got {save}")
         save_rrd(episodes, save, cell=cell, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
     else:
