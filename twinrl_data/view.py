@@ -103,7 +103,8 @@ def log_episodes(
     mounts = {} if cell is None else cell.cameras()
     for i, (color, label, episode) in enumerate(zip(COLORS * 4, labels, episodes, strict=False)):
         if cell is not None:
-            _log_cell_geometry(cell, label, recording, ghost=i > 0)
+            opacity = GHOST_ALPHA if i > 0 else 255
+            log_cell_geometry(cell, f"world/{label}/cell", recording, opacity)
             _log_frusta(episode, label, mounts, recording)
         _log_one(episode, label, color, recording, cell, mounts)
         if i > 0:
@@ -281,23 +282,37 @@ def _log_one(
                 )
         if cell is not None:
             env_row = data[contract.ENVIRONMENT_STATE][t] if env_poses else None
-            for body, (pos, quat) in cell(state, env_row).items():
-                log(
-                    f"world/{label}/cell/{body}",
-                    rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
-                )
+            log_cell_poses(cell, f"world/{label}/cell", state, env_row, recording)
 
 
-def _log_cell_geometry(
-    cell: CellModel, label: str, recording: rr.RecordingStream, ghost: bool
+def log_cell_poses(
+    cell: CellModel,
+    root: str,
+    state: np.ndarray,
+    environment: np.ndarray | None,
+    recording: rr.RecordingStream,
 ) -> None:
-    """The cell's shapes, once (static), and where its fixed bodies are."""
-    for body, shapes in cell.geometry(GHOST_ALPHA if ghost else 255).items():
+    """Where the cell's moving bodies are at the current time of ``recording``, from
+    one step's state row (and object poses), under the entity ``root``."""
+    for body, (pos, quat) in cell(state, environment).items():
+        rr.log(
+            f"{root}/{body}",
+            rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
+            recording=recording,
+        )
+
+
+def log_cell_geometry(
+    cell: CellModel, root: str, recording: rr.RecordingStream, opacity: int = 255
+) -> None:
+    """The cell's shapes under the entity ``root``, once (static), and where its fixed
+    bodies are."""
+    for body, shapes in cell.geometry(opacity).items():
         for i, shape in enumerate(shapes):
-            rr.log(f"world/{label}/cell/{body}/{i}", shape, static=True, recording=recording)
+            rr.log(f"{root}/{body}/{i}", shape, static=True, recording=recording)
     for body, (pos, quat) in cell.fixed_poses().items():
         rr.log(
-            f"world/{label}/cell/{body}",
+            f"{root}/{body}",
             rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
             static=True,
             recording=recording,

@@ -61,7 +61,7 @@ import torch
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
 from twinrl_data.recorder import Recorder
-from twinrl_data.schema import STATE
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE
 from twinrl_learn.agent import Agent
 from twinrl_learn.compute import resolve_device
 from twinrl_learn.errors import LearnError
@@ -205,6 +205,7 @@ class RealRL:
                 self._cameras,
                 self.robot.names.get(STATE, []),
                 name="twinrl real-rl",
+                environment_names=self.robot.names.get(ENVIRONMENT_STATE, []),
             )
 
     def _open_robot(

@@ -3,8 +3,10 @@
 Per episode it shows the **reset guidance** (the configuration to set up, rendered
 from the twin, and the objects' outlines where they should go drawn over the live
 camera of the same name, when the twin has that camera), then every step's camera
-images, the TCP's path in 3D, joint positions and targets, the action and who chose
-it. One blueprint lays it out: cameras and guidance, the scene, the plots.
+images, the cell in 3D (the twin's arm, gripper, table and objects posed by the live
+joints, gripper opening and, where the cell measures them, object poses) with the TCP's
+path, joint positions and targets, the action and who chose it. One blueprint lays it
+out: cameras and guidance, the scene, the plots.
 """
 
 from __future__ import annotations
@@ -17,10 +19,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from twinrl_data.schema import STATE, image_field
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE, image_field
+from twinrl_data.view import log_cell_geometry, log_cell_poses
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
+from twinrl_sim.cell_view import TwinCell
+from twinrl_sim.errors import TwinError
 from twinrl_sim.tasks import Task, TaskConfig
 
 OUTLINE_COLOUR = [255, 200, 0]
@@ -81,9 +86,16 @@ class LiveView:
         cameras: tuple[str, ...],
         state_names: list[str],
         name: str = "twinrl record",
+        environment_names: list[str] | tuple[str, ...] = (),
     ) -> None:
         self.stream = rr.RecordingStream(name)
         self.guide = TwinGuide(task)
+        try:
+            self.cell: TwinCell | None = TwinCell(
+                self.guide.cell.scene, state_names, environment_names
+            )
+        except TwinError:  # the arm logs no joint positions the twin can pose: no 3D
+            self.cell = None
         self.cameras = cameras
         self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]
         self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
@@ -96,6 +108,8 @@ class LiveView:
             self.stream.connect_grpc(target, default_blueprint=blueprint)
         self._path: list[list[float]] = []
         self._step = 0
+        if self.cell is not None:
+            log_cell_geometry(self.cell, "world/cell", self.stream)
 
     def _blueprint(self) -> rrb.Blueprint:
         views = [rrb.Spatial2DView(origin=f"cameras/{c}", name=f"{c} (live)") for c in self.cameras]
@@ -109,7 +123,7 @@ class LiveView:
             rrb.TimeSeriesView(origin="signals/actions", name="action"),
             rrb.TimeSeriesView(origin="signals/intervention", name="person in control"),
         )
-        columns = [rrb.Spatial3DView(origin="world", name="TCP path"), plots]
+        columns = [rrb.Spatial3DView(origin="world", name="the cell and the TCP path"), plots]
         if views:
             columns.insert(0, rrb.Vertical(*views))
         return rrb.Blueprint(rrb.Horizontal(*columns), rrb.TimePanel(expanded=False))
@@ -168,6 +182,9 @@ class LiveView:
         if len(self._tcp) == 3:
             self._path.append([float(state[i]) for i in self._tcp])
             log("world/tcp_path", rr.LineStrips3D([self._path]))
+        if self.cell is not None:
+            environment = observation.get(ENVIRONMENT_STATE)
+            log_cell_poses(self.cell, "world/cell", state, environment, self.stream)
 
     def note(self, text: str) -> None:
         self.stream.log("events", rr.TextLog(text))

@@ -30,7 +30,7 @@ import numpy as np
 
 from twinrl_data.recorder import Recorder
 from twinrl_data.repair import repair_session
-from twinrl_data.schema import STATE
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE
 from twinrl_data.session import Session
 from twinrl_robot.errors import RobotError
 from twinrl_robot.live_view import LiveView
@@ -407,7 +407,13 @@ def run_recording(
         opened.append(device)
         live = None
         if view is not None:
-            live = LiveView(view, task, cameras, arm.names.get(STATE, []))
+            live = LiveView(
+                view,
+                task,
+                cameras,
+                arm.names.get(STATE, []),
+                environment_names=arm.names.get(ENVIRONMENT_STATE, []),
+            )
             opened.append(live)
         return record_session(
             arm,

@@ -63,6 +63,13 @@ def test_a_scripted_person_records_in_the_plant_with_every_mark(tmp_path: Path) 
     assert "observation.environment_state" in first.data  # the plant's poses, recorded too
     assert [e.meta.success for e in episodes] == [True, False, True]
     assert view.stat().st_size > 100_000  # cameras, guidance, plots
+    # The cell in 3D: its shapes once, its bodies moved by the live joints and poses.
+    from rerun.experimental import RrdReader
+
+    entities = {c.entity_path: c for c in RrdReader(view).store().stream().to_chunks()}
+    assert "/world/cell/link3/0" in entities and "/world/cell/banana/0" in entities
+    moved = [c for path, c in entities.items() if path == "/world/cell/link3"]
+    assert moved and not moved[0].is_static
     result = export_dataset(episodes, tmp_path / "dataset", repo_id="tests/day1")
     dataset = LeRobotDataset("tests/day1", root=result.root, video_backend="pyav")
     assert dataset.meta.total_episodes == 3 and len(dataset) == sum(len(e) for e in episodes)
