@@ -47,7 +47,7 @@ from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.gap.command_lag import command_lag
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, likelihood_term
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.gap.windows import Windows, cut_windows
 from twinrl_sim.spec import SceneSpec
@@ -83,6 +83,7 @@ class CandidateResult:
     iterations: int
     seconds: float
     compared: str = "motion"  # the residuals it was judged on: motion, or images:<camera>
+    fit_failed: bool = False  # its fit ended worse than it started: never named
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -425,11 +426,10 @@ class _Score:
 
 def _information(residuals: np.ndarray, k: int) -> tuple[float, float]:
     """(AIC, BIC) of residuals (n, W, n_signals) with a Gaussian likelihood whose
-    variance is fitted per signal, for ``k`` fitted parameters."""
+    variance is fitted per signal (:func:`likelihood_term`), for ``k`` fitted parameters."""
     rows = residuals.shape[0] * residuals.shape[1]
-    rss = np.sum(residuals**2, axis=(0, 1))
-    neg2_loglik = float(np.sum(rows * np.log(rss / rows)))
-    return neg2_loglik + 2 * k, neg2_loglik + k * math.log(rss.size * rows)
+    neg2_loglik = likelihood_term(residuals)
+    return neg2_loglik + 2 * k, neg2_loglik + k * math.log(residuals.shape[2] * rows)
 
 
 def _rms(residuals: np.ndarray) -> float:
@@ -462,8 +462,12 @@ def _fit_candidate(
     effects = replay.effects_at(x)
     heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
     error = _rms(heldout)
+    # A fit must never end worse than it started by the likelihood the BIC scores; one
+    # that does failed, and is reported so rather than as an insignificant candidate.
     significant = (
-        bic < baseline.bic - BIC_MARGIN and error <= (1 - MIN_HELDOUT_GAIN) * baseline.heldout_error
+        not replay.ended_worse
+        and bic < baseline.bic - BIC_MARGIN
+        and error <= (1 - MIN_HELDOUT_GAIN) * baseline.heldout_error
     )
     return CandidateResult(
         effect=name,
@@ -476,6 +480,7 @@ def _fit_candidate(
         significant=bool(significant),
         iterations=iterations,
         seconds=time.perf_counter() - started,
+        fit_failed=replay.ended_worse,
     )
 
 

@@ -13,7 +13,12 @@ modifier applies the effect to a copy of the twin's ``MjSpec``;
 :func:`sysid.calculate_intervals` for 95 % intervals.
 
 Residuals are divided by each signal's sensor noise (:class:`NoiseFloor`), so that a
-joint angle (rad), a torque (N m) and a position (m) weigh alike.
+joint angle (rad), a torque (N m) and a position (m) weigh alike; the fit minimises
+their sum of squares. The diagnosis scores a fit by a likelihood whose variance is
+fitted per signal (:func:`likelihood_term`), which can rise while the squares fall (a
+large drop in one signal traded for a rise in another); a fit that ends with that
+likelihood worse than at its start says so (:attr:`WindowReplay.ended_worse`) and the
+diagnosis reports it as failed rather than as an insignificant candidate.
 """
 
 from __future__ import annotations
@@ -165,6 +170,14 @@ def _remembering_last_point(residual_fn):
     return residual
 
 
+def likelihood_term(residuals: np.ndarray) -> float:
+    """-2 log-likelihood (up to a constant) of residuals (n, W, n_signals) under a
+    Gaussian whose variance is fitted per signal: what the diagnosis's BIC scores."""
+    rows = residuals.shape[0] * residuals.shape[1]
+    rss = np.maximum(np.sum(residuals**2, axis=(0, 1)), 1e-300)
+    return float(np.sum(rows * np.log(rss / rows)))
+
+
 class WindowReplay:
     """The twin of ``scene`` (plus ``fixed`` effects) replaying ``windows``, with the
     effects of ``free`` adjustable: a ``mujoco.sysid`` residual over all windows."""
@@ -185,6 +198,7 @@ class WindowReplay:
         self.free = [CANDIDATES[name] for name in free]
         self.spec, self.layout = build_mjspec(scene)
         self.scale = np.array([getattr(noise, f) for f in windows.families])
+        self.ended_worse = False  # the last fit ended with a worse likelihood than it started
         self.params = sysid.ParameterDict()
         for candidate in self.free:
             self.params.add(self._parameter(candidate, (start or {}).get(candidate.effect)))
@@ -349,6 +363,7 @@ class WindowReplay:
         optimiser units (see :meth:`physical`)."""
         if not self.free:
             return np.zeros(0), np.zeros(0), 0
+        before = likelihood_term(self.residuals(self.params.as_vector()))
         params, result, iterations = least_squares(
             self.params, self.residual_fn, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
         )
@@ -363,6 +378,7 @@ class WindowReplay:
         low, high = self.params.get_bounds()
         loose = ~(np.asarray(half_width) < (high - low) / 2)
         x = np.where(loose, self._null_vector(), x)
+        self.ended_worse = likelihood_term(self.residuals(x)) > before + 1e-6
         return x, np.where(loose, np.inf, half_width), iterations
 
     def _null_vector(self) -> np.ndarray:

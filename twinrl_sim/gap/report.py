@@ -330,7 +330,7 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
                 f"| {r.effect} | {format_params(r.params)} | {format_params(r.ci)} | "
                 f"{r.heldout_error:.3g} | "
                 f"{r.aic:.0f} | {r.bic:.0f} | {r.delta_bic:+.0f} | "
-                f"{'yes' if r.significant else 'no'} |"
+                f"{_verdict(r)} |"
             )
         lines.append("")
     if d.cameras:
@@ -467,3 +467,10 @@ def write_report(
     plot_localization(localization, out / "localization.png")
     write_overlay_rrd(diagnosis, out / "overlay.rrd")
     write_markdown(diagnosis, localization, out / "report.md")
+
+
+def _verdict(result) -> str:
+    """A candidate's significance column; a fit that ended worse than it started says so."""
+    if result.fit_failed:
+        return "no: its fit ended worse than it started"
+    return "yes" if result.significant else "no"
