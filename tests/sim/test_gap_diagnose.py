@@ -226,6 +226,12 @@ def test_cli_writes_the_report_and_a_fitted_twin(tmp_path):
     for name in ("report.md", "overlay.png", "candidates.png", "signals.png", "overlay.rrd"):
         assert (out / name).stat().st_size > 0
     assert "payload" in (out / "report.md").read_text()
+    # The overlay draws the arm three times: measured, and the twin before and after.
+    from rerun.experimental import RrdReader
+
+    paths = {c.entity_path for c in RrdReader(out / "overlay.rrd").store().stream().to_chunks()}
+    for label in ("measured", "twin_before", "twin_after"):
+        assert {f"/world/{label}/cell/link3/0", f"/world/{label}/cell/link3"} <= paths
     # Nothing is overwritten: a second run into the same folder is refused.
     again = runner.invoke(app, args)
     assert again.exit_code != 0 and "not empty" in str(again.exception or again.output)

@@ -11,6 +11,10 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from twinrl_data.atomic import write_text_atomic
+from twinrl_data.view import GHOST_ALPHA, log_cell_geometry, log_cell_poses
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell_view import TwinCell
+from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.diagnose import (
     AT_NOISE,
     BIC_MARGIN,
@@ -185,13 +189,20 @@ def plot_overlay(diagnosis: Diagnosis, path: Path) -> None:
     plt.close(fig)
 
 
-def write_overlay_rrd(diagnosis: Diagnosis, path: Path) -> None:
+def write_overlay_rrd(diagnosis: Diagnosis, path: Path, scene: SceneSpec | None = None) -> None:
     """A Rerun recording of one held-out episode: every compared signal as measured,
-    twin before and twin after, plus the three TCP paths."""
+    twin before and twin after, the three TCP paths and, given the twin's ``scene`` and
+    logged joints, the arm in 3D three times: measured, and the twin before and after
+    as translucent ghosts over it."""
     d = diagnosis
     windows, times = _overlay_rows(d)
     recording = rr.RecordingStream("twinrl_gap_overlay")
     recording.save(str(path))
+    cell = _overlay_cell(scene, d.signals)
+    if cell is not None:
+        for label in ("measured", "twin_before", "twin_after"):
+            opacity = 255 if label == "measured" else GHOST_ALPHA
+            log_cell_geometry(cell, f"world/{label}/cell", recording, opacity)
     tcp = [d.signals.index(n) for n in ("tcp.x", "tcp.y", "tcp.z")]
     series = {
         "measured": d.heldout.measured,
@@ -218,6 +229,8 @@ def write_overlay_rrd(diagnosis: Diagnosis, path: Path) -> None:
                         rr.Scalars(float(values[w, r, s])),
                         recording=recording,
                     )
+                if cell is not None:
+                    log_cell_poses(cell, f"world/{label}/cell", values[w, r], None, recording)
                 paths[label].append(values[w, r, tcp].tolist())
                 rr.log(
                     f"world/{label}/tcp_path",
@@ -233,6 +246,16 @@ def write_overlay_rrd(diagnosis: Diagnosis, path: Path) -> None:
     )
     recording.flush()
     recording.disconnect()
+
+
+def _overlay_cell(scene: SceneSpec | None, signals: list[str]) -> TwinCell | None:
+    """The twin's cell posed by the compared signals, when they hold every arm joint."""
+    if scene is None:
+        return None
+    try:
+        return TwinCell(compile_scene(scene), signals)
+    except TwinError:  # the diagnosis compared no joint angles: no arm to pose
+        return None
 
 
 def verdict(before: float, after: float, named: bool, localization: list[Disagreement]) -> str:
@@ -465,7 +488,7 @@ def write_report(
     plot_signals(diagnosis, out / "signals.png")
     plot_overlay(diagnosis, out / "overlay.png")
     plot_localization(localization, out / "localization.png")
-    write_overlay_rrd(diagnosis, out / "overlay.rrd")
+    write_overlay_rrd(diagnosis, out / "overlay.rrd", scene)
     write_markdown(diagnosis, localization, out / "report.md")
 
 
