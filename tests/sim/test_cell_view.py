@@ -5,9 +5,11 @@ from dataclasses import replace
 
 import mujoco
 import numpy as np
+import yaml
 from rerun.experimental import RrdReader
 
 from tests.conftest import record_demos
+from tests.sim.test_gap_diagnose import FOUR_JOINT_ARM
 from tests.test_cli import twinrl
 from twinrl_data import schema
 from twinrl_data.mcap_log import read_episode
@@ -112,7 +114,6 @@ def test_view_replay_draws_the_twin_as_a_ghost_with_how_far_apart_they_are(tmp_p
     assert np.abs(apart).max() < 1e-4 and tcp.max() < 0.1
     # Bad input: one line, exit 2, nothing written.
     for args, message in (
-        (("--twin", "fitted.yaml", "--save", "x.rrd"), "add --replay"),
         (("--replay", "--twin", "missing.yaml", "--save", "x.rrd"), "does not exist"),
         (("--replay", "--save", "ghost.rrd"), "already exists"),
     ):
@@ -120,3 +121,28 @@ def test_view_replay_draws_the_twin_as_a_ghost_with_how_far_apart_they_are(tmp_p
         assert result.returncode == 2 and message in result.stderr, result.stderr
         assert len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_a_cell_of_ones_own_is_drawn_from_its_scene_file(tmp_path):
+    """A four-joint arm that is not a UR: `--twin` names its scene, and its links move."""
+    (tmp_path / "arm.xml").write_text(FOUR_JOINT_ARM)
+    cell = make_task("pick_place").scene.model_dump(mode="json")
+    cell["name"] = "four_joint_cell"
+    cell["robot"] = {
+        "mjcf": "arm.xml",
+        "joints": ["yaw", "shoulder", "elbow", "wrist"],
+        "actuators": ["m_yaw", "m_shoulder", "m_elbow", "m_wrist"],
+        "flange_body": "tool",
+        "home_qpos": [0.0, -0.844, 1.604, -0.76],
+    }
+    (tmp_path / "cell.yaml").write_text(yaml.safe_dump(cell, sort_keys=False))
+    recorded = twinrl("sim", "excite", "--twin", "cell.yaml", "--world", "twin", "--episodes",
+                      "1", "--duration", "3", "--out", "measured", cwd=tmp_path)  # fmt: skip
+    assert recorded.returncode == 0, recorded.stderr
+    saved = twinrl("view", "measured#0", "--twin", "cell.yaml", "--save", "arm.rrd", cwd=tmp_path)
+    assert saved.returncode == 0, saved.stderr
+    chunks = _chunks(tmp_path / "arm.rrd")
+    upper = [p for p in chunks if p.endswith("/cell/upper")]
+    assert upper and any(p.endswith("/cell/upper/0") for p in chunks)
+    moves = np.array(_column(chunks[upper[0]], "Transform3D:quaternion"))[:, 0]
+    assert len(moves) > 10 and np.ptp(moves, axis=0).max() > 0.01  # the shoulder turns

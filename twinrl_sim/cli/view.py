@@ -16,6 +16,7 @@ from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:
     from twinrl_sim.cell_view import TwinCell
+    from twinrl_sim.spec import SceneSpec
 
 
 def load_target(target: str, default_episode: int) -> Episode:
@@ -25,21 +26,23 @@ def load_target(target: str, default_episode: int) -> Episode:
     return open_episode(target, default_episode)
 
 
-def twin_cell(episode: Episode) -> TwinCell | None:
-    """The built-in twin's cell in 3D for episodes of a built-in task with joint names
-    logged; ``None`` (with the reason printed) for any other."""
+def twin_cell(episode: Episode, scene: SceneSpec | None = None) -> TwinCell | None:
+    """The cell in 3D for ``episode``: the twin of ``scene`` (a cell of one's own, say a
+    seven-joint arm) or else the built-in twin of its task; ``None`` (with the reason
+    printed) when there is none or the episode logs no joints it can pose."""
     from twinrl_sim.build import compile_scene
     from twinrl_sim.cell_view import TwinCell
 
-    if episode.meta.task not in TASKS or episode.meta.robot != "ur5e":
+    if scene is None and (episode.meta.task not in TASKS or episode.meta.robot != "ur5e"):
         console.print(
             f"no cell in 3D: the episodes are of {episode.meta.robot or 'an unnamed robot'} "
-            f"doing {episode.meta.task or 'an unnamed task'}, not a built-in twin's"
+            f"doing {episode.meta.task or 'an unnamed task'}, not a built-in twin's; "
+            "name its twin with --twin"
         )
         return None
     try:
         return TwinCell(
-            compile_scene(make_task(episode.meta.task).scene),
+            compile_scene(scene or make_task(episode.meta.task).scene),
             episode.meta.names.get(STATE, []),
             episode.meta.names.get(ENVIRONMENT_STATE, []),
         )
@@ -68,7 +71,8 @@ def view(
     twin: Annotated[
         Path | None,
         typer.Option(
-            help="Scene file of the twin to replay in (e.g. a fitted twin); needs --replay."
+            help="Scene file of the cell's twin, drawn in 3D and, with --replay, replayed "
+            "in (a cell of one's own, a fitted twin; default: the task's built-in twin)."
         ),
     ] = None,
 ) -> None:
@@ -81,15 +85,13 @@ def view(
         raise UsageError(f"--save must end in .rrd, got {save}")
     if save is not None and save.exists() and not force:
         raise UsageError(f"--save {save} already exists; choose another path or add --force")
-    if twin is not None and not replay:
-        raise UsageError("--twin says which twin to replay in; add --replay")
     if twin is not None and not twin.is_file():
         raise UsageError(f"--twin {twin} does not exist; give a scene file (.yaml)")
+    scene = None if twin is None else load_spec(twin)
     episodes = [load_target(t, episode) for t in targets]
     if replay:
-        scene = None if twin is None else load_spec(twin)
         episodes.append(replayed_episode(episodes[0], scene))
-    cell = twin_cell(episodes[0])
+    cell = twin_cell(episodes[0], scene)
     if save is not None:
         save_rrd(episodes, save, cell=cell, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
