@@ -146,3 +146,49 @@ def test_a_cell_of_ones_own_is_drawn_from_its_scene_file(tmp_path):
     assert upper and any(p.endswith("/cell/upper/0") for p in chunks)
     moves = np.array(_column(chunks[upper[0]], "Transform3D:quaternion"))[:, 0]
     assert len(moves) > 10 and np.ptp(moves, axis=0).max() > 0.01  # the shoulder turns
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import urllib.request
+
+    record_demos(tmp_path, seed=3)
+    web, grpc = _free_port(), _free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "twinrl_learn", "view", "session#0", "--web",
+         "--web-port", str(web), "--grpc-port", str(grpc)],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        line = server.stdout.readline()
+        assert "open http://127.0.0.1:" in line, (line, server.stderr.read())
+        url = line.split()[1]
+        assert f"rerun%2Bhttp%3A//127.0.0.1%3A{grpc}/proxy" in url
+        page = urllib.request.urlopen(url, timeout=10).read().decode()
+        assert "Rerun" in page and "<html" in page.lower()
+        with socket.create_connection(("127.0.0.1", grpc), timeout=5):
+            pass  # the recording server answers on loopback
+        outside = [a for a in socket.gethostbyname_ex(socket.gethostname())[2]
+                   if not a.startswith("127.")]  # fmt: skip
+        for address in outside:  # and nowhere else
+            with socket.socket() as probe:
+                probe.settimeout(1)
+                assert probe.connect_ex((address, grpc)) != 0
+    finally:
+        server.send_signal(signal.SIGINT)
+        assert server.wait(timeout=30) is not None
+    with socket.socket() as probe:  # the viewer stopped with it
+        assert probe.connect_ex(("127.0.0.1", grpc)) != 0
+    refused = twinrl("view", "session#0", "--web", "--save", "x.rrd", cwd=tmp_path)
+    assert refused.returncode == 2 and "choose one" in refused.stderr

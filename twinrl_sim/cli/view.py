@@ -75,6 +75,19 @@ def view(
             "in (a cell of one's own, a fitted twin; default: the task's built-in twin)."
         ),
     ] = None,
+    web: Annotated[
+        bool,
+        typer.Option(
+            help="Serve Rerun's web viewer to browsers instead (a machine without a screen)."
+        ),
+    ] = False,
+    bind: Annotated[
+        str, typer.Option(help="Address --web listens on (default: this machine only).")
+    ] = "127.0.0.1",
+    web_port: Annotated[int, typer.Option(help="Port of --web's page.")] = 9090,
+    grpc_port: Annotated[
+        int, typer.Option(help="Port --web's page reads the recording from.")
+    ] = 9876,
 ) -> None:
     """Inspect episodes in Rerun; two or more are overlaid on one timeline."""
     from twinrl_data.view import save_rrd, spawn_viewer
@@ -85,6 +98,8 @@ def view(
         raise UsageError(f"--save must end in .rrd, got {save}")
     if save is not None and save.exists() and not force:
         raise UsageError(f"--save {save} already exists; choose another path or add --force")
+    if web and save is not None:
+        raise UsageError("--web serves the episodes and --save writes them; choose one")
     if twin is not None and not twin.is_file():
         raise UsageError(f"--twin {twin} does not exist; give a scene file (.yaml)")
     scene = None if twin is None else load_spec(twin)
@@ -92,7 +107,16 @@ def view(
     if replay:
         episodes.append(replayed_episode(episodes[0], scene))
     cell = twin_cell(episodes[0], scene)
-    if save is not None:
+    if web:
+        from twinrl_data.web_view import serve_web
+
+        viewer = serve_web(episodes, cell=cell, bind=bind, web_port=web_port, grpc_port=grpc_port)
+        console.print(f"open {viewer.url} in a browser; Ctrl-C stops serving")
+        try:
+            viewer.wait()
+        except KeyboardInterrupt:
+            viewer.close()
+    elif save is not None:
         save_rrd(episodes, save, cell=cell, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
     else:
