@@ -31,11 +31,13 @@ def check_device(name: str) -> None:
         raise SettingError("device", f"must be auto, cpu, cuda or cuda:N, got '{name}'")
 
 
-def resolve_device(name: str) -> torch.device:
-    """The torch device ``name`` stands for on this machine; asking for a GPU on a
-    machine without a usable one is an error that says so."""
+def resolve_device(name: str | torch.device) -> torch.device:
+    """The torch device ``name`` stands for on this machine (a device is itself); asking
+    for a GPU on a machine without a usable one is an error that says so."""
     import torch
 
+    if isinstance(name, torch.device):
+        return name
     check_device(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

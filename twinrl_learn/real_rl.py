@@ -291,7 +291,7 @@ class RealRL:
         classifier = checked_classifier(settings, terminal)  # fail before anything is written
         if settings.targets:
             load_targets(settings.targets)  # fail before anything is written
-        policy = Policy.from_pretrained(settings.init, resolve_device(settings.device))
+        policy = Policy.from_pretrained(settings.init, settings.device)
         demo, twin = _buffers(settings, policy)
         agent = Agent(policy, settings.rl)
         if settings.keep_critic and not agent.adopt_critic(settings.init):

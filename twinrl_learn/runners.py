@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from twinrl_data.errors import SettingError
+from twinrl_learn.compute import resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.policy import Policy, is_checkpoint
 from twinrl_sim.tasks import Task, TaskConfig
@@ -103,7 +104,7 @@ class LeRobotRunner:
 
         path = Path(path)
         config = PreTrainedConfig.from_pretrained(path)
-        config.device = device
+        config.device = str(resolve_device(device))  # lerobot reads a concrete one
         policy_class = get_policy_class(config.type)
         self.policy = policy_class.from_pretrained(path, config=config)
         self.policy.eval()
@@ -144,12 +145,12 @@ def load_runner(
     device: str = "cpu",
 ) -> Runner:
     """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder,
-    its network on ``device`` (a torch device name; :func:`~twinrl_learn.compute.
-    resolve_device` turns auto into one).
+    its network on ``device`` (auto, cpu, cuda or cuda:N).
     ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
     its predictions for each step (``PolicyConfig.temporal_ensemble``); ``grasp_hold``
     turns the arm's hold while the gripper closes on or off (``None``: as the
     checkpoint says; ``PolicyConfig.grasp_hold``)."""
+    device = str(resolve_device(device))  # a bad name is refused whatever the policy
     path = Path(spec)
     for asked, setting in ((open_loop, "open_loop"), (grasp_hold is not None, "grasp_hold")):
         if asked and not is_checkpoint(path):

@@ -19,12 +19,11 @@ import numpy as np
 import rerun as rr
 
 from twinrl_data.mcap_log import pose_groups
-from twinrl_data.view import CameraMount
+from twinrl_data.view import CameraMount, Pose
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.robots.gripper import STROKE
 
-Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz
 PLANE_EXTENT = 1.5  # m: half-size drawn for an infinite plane (the floor)
 PLANE_THICKNESS = 0.001  # m
 HIDDEN_GROUPS = 3  # geoms in group 3 and above are collision-only by MuJoCo convention
@@ -64,8 +63,8 @@ class TwinCell:
         self._arm = [
             (index[f"q.{j}"], model.joint(j).qposadr[0]) for j in scene.layout.arm_joints
         ]  # fmt: skip
-        self._fingers = self._finger_joints(scene) if "gripper.opening" in index else []
         self._opening = index.get("gripper.opening")
+        self._fingers = [] if self._opening is None else self._finger_joints(scene)
         groups = pose_groups(list(environment_names))
         self._objects = [
             (body, groups[model.body(body).name])
@@ -76,9 +75,7 @@ class TwinCell:
         roots = model.body_rootid
         # An object whose pose is not logged is not drawn: the twin cannot know where it is.
         self._hidden = {
-            b
-            for b in range(1, model.nbody)
-            if roots[b] not in posed and b not in posed and self._is_object(b)
+            b for b in range(1, model.nbody) if roots[b] not in posed and self._is_object(b)
         }
         self._moving = [
             b

@@ -177,8 +177,9 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
         assert f"rerun%2Bhttp%3A//127.0.0.1%3A{grpc}/proxy" in url
         page = urllib.request.urlopen(url, timeout=10).read().decode()
         assert "Rerun" in page and "<html" in page.lower()
-        with socket.create_connection(("127.0.0.1", grpc), timeout=5):
-            pass  # the recording server answers on loopback
+        with socket.socket() as probe:  # the recording server answers on loopback
+            probe.settimeout(5)
+            assert probe.connect_ex(("127.0.0.1", grpc)) == 0
         outside = [a for a in socket.gethostbyname_ex(socket.gethostname())[2]
                    if not a.startswith("127.")]  # fmt: skip
         for address in outside:  # and nowhere else

@@ -49,7 +49,6 @@ def eval_command(
     device: DeviceOption = "auto",
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
-    from twinrl_learn.compute import resolve_device
     from twinrl_learn.evaluate import evaluate
     from twinrl_learn.runners import load_runner
 
@@ -66,7 +65,7 @@ def eval_command(
         checkpoint,
         open_loop=open_loop,
         grasp_hold=grasp_hold,
-        device=str(resolve_device(device)),
+        device=device,
     )
     with progress("success") as bar:
         job = bar.add_task(f"{runner.name} in the {world}", total=None, success="0")

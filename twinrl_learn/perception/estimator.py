@@ -33,7 +33,7 @@ from safetensors.torch import load_file, save
 from torch import nn
 
 from twinrl_data.atomic import write_atomic
-from twinrl_learn.compute import mixed_precision, module_device
+from twinrl_learn.compute import mixed_precision, module_device, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.backbone import CHANNELS, FrozenBackbone
 from twinrl_learn.policy.networks import SpatialSoftmax
@@ -196,7 +196,7 @@ class PoseEstimator(nn.Module):
         estimator = cls(config)
         estimator.load_state_dict(load_file(path / WEIGHTS_FILE))
         estimator.eval()
-        return estimator.to(device)
+        return estimator.to(resolve_device(device))
 
 
 def rotation_error_deg(predicted: torch.Tensor, true: torch.Tensor) -> torch.Tensor:

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from twinrl_learn.compute import module_device
+from twinrl_learn.compute import module_device, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.language import EMBEDDING_DIM, InstructionCache
 from twinrl_learn.policy.acting import ChunkedActing
@@ -373,9 +373,10 @@ class Policy(nn.Module):
 
     @classmethod
     def from_pretrained(cls, path: str | Path, device: str | torch.device = "cpu") -> Policy:
-        """The checkpoint in ``path``, on ``device`` (wherever it was trained)."""
+        """The checkpoint in ``path``, on ``device`` (a name such as auto, or a device;
+        wherever it was trained)."""
         config, weights = load_checkpoint(path)
         policy = cls(config)
         policy.load_state_dict(weights)
         policy.eval()
-        return policy.to(device)
+        return policy.to(resolve_device(device))

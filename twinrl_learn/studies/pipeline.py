@@ -49,7 +49,7 @@ from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import quiet_encoders
 from twinrl_data.errors import SettingError
 from twinrl_data.executor import make_executor
-from twinrl_learn.compute import check_device, resolve_device
+from twinrl_learn.compute import check_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.mining import mine
@@ -219,7 +219,7 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log, device: str) -> dict[s
 def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path, device: str) -> None:
     """A starting policy's success in the plant, on the real-RL runs' evaluation grid."""
     evaluate(
-        TwinrlRunner(checkpoint, device=str(resolve_device(device))),
+        TwinrlRunner(checkpoint, device=device),
         task,
         world="plant",
         grid=p.eval_grid,
@@ -267,7 +267,7 @@ def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str
         log("Stage III: mining failure-prone configurations in the twin")
         _fresh(out / "targets")
         mine(
-            TwinrlRunner(stage2 / "agent", name="stage2", device=str(resolve_device(device))),
+            TwinrlRunner(stage2 / "agent", name="stage2", device=device),
             task,
             out=path,
             grid=p.mining_grid,

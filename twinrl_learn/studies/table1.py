@@ -40,7 +40,6 @@ from twinrl_data.atomic import write_text_atomic
 from twinrl_data.lerobot_io import export_dataset, iter_dataset_episodes
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
-from twinrl_learn.compute import resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.perception.training import train_estimator
@@ -216,7 +215,7 @@ def run_stage1(
                     )
                 )
                 report = evaluate(
-                    TwinrlRunner(base / name, device=str(resolve_device(settings.device))),
+                    TwinrlRunner(base / name, device=settings.device),
                     task,
                     world="plant",
                     grid=settings.grid,
