@@ -25,7 +25,7 @@ from twinrl_sim.effects import apply_effects
 from twinrl_sim.layout import MOUNT_BODY, CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.robots import ur5e
-from twinrl_sim.servo import full_lead, set_lead
+from twinrl_sim.servo import full_lead, set_feedforward, set_lead
 from twinrl_sim.spec import CameraSpec, GeomSpec, ObjectSpec, SceneSpec, SpecError
 
 EMPTY_PREFIX_WARNING = "Attaching a spec with an empty prefix"  # MuJoCo's words
@@ -101,6 +101,8 @@ def build_mjspec(
     if scene.physics.servo == "track":
         lead = scene.physics.servo_lead
         set_lead(spec, layout, full_lead(spec, layout) if lead is None else lead)
+    if scene.physics.feeds_forward:
+        set_feedforward(spec, layout)
     if apply_spec_effects and scene.effects:
         try:
             apply_effects(spec, layout, scene.effects)

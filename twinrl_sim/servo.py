@@ -1,6 +1,7 @@
-"""How the twin's arm servos follow a stream of joint targets.
+"""How the twin's arm servos follow a stream of joint targets, and what they feed forward.
 
-Two models, chosen by the scene (``physics.servo``) or by the ``servo_lead`` effect:
+Two models of following, chosen by the scene (``physics.servo``) or by the
+``servo_lead`` effect:
 
 - **hold** (the default): each target is the servos' setpoint for its whole control
   period. At 10 Hz this is what the twin's tasks were tuned with.
@@ -14,6 +15,23 @@ Two models, chosen by the scene (``physics.servo``) or by the ``servo_lead`` eff
   a few milliseconds instead of creeping back over tens. The lead is a property of the
   compiled model (the custom numeric :data:`LEAD_NUMERIC`), so the gap workflow fits it
   like any other effect.
+
+And what the servos know of the arm (``physics.feedforward``):
+
+- **model** (the default where the servos track): a UR's joint controllers feed forward
+  the arm's dynamic model with the payload set on the controller, so they hold any load
+  they know of without sagging, and the torques they log (``target_moment``) are the
+  model's. The twin's servos do the same with the twin's own model: the weight of
+  every body the arm carries (its links, the gripper, a ``payload`` or ``link_mass``
+  effect) is compensated through the arm's actuators (MuJoCo's actuator gravity
+  compensation), so it shows in the joint torques and not in the tracking. What the
+  arm does not carry (a grasped object) still loads the position loop. The inertial and
+  Coriolis terms are left to the position loop: at a tracking servo's stiffness they
+  cost a fraction of a milliradian.
+- **none** (the default where the servos hold): the built-in arm's links and gripper
+  are weightless to the servos (compensated outside them, as the tasks were tuned) and
+  absent from the logged torques; a ``payload`` sags them by its weight over their
+  stiffness.
 """
 
 from __future__ import annotations
@@ -24,6 +42,7 @@ import numpy as np
 from twinrl_sim.layout import CellLayout
 
 LEAD_NUMERIC = "twinrl_servo_lead"  # s; present: the servos track, absent: they hold
+FEEDFORWARD_NUMERIC = "twinrl_servo_feedforward"  # present: the servos feed the model forward
 TRACKING_STIFFNESS = 4.0  # a tracking servo's position gain over the holding servo's
 
 
@@ -75,6 +94,28 @@ def set_lead(spec: mujoco.MjSpec, layout: CellLayout, seconds: float) -> None:
         actuator.biasprm = bias
         joint.damping = [0.0] * len(np.atleast_1d(joint.damping))
     spec.add_numeric(name=LEAD_NUMERIC, data=[float(seconds)], size=1)
+
+
+def set_feedforward(spec: mujoco.MjSpec, layout: CellLayout) -> None:
+    """Make the arm's servos feed forward the weight of everything the arm carries.
+
+    Every body below the arm's first joint is gravity-compensated, and the compensation
+    is routed through the arm joints' actuators (``actuatorgravcomp``), so that it is
+    part of the joint torques the twin logs. Bodies added later to the arm (a payload)
+    follow :func:`feeds_forward`."""
+    if feeds_forward(spec):
+        return
+    first = spec.joint(layout.arm_joints[0]).parent
+    for body in [first, *first.find_all(mujoco.mjtObj.mjOBJ_BODY)]:
+        body.gravcomp = 1.0
+    for name in layout.arm_joints:
+        spec.joint(name).actgravcomp = True
+    spec.add_numeric(name=FEEDFORWARD_NUMERIC, data=[1.0], size=1)
+
+
+def feeds_forward(spec: mujoco.MjSpec) -> bool:
+    """Whether ``spec``'s arm servos feed forward the model of what the arm carries."""
+    return any(n.name == FEEDFORWARD_NUMERIC for n in spec.numerics)
 
 
 def servo_lead(model: mujoco.MjModel) -> float | None:

@@ -242,6 +242,10 @@ class PhysicsSpec(_Strict):
     # (None: the lead that cancels the servos' lag).
     servo: Literal["hold", "track"] = "hold"
     servo_lead: Annotated[float, Field(ge=-0.2, le=0.5)] | None = None
+    # What the servos feed forward (twinrl_sim.servo): "model" (the weight of all the arm
+    # carries, logged in its joint torques as a UR's target_moment) or "none" (None:
+    # "model" where the servos track, "none" where they hold).
+    feedforward: Literal["model", "none"] | None = None
 
     @model_validator(mode="after")
     def _whole_substeps(self) -> PhysicsSpec:
@@ -252,6 +256,13 @@ class PhysicsSpec(_Strict):
                 f"{self.timestep} s physics steps"
             )
         return self
+
+    @property
+    def feeds_forward(self) -> bool:
+        """Whether the servos feed forward the arm's model (see ``feedforward``)."""
+        if self.feedforward is None:
+            return self.servo == "track"
+        return self.feedforward == "model"
 
     @property
     def substeps(self) -> int:

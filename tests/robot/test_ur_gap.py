@@ -30,7 +30,10 @@ ALLOWED = ["actuator_delay", "servo_lead", "payload", "joint_friction"]
 
 
 def _twin(servo: str):
-    return SCENE.model_copy(update={"physics": SCENE.physics.model_copy(update={"servo": servo})})
+    """The twin with ``servo`` following, feeding its model forward as the arm does (its
+    logged torques hold the arm's weight), so that only how the servos follow differs."""
+    physics = SCENE.physics.model_copy(update={"servo": servo, "feedforward": "model"})
+    return SCENE.model_copy(update={"physics": physics})
 
 
 def _excite(folder: Path, effects: dict) -> list:

@@ -112,3 +112,50 @@ def test_the_gap_workflow_names_a_hidden_servo_lead(tmp_path):
     fitted = diagnosis.effects["servo_lead"]["seconds"]
     assert _within(fitted, 0.05, diagnosis.selected[0]["ci"]["seconds"]), fitted
     assert diagnosis.heldout_reduction >= 0.7
+
+
+def _held(servo: str, feedforward: str | None, effects: dict | None = None) -> Cell:
+    physics = SCENE.physics.model_copy(
+        update={"servo": servo, "control_hz": 125.0, "feedforward": feedforward}
+    )
+    cell = Cell(compile_scene(SCENE.model_copy(update={"physics": physics}), extra_effects=effects))
+    cell.reset_robot()
+    cell.finish_reset()
+    home = np.array(cell.layout.home_qpos)
+    for _ in range(60):
+        cell.send(home, 0.0)
+    return cell
+
+
+def test_servos_that_feed_the_model_forward_carry_a_load_and_log_its_weight():
+    load = {"payload": {"mass": 2.5, "cog": [0.04, 0.0, 0.08]}}
+    bare, loaded = _held("track", None), _held("track", None, load)
+    home = np.array(bare.layout.home_qpos)
+    # A UR's joints track within a fraction of a milliradian while carrying their load.
+    assert np.abs(loaded.arm_q - home).max() < 2e-4
+    # The logged torques are the model's: the load's weight through the arm's Jacobian.
+    model, data = loaded.model, mujoco.MjData(loaded.model)
+    data.qpos[:] = loaded.data.qpos
+    mujoco.mj_forward(model, data)
+    body = model.body("effect_payload").id
+    jac = np.zeros((3, model.nv))
+    mujoco.mj_jacBodyCom(model, data, jac, None, body)
+    weight = -jac[:, loaded.arm_dof].T @ (model.body_mass[body] * model.opt.gravity)
+    assert loaded.joint_torques() - bare.joint_torques() == pytest.approx(weight, abs=0.05)
+    # The arm's own weight is in them too, as in a UR's target_moment.
+    assert np.abs(bare.joint_torques()[1:3]).min() > 10.0
+    # Servos without the model hold the arm's links but sag under what they carry.
+    plain = _held("track", "none", load)
+    assert np.abs(plain.arm_q - home).max() > 5e-4
+    assert np.abs(_held("track", "none").joint_torques()).max() < 0.05
+
+
+def test_a_grasped_object_is_not_in_the_servos_model():
+    """What the arm holds but does not carry as part of itself still loads the
+    position loop: only the arm, its tool and its payload are compensated."""
+    cell = _held("track", None)
+    first = cell.model.jnt_bodyid[cell.model.joint(cell.layout.arm_joints[0]).id]
+    carried = {b for b in range(cell.model.nbody) if cell.model.body_gravcomp[b] == 1.0}
+    assert first in carried
+    for name in cell.layout.manipulated:
+        assert cell.model.body(name).id not in carried
