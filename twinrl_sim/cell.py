@@ -25,6 +25,7 @@ from twinrl_data.lerobot_io import ACTION_NAMES
 from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, JOINT_TARGET, STATE
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import EndEffectorController
+from twinrl_sim.effects import torque_offset
 from twinrl_sim.robots.gripper import opening_from_joint
 from twinrl_sim.servo import servo_lead, tracking_setpoints
 
@@ -64,6 +65,7 @@ class Cell:
         model, layout = self.model, self.layout
         self.arm_qpos = np.array([model.joint(j).qposadr[0] for j in layout.arm_joints])
         self.arm_dof = np.array([model.joint(j).dofadr[0] for j in layout.arm_joints])
+        self._torque_offset = torque_offset(model, len(self.arm_dof))
         self.arm_act = np.array([model.actuator(a).id for a in layout.arm_actuators])
         self.servo_lead = servo_lead(model)  # None: the servos hold each target
         self._previous_target = np.array(layout.home_qpos, float)
@@ -203,8 +205,9 @@ class Cell:
         return self.data.xpos[body].copy(), self.data.xquat[body].copy()
 
     def joint_torques(self) -> np.ndarray:
-        """Torque (N m) the arm's servos apply at each joint: what a UR reports."""
-        return self.data.qfrc_actuator[self.arm_dof].copy()
+        """Torque (N m) the arm's servos apply at each joint (with servos that feed the
+        model forward, what a UR reports as ``target_moment``), plus any logged offset."""
+        return self.data.qfrc_actuator[self.arm_dof] + self._torque_offset
 
     def state_vector(self) -> np.ndarray:
         pos, quat = self.tcp_pose()

@@ -7,16 +7,18 @@ truth; the gap workflow fits them; a scene spec lists the identified ones under
 
     actuator_delay: {seconds: 0.03}
     joint_friction: {coulomb: [1.5, 1.5, 1.0, 0.3, 0.3, 0.3]}
-    payload: {mass: 0.8}
+    payload: {mass: 0.8, cog: [0.0, 0.03, 0.05]}
+    torque_offset: {torque: [0, -2.5, -1.0, 0, 0, 0]}
 
-Parameter names are part of the public contract: do not rename them.
+Parameter names are part of the public contract: do not rename them. A parameter with a
+default may be left out.
 """
 
 from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -27,7 +29,7 @@ import yaml
 
 from twinrl_sim.errors import TwinError
 from twinrl_sim.layout import MOUNT_BODY
-from twinrl_sim.servo import scale_stiffness, set_lead, spec_lead
+from twinrl_sim.servo import feeds_forward, scale_stiffness, set_lead, spec_lead
 
 if TYPE_CHECKING:
     from twinrl_sim.layout import CellLayout
@@ -42,7 +44,12 @@ class ParamDef:
     low: float = -math.inf
     high: float = math.inf
     doc: str = ""
+    default: float | tuple[float, ...] | None = None  # what the edit takes when left out;
+    # None: the parameter is required
 
+
+PAYLOAD_COG = (0.0, 0.0, 0.02)  # m, flange frame: where a payload sits unless told
+TORQUE_OFFSET_NUMERIC = "twinrl_torque_offset"  # N m per arm joint, added to logged torques
 
 ApplyFn = Callable[..., None]
 """``apply(spec, layout, **params)`` edits ``spec`` in place; ``layout`` names the cell's parts."""
@@ -125,14 +132,81 @@ def apply_servo_gain(spec: mujoco.MjSpec, layout: CellLayout, scale: list[float]
         scale_stiffness(spec.actuator(name), value)
 
 
-def apply_payload(spec: mujoco.MjSpec, layout: CellLayout, mass: float) -> None:
-    """An unmodelled load (tool, cable) of ``mass`` kg at the flange, not gravity-compensated."""
+def apply_payload(
+    spec: mujoco.MjSpec, layout: CellLayout, mass: float, cog: Sequence[float] = PAYLOAD_COG
+) -> None:
+    """A load (tool, cable) of ``mass`` kg carried at the flange, its centre of gravity
+    at ``cog`` (m, flange frame), as a pendant's payload setting holds them. Servos that
+    feed the model forward carry it as a UR does with its payload set; servos that hold
+    sag under it."""
     if mass <= 0:
         return
-    body = spec.body(layout.flange_body).add_body(name="effect_payload", pos=[0, 0, 0.02])
+    body = spec.body(layout.flange_body).add_body(name="effect_payload", pos=list(cog))
     body.explicitinertial = True
     body.mass = mass
     body.inertia = [mass * 1e-3] * 3
+    body.gravcomp = 1.0 if feeds_forward(spec) else 0.0
+
+
+def apply_link_mass(spec: mujoco.MjSpec, layout: CellLayout, scale: list[float]) -> None:
+    """The mass of the link each arm joint turns, as a multiple of the twin's (its inertia
+    scaled alike, its centre of mass kept): an error in the arm's gravity model."""
+    for joint, value in zip(
+        _arm_joints(spec, layout, scale, "link_mass.scale"), scale, strict=True
+    ):
+        body = joint.parent
+        if not body.explicitinertial:  # the mass comes from the link's geoms
+            for geom in body.geoms:
+                geom.mass, geom.density = geom.mass * value, geom.density * value
+            continue
+        body.mass = body.mass * value
+        body.inertia = np.asarray(body.inertia, float) * value
+        body.fullinertia = np.asarray(body.fullinertia, float) * value
+
+
+def apply_link_com(spec: mujoco.MjSpec, layout: CellLayout, shift: list[float]) -> None:
+    """The centre of mass of the link each arm joint turns, moved ``shift`` metres along
+    the link (towards the next joint; for the last link, away from its joint along its
+    axis): the other half of an error in the arm's gravity model."""
+    for joint, value in zip(_arm_joints(spec, layout, shift, "link_com.shift"), shift, strict=True):
+        if value == 0:
+            continue
+        body = joint.parent
+        body.ipos = np.asarray(body.ipos, float) + value * link_direction(body, joint)
+
+
+def link_direction(body: mujoco.MjsBody, joint: mujoco.MjsJoint) -> np.ndarray:
+    """Unit vector along a link, in its frame: to its first child body, or the joint's
+    axis where the child sits on it."""
+    axis = np.asarray(joint.axis, float) / np.linalg.norm(joint.axis)
+    children = body.find_all(mujoco.mjtObj.mjOBJ_BODY)
+    if children:
+        offset = np.asarray(children[0].pos, float) - np.asarray(joint.pos, float)
+        offset -= axis * (offset @ axis)  # along the axis moves no torque of this joint
+        if np.linalg.norm(offset) > 1e-6:
+            return offset / np.linalg.norm(offset)
+    return axis
+
+
+def apply_torque_offset(spec: mujoco.MjSpec, layout: CellLayout, torque: list[float]) -> None:
+    """A constant offset in each arm joint's logged torque (N m): a drive's current
+    offset, or a steady torque the controller's model adds (a cable's pull it counters).
+    It changes what the joints log, not how they move."""
+    _arm_joints(spec, layout, torque, "torque_offset.torque")
+    numeric = next((n for n in spec.numerics if n.name == TORQUE_OFFSET_NUMERIC), None)
+    if numeric is None:
+        spec.add_numeric(name=TORQUE_OFFSET_NUMERIC, data=list(torque), size=len(torque))
+    else:
+        numeric.data = list(np.asarray(numeric.data, float) + np.asarray(torque, float))
+
+
+def torque_offset(model: mujoco.MjModel, joints: int) -> np.ndarray:
+    """The ``torque_offset`` effect's offsets in ``model`` (zeros without one)."""
+    index = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, TORQUE_OFFSET_NUMERIC)
+    if index < 0:
+        return np.zeros(joints)
+    start = model.numeric_adr[index]
+    return model.numeric_data[start : start + joints].copy()
 
 
 def apply_object_mass(spec: mujoco.MjSpec, layout: CellLayout, scale: float) -> None:
@@ -308,9 +382,37 @@ EFFECTS: dict[str, EffectDef] = {
         ),
         EffectDef(
             "payload",
-            {"mass": ParamDef("float", "kg", 0.0, 20.0, "load at the flange")},
+            {
+                "mass": ParamDef("float", "kg", 0.0, 20.0, "load at the flange"),
+                "cog": ParamDef(
+                    "vec3",
+                    "m",
+                    -0.3,
+                    0.3,
+                    "its centre of gravity, flange frame",
+                    default=tuple(PAYLOAD_COG),
+                ),
+            },
             apply_payload,
             apply_payload.__doc__ or "",
+        ),
+        EffectDef(
+            "link_mass",
+            {"scale": ParamDef(_PER_JOINT, "x nominal", 0.2, 5.0, "mass of each joint's link")},
+            apply_link_mass,
+            apply_link_mass.__doc__ or "",
+        ),
+        EffectDef(
+            "link_com",
+            {"shift": ParamDef(_PER_JOINT, "m", -0.3, 0.3, "centre of mass along each link")},
+            apply_link_com,
+            apply_link_com.__doc__ or "",
+        ),
+        EffectDef(
+            "torque_offset",
+            {"torque": ParamDef(_PER_JOINT, "N m", -100.0, 100.0, "logged torque offset")},
+            apply_torque_offset,
+            apply_torque_offset.__doc__ or "",
         ),
         EffectDef(
             "object_mass",
@@ -398,7 +500,8 @@ def validate_effects(effects: Any) -> dict[str, dict[str, Any]]:
         if not isinstance(params, dict):
             problems.append(f"{name}: expected a mapping of parameters, got {params!r}")
             continue
-        missing = sorted(set(definition.params) - set(params))
+        required = {k for k, p in definition.params.items() if p.default is None}
+        missing = sorted(required - set(params))
         extra = sorted(set(params) - set(definition.params))
         if missing:
             problems.append(f"{name}: missing parameter(s) {', '.join(missing)}")

@@ -30,7 +30,10 @@ def test_the_library_has_exactly_the_documented_effects_and_parameters():
         "joint_armature": {"inertia"},
         "servo_gain": {"scale"},
         "servo_lead": {"seconds"},
-        "payload": {"mass"},
+        "payload": {"mass", "cog"},
+        "link_mass": {"scale"},
+        "link_com": {"shift"},
+        "torque_offset": {"torque"},
         "object_mass": {"scale"},
         "object_friction": {"sliding"},
         "table_height": {"offset"},
@@ -92,6 +95,30 @@ def test_payload_object_and_gripper_effects():
     np.testing.assert_allclose(
         weak.actuator("gripper").forcerange, 0.5 * NOMINAL.actuator("gripper").forcerange
     )
+
+
+def test_payload_centre_of_gravity_and_the_arms_gravity_model():
+    payload = model_with({"payload": {"mass": 2.0, "cog": [0.05, -0.02, 0.06]}})
+    body = payload.body("effect_payload")
+    assert payload.body_pos[body.id] == pytest.approx([0.05, -0.02, 0.06])
+    heavier = model_with({"link_mass": {"scale": [1.0, 1.1, 0.9, 1.0, 1.0, 1.0]}})
+    for name, scale in (("link2", 1.1), ("link3", 0.9), ("link4", 1.0)):
+        nominal = NOMINAL.body(name)
+        assert heavier.body(name).mass[0] == pytest.approx(scale * nominal.mass[0])
+        assert heavier.body(name).inertia == pytest.approx(scale * nominal.inertia)
+    moved = model_with({"link_com": {"shift": [0.0, 0.02, 0.0, 0.0, 0.0, 0.0]}})
+    shift = moved.body("link2").ipos - NOMINAL.body("link2").ipos
+    assert np.linalg.norm(shift) == pytest.approx(0.02)
+    to_elbow = NOMINAL.body("link3").pos - NOMINAL.jnt_pos[NOMINAL.joint("shoulder_lift").id]
+    assert shift @ to_elbow / np.linalg.norm(to_elbow) == pytest.approx(0.02, abs=1e-6)
+    offsets = {"torque_offset": {"torque": [0.0, -2.5, 1.0, 0.0, 0.0, 0.0]}}
+    np.testing.assert_array_equal(model_with(offsets).body_mass, NOMINAL.body_mass)  # logged only
+    cell = Cell(compile_scene(TASK.scene, extra_effects=offsets))
+    plain = Cell(compile_scene(TASK.scene))
+    for each in (cell, plain):
+        each.reset_robot()
+        each.finish_reset()
+    assert cell.joint_torques() - plain.joint_torques() == pytest.approx([0, -2.5, 1, 0, 0, 0])
 
 
 def test_table_height_raises_the_table_and_what_rests_on_it():
@@ -188,3 +215,7 @@ def test_effects_files_are_validated(tmp_path):
         load_effects(path)
     with pytest.raises(ValueError, match="expected one number per arm joint"):
         validate_effects({"joint_friction": {"coulomb": 1.0}})
+    with pytest.raises(ValueError, match="payload: missing parameter"):
+        validate_effects({"payload": {"cog": [0, 0, 0.1]}})  # the mass has no default
+    with pytest.raises(ValueError, match="payload.cog: expected 3 numbers"):
+        validate_effects({"payload": {"mass": 1.0, "cog": [0, 0.1]}})

@@ -22,6 +22,7 @@ import numpy as np
 
 from twinrl_data import schema as contract
 from twinrl_sim.build import CompiledScene, compile_scene
+from twinrl_sim.effects import torque_offset
 from twinrl_sim.errors import TwinError
 from twinrl_sim.spec import SceneSpec
 
@@ -69,11 +70,12 @@ def inverse_dynamics(episode: contract.Episode, twin: CompiledScene) -> InverseD
     qpos = [model.joint(j).qposadr[0] for j in arm]
     dof = [model.joint(j).dofadr[0] for j in arm]
     predicted = np.empty_like(q)
+    offset = torque_offset(model, len(arm))  # logged, not acted on
     for t in range(len(q)):
         mujoco.mj_resetData(model, data)
         data.qpos[qpos], data.qvel[dof], data.qacc[dof] = q[t], qd[t], qdd[t]
         mujoco.mj_inverse(model, data)
-        predicted[t] = data.qfrc_inverse[dof]
+        predicted[t] = data.qfrc_inverse[dof] + offset
     measured = episode.data[contract.EFFORT].astype(float)
     return InverseDynamics([f"{PREFIX}{j}" for j in arm], measured, predicted)
 
