@@ -24,7 +24,7 @@ import csv
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,8 @@ class ColumnMap:
     measured: [q0, q1, q2, q3, q4, q5]
     velocity: [qd0, qd1, qd2, qd3, qd4, qd5]   # optional
     effort: [tau0, tau1, tau2, tau3, tau4, tau5]  # optional, N m
+    effort_scale: [13.2, 13.2, 9.3, 4.6, 4.6, 4.6]  # optional: per joint, e.g. currents
+                                                  # (A) times torque constants (N m/A)
     tcp: [x, y, z, rx, ry, rz]                    # optional, m + axis-angle rad
     joints: [shoulder_pan, ...]                   # optional names (default UR)
     signal_column: signal                         # long layout only
@@ -73,6 +75,7 @@ class ColumnMap:
     layout: str = "wide"
     velocity: list[str] = field(default_factory=list)
     effort: list[str] = field(default_factory=list)
+    effort_scale: list[float] = field(default_factory=list)
     tcp: list[str] = field(default_factory=list)
     joints: list[str] = field(default_factory=lambda: list(DEFAULT_JOINTS))
     signal_column: str = "signal"
@@ -101,6 +104,11 @@ class ColumnMap:
             columns = getattr(self, name)
             if (columns or name in ("commanded", "measured")) and len(columns) != n:
                 problems.append(f"{name} needs {n} columns (one per joint), got {len(columns)}")
+        if self.effort_scale and len(self.effort_scale) != len(self.effort):
+            problems.append(
+                f"effort_scale needs one factor per effort column ({len(self.effort)}), "
+                f"got {len(self.effort_scale)}"
+            )
         if self.tcp and len(self.tcp) != 6:
             problems.append(f"tcp needs 6 columns (x y z rx ry rz), got {len(self.tcp)}")
         if problems:
@@ -117,6 +125,12 @@ class ColumnMap:
             value = getattr(self, name)
             if not (isinstance(value, str) or (name == "time" and value is None)):
                 problems.append(f"{name} must be a name, got {value!r}")
+        scale = self.effort_scale
+        if not isinstance(scale, list | tuple) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for v in scale
+        ):
+            problems.append(f"effort_scale must be a list of numbers, got {scale!r}")
         if self.rate is not None and (
             isinstance(self.rate, bool) or not isinstance(self.rate, int | float)
         ):
@@ -166,8 +180,60 @@ RTDE_MAP = ColumnMap(
     effort=[f"target_moment_{i}" for i in range(6)],
     tcp=[f"actual_TCP_pose_{i}" for i in range(6)],
 )
-"""UR's RTDE recorder columns. Torques are ``target_moment_*`` (N m); ``actual_current_*``
-(A) would need the drives' torque constants, which the log does not carry."""
+"""UR's RTDE recorder columns, torques from ``target_moment_*`` (see :func:`rtde_map`)."""
+
+TORQUE_SOURCES = ("auto", "target_moment", "current_as_torque", "current", "none")
+
+
+def rtde_map(
+    path: str | Path, torque: str = "auto", torque_constants: list[float] | None = None
+) -> tuple[ColumnMap, str]:
+    """The RTDE column map for the log at ``path``, and a sentence naming its torques.
+
+    A UR logs its joint torques in up to three ways: ``target_moment`` (N m, the torque
+    its joint controllers command: the arm's model with the payload set on the
+    controller, what the twin's feed-forward servos log), ``actual_current_as_torque``
+    (N m, the measured motor currents converted by the controller; PolyScope 5.23 and
+    later) and ``actual_current`` (A, which need the drives' torque constants). ``auto``
+    takes the first the log has; without any, the episodes carry no torques.
+    """
+    if torque not in TORQUE_SOURCES:
+        raise SettingError("torque", f"must be one of {', '.join(TORQUE_SOURCES)}, got '{torque}'")
+    header = _header(Path(path))
+    columns = {
+        "target_moment": [f"target_moment_{i}" for i in range(6)],
+        "current_as_torque": [f"actual_current_as_torque_{i}" for i in range(6)],
+        "current": [f"actual_current_{i}" for i in range(6)],
+    }
+    if torque_constants is not None and len(torque_constants) != 6:
+        raise SettingError(
+            "torque_constants",
+            f"needs 6 numbers (N m/A, one per joint), got {len(torque_constants)}",
+        )
+    if torque == "auto":
+        present = [k for k in ("target_moment", "current_as_torque") if set(columns[k]) <= header]
+        if not present and torque_constants is not None and set(columns["current"]) <= header:
+            present = ["current"]
+        torque = present[0] if present else "none"
+    if torque == "current" and torque_constants is None:
+        raise SettingError(
+            "torque", "current needs the drives' torque constants (--torque-constants, N m/A)"
+        )
+    if torque == "none":
+        return replace(RTDE_MAP, effort=[]), (
+            "no joint torques (the log has neither target_moment nor actual_current_as_torque)"
+        )
+    missing = sorted(set(columns[torque]) - header)
+    if missing:
+        raise DataError(f"{path}: --torque {torque} needs column(s) {missing}; the log lacks them")
+    described = {
+        "target_moment": "target_moment (N m: the torques the controller commands)",
+        "current_as_torque": "actual_current_as_torque (N m: the measured currents)",
+        "current": "actual_current (A) times the given torque constants",
+    }[torque]
+    scale = list(torque_constants) if torque == "current" else []
+    cmap = replace(RTDE_MAP, effort=columns[torque], effort_scale=scale)
+    return cmap, f"joint torques from {described}"
 
 
 def _delimiter(path: Path) -> str:
@@ -179,6 +245,14 @@ def _delimiter(path: Path) -> str:
         return csv.Sniffer().sniff(header, delimiters=",; \t").delimiter
     except csv.Error:
         return ","
+
+
+def _header(path: Path) -> set[str]:
+    """The column names of a CSV file."""
+    if not path.is_file():
+        raise DataError(f"CSV file {path} does not exist")
+    with path.open(newline="") as f:
+        return {c.strip() for c in next(csv.reader(f, delimiter=_delimiter(path)), [])}
 
 
 def read_table(path: str | Path) -> pa.Table:
@@ -371,7 +445,8 @@ def import_csv(
         contract.SUCCESS: np.zeros(n, bool),
     }
     if cmap.effort:
-        data[contract.EFFORT] = stack(cmap.effort).astype(np.float32)
+        effort = stack(cmap.effort) * (np.asarray(cmap.effort_scale) if cmap.effort_scale else 1.0)
+        data[contract.EFFORT] = effort.astype(np.float32)
         names[contract.EFFORT] = contract.effort_names(cmap.joints)
     meta = contract.EpisodeMeta(
         task=task,

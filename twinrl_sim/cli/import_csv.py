@@ -46,6 +46,21 @@ def import_csv_command(
         ),
     ] = None,
     task: Annotated[str, typer.Option(help="Task label of the episodes.")] = "arm",
+    torque: Annotated[
+        str,
+        typer.Option(
+            help="rtde: which joint torques to read: auto (target_moment, else "
+            "actual_current_as_torque, else actual_current with --torque-constants), "
+            "target_moment, current_as_torque, current or none."
+        ),
+    ] = "auto",
+    torque_constants: Annotated[
+        str | None,
+        typer.Option(
+            help="rtde: the drives' torque constants, 6 numbers in N m/A, to read "
+            "actual_current as torques."
+        ),
+    ] = None,
 ) -> None:
     """Import joint logs recorded outside twinrl as episodes (source ``imported``).
 
@@ -53,7 +68,7 @@ def import_csv_command(
     (rad|deg), ``layout`` (wide|long), ``commanded``/``measured`` (one column per joint),
     optional ``velocity``, ``effort`` (N m), ``tcp`` (x y z rx ry rz), ``joints``.
     """
-    from twinrl_data.importers import RTDE_MAP, ColumnMap, import_csv
+    from twinrl_data.importers import ColumnMap, import_csv, rtde_map
     from twinrl_data.session import Session
     from twinrl_sim.build import compile_scene
     from twinrl_sim.kinematics import ControllerTcp, TcpKinematics
@@ -62,7 +77,16 @@ def import_csv_command(
         raise UsageError(f"--format must be rtde or generic, got '{format}'")
     if format == "generic" and column_map is None:
         raise UsageError("--format generic needs --map COLUMNS.yaml (see --help for its keys)")
-    cmap = ColumnMap.load(column_map) if column_map else RTDE_MAP
+    constants = (
+        None
+        if torque_constants is None
+        else list(parse_numbers(torque_constants, "--torque-constants"))
+    )
+    if format == "generic" and (torque != "auto" or constants is not None):
+        raise UsageError(
+            "--torque and --torque-constants apply to --format rtde; a column "
+            "map names its torque columns (effort, effort_scale)"
+        )
     scene = compile_scene(twin_scene(twin))
     kinematics = TcpKinematics(scene)
     tcp_frame = None
@@ -73,10 +97,12 @@ def import_csv_command(
         tcp_frame = ControllerTcp(scene, list(offset))
     if out.exists() and any(out.iterdir()):
         raise UsageError(f"{out} exists and is not empty; choose another --out")
+    generic = ColumnMap.load(column_map) if column_map else None
+    maps = {f: (generic, None) if generic else rtde_map(f, torque, constants) for f in files}
     episodes = [
         import_csv(
             f,
-            cmap,
+            maps[f][0],
             fps=fps,
             task=task,
             world=world,
@@ -84,12 +110,13 @@ def import_csv_command(
             tcp_frame=tcp_frame,
         )
         for f in files
-    ]  # every file is read before anything is written
+    ]
     session = Session.create(out)
-    for episode in episodes:
+    for f, episode in zip(files, episodes, strict=True):
         session.add(episode)
+        torques = f"; {maps[f][1]}" if maps[f][1] else ""
         console.print(
             f"{episode.meta.policy}: {len(episode)} steps at {episode.meta.fps:g} Hz, "
-            f"fields {', '.join(sorted(episode.data))}"
+            f"fields {', '.join(sorted(episode.data))}{torques}"
         )
     console.print(f"{out}: {len(episodes)} episodes imported")
