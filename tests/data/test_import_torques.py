@@ -66,3 +66,25 @@ def test_raw_currents_need_the_torque_constants(tmp_path):
         rtde_map(path, "target_moment")
     with pytest.raises(SettingError, match="must be one of"):
         rtde_map(path, "amps")
+
+
+def test_the_command_line_says_which_torques_and_refuses_what_the_log_lacks(tmp_path):
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+
+    current = np.random.default_rng(2).normal(size=(40, 6))
+    path = _log(tmp_path, {"actual_current": current})
+    out = tmp_path / "session"
+    refused = CliRunner().invoke(
+        app, ["data", "import-csv", str(path), "--out", str(out), "--torque", "current"]
+    )
+    assert refused.exit_code != 0
+    assert "torque constants" in str(refused.exception) + refused.output
+    assert not out.exists()
+    constants = "13 13 9 4.5 4.5 4.5"
+    done = CliRunner().invoke(
+        app, ["data", "import-csv", str(path), "--out", str(out), "--torque-constants", constants]
+    )
+    assert done.exit_code == 0, done.output
+    assert "joint torques from actual_current (A) times the given torque constants" in done.output

@@ -40,13 +40,14 @@ from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import SettingError
-from twinrl_sim.build import compile_scene
+from twinrl_sim.build import build_mjspec, compile_scene
 from twinrl_sim.effects import EFFECTS
 from twinrl_sim.errors import TwinError
 from twinrl_sim.gap.appearance import AppearanceFit
 from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_frames
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.gap.command_lag import command_lag
+from twinrl_sim.gap.gravity import GRAVITY_EFFECTS, separable_parts
 from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, likelihood_term
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
 from twinrl_sim.gap.windows import Windows, cut_windows
@@ -216,9 +217,11 @@ def split_windows(
 
 
 def candidate_pool(
-    windows: Windows, allowed: Sequence[str] | None
+    windows: Windows, allowed: Sequence[str] | None, scene: SceneSpec | None = None
 ) -> tuple[list[str], dict[str, str]]:
-    """The candidates to fit on these windows, and why others are left out."""
+    """The candidates to fit on these windows, and why others (or, of the arm's gravity
+    model, some of their joints: :mod:`twinrl_sim.gap.gravity`, given ``scene``) are left
+    out."""
     names = list(CANDIDATES)
     if allowed:
         unknown = [a for a in allowed if a not in CANDIDATES]
@@ -239,8 +242,19 @@ def candidate_pool(
             skipped[name] = "no object poses in the episodes"
         elif needs == "grasp" and not windows.grasping:
             skipped[name] = "the gripper never closes in the episodes"
+        elif needs == "torque" and "tau" not in windows.families:
+            skipped[name] = "no joint torques in the episodes"
         else:
             pool.append(name)
+    if scene is not None and any(name in GRAVITY_EFFECTS for name in pool):
+        spec, layout = build_mjspec(scene)
+        gravity = separable_parts(spec, spec.compile(), layout)
+        for name in [n for n in pool if n in GRAVITY_EFFECTS]:
+            if not gravity.components(name):
+                pool.remove(name)
+                skipped[name] = "no joint's torques can tell it from the payload or link masses"
+            else:
+                skipped.update({k: v for k, v in gravity.lumped.items() if k.startswith(name)})
     return pool, skipped
 
 
@@ -279,7 +293,7 @@ def diagnose(
     train_episodes = [episodes[i] for i in split.train_episodes]
     held_episodes = [episodes[i] for i in split.held_episodes]
     fit_on = _spread(train, fit_windows, seed)
-    pool, skipped = candidate_pool(windows, allowed)
+    pool, skipped = candidate_pool(windows, allowed, scene)
     logged = logged_cameras(episodes, layout)
     wanted = {e: allowed is None or e in allowed for e in IMAGE_EFFECTS}
     for effect in IMAGE_EFFECTS:

@@ -39,7 +39,8 @@ from mujoco.rollout import Rollout
 from twinrl_data.errors import SettingError
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_effects
-from twinrl_sim.gap.candidates import CANDIDATES, Candidate
+from twinrl_sim.gap.candidates import CANDIDATES, Candidate, Fitted
+from twinrl_sim.gap.gravity import GRAVITY_EFFECTS, separable_parts
 from twinrl_sim.gap.windows import DELAY_HISTORY, Windows, measured_starts, replay_signals
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.windowed import WindowedReplay
@@ -199,6 +200,11 @@ class WindowReplay:
         self.spec, self.layout = build_mjspec(scene)
         self.scale = np.array([getattr(noise, f) for f in windows.families])
         self.ended_worse = False  # the last fit ended with a worse likelihood than it started
+        self.gravity = (
+            separable_parts(self.spec, self.spec.compile(), self.layout)
+            if any(c.effect in GRAVITY_EFFECTS for c in self.free)
+            else None
+        )
         self.params = sysid.ParameterDict()
         for candidate in self.free:
             self.params.add(self._parameter(candidate, (start or {}).get(candidate.effect)))
@@ -220,37 +226,66 @@ class WindowReplay:
 
     # ------------------------------------------------------------------ model
     def _parameter(self, candidate: Candidate, start: dict | None) -> sysid.Parameter:
-        """The effect's parameter in optimiser units, starting at ``start`` (its
-        effects-file form) or at the candidate's default start."""
-        low, high = candidate.bounds()
-        size = self._size(candidate)
-        if candidate.effect == "actuator_delay":
-            high = min(high, DELAY_HISTORY)
-        if start is not None:
-            value = np.asarray(start[candidate.param], float)
-        else:
-            value = np.array(self._resolve(candidate.start))
+        """The effect's parameters in optimiser units, one vector, starting at ``start``
+        (its effects-file form) or at the candidate's default start."""
+        nominal, low, high = [], [], []
+        for field in candidate.fitted:
+            size = self._size(field)
+            lo, hi = field.bounds()
+            if field.effect == "actuator_delay":
+                hi = min(hi, DELAY_HISTORY)
+            given = (start or {}).get(field.param)
+            value = np.asarray(self._resolve(field.start) if given is None else given, float)
+            if given is not None and self._components(field) is not None:
+                value = value[list(self._components(field))]
+            nominal.append(np.broadcast_to(value / field.scale, (size,)))
+            low.append(np.full(size, lo / field.scale))
+            high.append(np.full(size, hi / field.scale))
         return sysid.Parameter(
             candidate.effect,
-            nominal=np.broadcast_to(value / candidate.scale, (size,)).copy(),
-            min_value=np.full(size, low / candidate.scale),
-            max_value=np.full(size, high / candidate.scale),
+            nominal=np.concatenate(nominal),
+            min_value=np.concatenate(low),
+            max_value=np.concatenate(high),
             modifier=lambda spec, p, c=candidate: self._apply(spec, c, p.value),
         )
 
-    def _size(self, candidate: Candidate) -> int:
-        if candidate.per_joint:
-            return len(self.layout.arm_joints)
-        return 3 if candidate.vector else 1
+    def _components(self, field: Fitted) -> tuple[int, ...] | None:
+        """The per-joint components of ``field`` that are fitted (None: all of them):
+        of the gravity model, those the joint torques can tell apart."""
+        if self.gravity is None or not field.per_joint:
+            return None
+        return self.gravity.components(field.effect)
+
+    def _size(self, field: Fitted) -> int:
+        if field.per_joint:
+            components = self._components(field)
+            return len(self.layout.arm_joints) if components is None else len(components)
+        return 3 if field.vector else 1
+
+    def _expand(self, field: Fitted, values: np.ndarray, rest: float) -> np.ndarray:
+        """A field's fitted components as its full per-joint vector, ``rest`` elsewhere."""
+        components = self._components(field)
+        if components is None:
+            return values
+        full = np.full(len(self.layout.arm_joints), rest)
+        full[list(components)] = values
+        return full
+
+    def _parts(self, candidate: Candidate, offset: int = 0):
+        """(field, slice of the candidate's vector, from ``offset``) of each parameter."""
+        for field in candidate.fitted:
+            yield field, slice(offset, offset + self._size(field))
+            offset += self._size(field)
 
     def _slices(self):
         """(candidate, slice of the parameter vector) of every free effect, in order."""
         offset = 0
         for candidate in self.free:
-            yield candidate, slice(offset, offset + self._size(candidate))
-            offset += self._size(candidate)
+            size = sum(self._size(f) for f in candidate.fitted)
+            yield candidate, slice(offset, offset + size)
+            offset += size
 
-    def _resolve(self, value: float | None) -> float:
+    def _resolve(self, value: float | tuple[float, ...] | None) -> float | tuple[float, ...]:
         """A candidate's start or null value; ``None``: the object's nominal friction
         (the only candidate whose neutral value is the scene's own)."""
         return self._nominal_friction() if value is None else value
@@ -264,26 +299,37 @@ class WindowReplay:
         ]
         return float(geoms[0].friction[0]) if geoms else 1.0
 
-    def physical(self, candidate: Candidate, value: np.ndarray) -> float | list[float]:
-        values = np.clip(np.asarray(value, float) * candidate.scale, *candidate.bounds())
-        return [float(v) for v in values] if candidate.vector else float(values[0])
+    def physical(self, candidate: Candidate, value: np.ndarray) -> dict[str, float | list[float]]:
+        """The candidate's parameters at ``value`` (optimiser units), effects-file form."""
+        params = {}
+        for field, part in self._parts(candidate):
+            values = np.clip(np.asarray(value[part], float) * field.scale, *field.bounds())
+            values = self._expand(field, values, float(np.mean(self._resolve(field.null))))
+            params[field.param] = [float(v) for v in values] if field.vector else float(values[0])
+        return params
 
-    def interval(self, candidate: Candidate, half_width: np.ndarray) -> float | list[float]:
+    def interval(
+        self, candidate: Candidate, half_width: np.ndarray
+    ) -> dict[str, float | list[float]]:
         """Interval half-widths in the effect's units (``inf``: not identifiable)."""
-        values = np.asarray(half_width, float) * candidate.scale
-        return [float(v) for v in values] if candidate.vector else float(values[0])
+        params = {}
+        for field, part in self._parts(candidate):
+            values = self._expand(field, np.asarray(half_width[part], float) * field.scale, np.inf)
+            params[field.param] = [float(v) for v in values] if field.vector else float(values[0])
+        return params
 
     def _apply(self, spec: mujoco.MjSpec, candidate: Candidate, value: np.ndarray) -> None:
         physical = self.physical(candidate, value)
         if candidate.effect == "actuator_delay":
+            seconds = float(physical["seconds"])
             # A fixed-length history buffer and linear interpolation keep the state
             # size constant and the delay differentiable while it is being fitted.
             nsample = math.ceil(DELAY_HISTORY / spec.option.timestep) + 2
             for name in self.layout.arm_actuators:
                 act = spec.actuator(name)
-                act.delay, act.nsample, act.interp = float(physical), nsample, 1
+                act.delay, act.nsample, act.interp = seconds, nsample, 1
             return
-        apply_effects(spec, self.layout, {candidate.effect: {candidate.param: physical}})
+        apply_effects(spec, self.layout, {candidate.effect: physical})
 
     def edited_spec(self, params: sysid.ParameterDict) -> mujoco.MjSpec:
         """A fresh copy of the twin's spec with the fixed effects and the parameters'
@@ -385,18 +431,17 @@ class WindowReplay:
         """The free parameters' "no effect" values, in optimiser units."""
         null = np.empty(self.params.size)
         for candidate, part in self._slices():
-            null[part] = self._resolve(candidate.null) / candidate.scale
+            for field, own in self._parts(candidate, part.start):
+                null[own] = np.asarray(self._resolve(field.null), float) / field.scale
         return null
 
     def effects_at(self, x: np.ndarray) -> dict[str, dict]:
         """The fixed effects plus the free ones at ``x``, in effects-file form."""
         effects = dict(self.fixed)
         for candidate, part in self._slices():
-            effects[candidate.effect] = {candidate.param: self.physical(candidate, x[part])}
+            effects[candidate.effect] = self.physical(candidate, x[part])
         return effects
 
     def intervals_at(self, half_width: np.ndarray) -> dict[str, dict]:
         """Interval half-widths of the free effects, in effects-file form."""
-        return {
-            c.effect: {c.param: self.interval(c, half_width[part])} for c, part in self._slices()
-        }
+        return {c.effect: self.interval(c, half_width[part]) for c, part in self._slices()}

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from twinrl_data import schema as contract
+from twinrl_sim.effects import torque_offset
 from twinrl_sim.errors import TwinError
 from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
@@ -169,8 +170,10 @@ def cut_windows(
             start_poses = np.zeros((len(state), 0, 7))
         measured = np.hstack(signals)
         targets = episode.data[contract.JOINT_TARGET].astype(float)
-        # Before the first row the robot held where it stood.
-        padded = np.vstack([np.repeat(q[:1], history_steps, axis=0), targets])
+        # Before the first row the servos held the first target. (Not the measured
+        # position: its noise over a 2 ms period is a spurious speed, and a tracking
+        # servo's lead turns 0.2 mrad of it into tens of N m in a 500 Hz log's first rows.)
+        padded = np.vstack([np.repeat(targets[:1], history_steps, axis=0), targets])
         starts = list(range(0, len(state) - window, window))
         if cover_tail and len(state) > window and (len(state) - 1) % window:
             starts.append(len(state) - 1 - window)
@@ -337,23 +340,46 @@ def replay_signals(
     w = windows
     ticks, held = engine.rollout(models, starts, w.targets, w.gripper)
     signals = np.empty((len(models), len(w), w.rows, len(w.names)))
+    # The compared signals need no contact forces: skipping collision and the constraint
+    # solver makes reading them back several times cheaper.
+    skipped = mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT
     for m, model in enumerate(models):
-        data = mujoco.MjData(model)
-        joints = [model.joint(j) for j in engine.layout.arm_joints]
-        arm_qpos, arm_dof = [j.qposadr[0] for j in joints], [j.dofadr[0] for j in joints]
-        tcp = model.site(engine.layout.tcp_site).id
-        tau = "tau" in w.families
-        bodies = [
-            model.body(n.removesuffix(".x")).id
-            for n, family in zip(w.names, w.families, strict=True)
-            if family == "object" and n.endswith(".x")
-        ]
-        for i in range(len(w)):
-            for r in range(w.rows):
-                engine.restore(model, data, ticks[m, i, r], held[m, i, r])
-                row = [data.qpos[arm_qpos], data.qvel[arm_dof], data.site_xpos[tcp]]
-                if tau:
-                    row.append(data.qfrc_actuator[arm_dof])
-                row.extend(data.xpos[b] for b in bodies)
-                signals[m, i, r] = np.concatenate(row)
+        flags = model.opt.disableflags
+        model.opt.disableflags = flags | skipped
+        try:
+            signals[m] = _read_signals(engine, model, w, ticks[m], held[m])
+        finally:
+            model.opt.disableflags = flags
     return signals, ticks
+
+
+def _read_signals(
+    engine: WindowedReplay,
+    model: mujoco.MjModel,
+    windows: Windows,
+    ticks: np.ndarray,
+    held: np.ndarray,
+) -> np.ndarray:
+    """The compared signals of one model at every compared row, (n, W, n_signals)."""
+    w = windows
+    data = mujoco.MjData(model)
+    joints = [model.joint(j) for j in engine.layout.arm_joints]
+    arm_qpos, arm_dof = [j.qposadr[0] for j in joints], [j.dofadr[0] for j in joints]
+    tcp = model.site(engine.layout.tcp_site).id
+    tau = "tau" in w.families
+    offset = torque_offset(model, len(arm_dof))
+    bodies = [
+        model.body(n.removesuffix(".x")).id
+        for n, family in zip(w.names, w.families, strict=True)
+        if family == "object" and n.endswith(".x")
+    ]
+    signals = np.empty((len(w), w.rows, len(w.names)))
+    for i in range(len(w)):
+        for r in range(w.rows):
+            engine.restore(model, data, ticks[i, r], held[i, r])
+            row = [data.qpos[arm_qpos], data.qvel[arm_dof], data.site_xpos[tcp]]
+            if tau:
+                row.append(data.qfrc_actuator[arm_dof] + offset)
+            row.extend(data.xpos[b] for b in bodies)
+            signals[i, r] = np.concatenate(row)
+    return signals
