@@ -203,3 +203,21 @@ def test_no_damaged_number_compiles_into_a_scene_that_diverges(task):
         cell.close()
         accepted += 1
     assert refused + accepted == 200 and refused > 50 and accepted > 10, (refused, accepted)
+
+
+def test_a_real_cells_file_names_its_twin_as_its_arm_runs_it(tmp_path):
+    """`--twin` may be a real cell's file: its twin (built-in or a scene file beside it),
+    with servos that track and feed the arm's model forward, as a UR's controller does."""
+    from twinrl_sim.tasks import twin_scene
+
+    cell = {"name": "lab", "twin": "pick_place", "arm": {"model": "ur5e", "host": "10.0.0.2"}}
+    (tmp_path / "cell.yaml").write_text(json.dumps(cell))
+    scene = twin_scene(str(tmp_path / "cell.yaml"))
+    assert scene.name == make_task("pick_place").scene.name
+    assert scene.physics.servo == "track" and scene.physics.feeds_forward
+    save_spec(make_task("insert_hexagon").scene, tmp_path / "mine.yaml")
+    (tmp_path / "cell.yaml").write_text(json.dumps({**cell, "twin": "mine.yaml"}))
+    assert twin_scene(str(tmp_path / "cell.yaml")).name == make_task("insert_hexagon").scene.name
+    (tmp_path / "cell.yaml").write_text(json.dumps({**cell, "twin": "missing.yaml"}))
+    with pytest.raises(SpecError, match="missing.yaml does not exist"):
+        twin_scene(str(tmp_path / "cell.yaml"))

@@ -12,7 +12,7 @@ import typer
 from twinrl_data.errors import UsageError
 from twinrl_data.schema import ENVIRONMENT_STATE, STATE, Episode
 from twinrl_sim.cli.common import console
-from twinrl_sim.tasks import TASKS, make_task
+from twinrl_sim.tasks import TASKS, make_task, twin_scene
 
 if TYPE_CHECKING:
     from twinrl_sim.cell_view import TwinCell
@@ -71,8 +71,9 @@ def view(
     twin: Annotated[
         Path | None,
         typer.Option(
-            help="Scene file of the cell's twin, drawn in 3D and, with --replay, replayed "
-            "in (a cell of one's own, a fitted twin; default: the task's built-in twin)."
+            help="Scene file of the cell's twin, or a real cell's file (its twin, as its arm "
+            "runs it), drawn in 3D and, with --replay, replayed in (a cell of one's own, a "
+            "fitted twin; default: the task's built-in twin)."
         ),
     ] = None,
     web: Annotated[
@@ -92,7 +93,6 @@ def view(
     """Inspect episodes in Rerun; two or more are overlaid on one timeline."""
     from twinrl_data.view import save_rrd, spawn_viewer
     from twinrl_sim.replay import replayed_episode
-    from twinrl_sim.spec import load_spec
 
     if save is not None and save.suffix != ".rrd":
         raise UsageError(f"--save must end in .rrd, got {save}")
@@ -101,8 +101,8 @@ def view(
     if web and save is not None:
         raise UsageError("--web serves the episodes and --save writes them; choose one")
     if twin is not None and not twin.is_file():
-        raise UsageError(f"--twin {twin} does not exist; give a scene file (.yaml)")
-    scene = None if twin is None else load_spec(twin)
+        raise UsageError(f"--twin {twin} does not exist; give a scene or cell file (.yaml)")
+    scene = None if twin is None else twin_scene(str(twin))
     episodes = [load_target(t, episode) for t in targets]
     if replay:
         episodes.append(replayed_episode(episodes[0], scene))

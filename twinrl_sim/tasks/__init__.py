@@ -7,7 +7,7 @@ from pathlib import Path
 
 from twinrl_data.errors import SettingError
 from twinrl_sim.errors import TwinError
-from twinrl_sim.spec import SceneSpec, SpecError, load_spec
+from twinrl_sim.spec import SceneSpec, SpecError, load_spec, read_yaml
 from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
 from twinrl_sim.tasks.base import Progress as Progress
 from twinrl_sim.tasks.base import Region as Region
@@ -38,11 +38,20 @@ def make_task(name: str, scene: SceneSpec | None = None) -> Task:
 
 
 def twin_scene(twin: str) -> SceneSpec:
-    """The scene spec named by ``twin``: a built-in task's cell (``pick_place``) or a
-    scene spec YAML file."""
+    """The scene spec named by ``twin``: a built-in task's cell (``pick_place``), a scene
+    spec YAML file, or a real cell's file (:mod:`twinrl_robot.cell_file`: ``arm`` and
+    ``twin`` keys), whose twin is taken as its arm runs it: servos that track their
+    targets and feed the arm's model forward, as a UR's controller does."""
     if twin in TASKS:
         return make_task(twin).scene
-    if Path(twin).suffix in (".yaml", ".yml") or Path(twin).exists():
+    path = Path(twin)
+    if path.suffix in (".yaml", ".yml") or path.exists():
+        data = read_yaml(path, "scene spec", SpecError, "; give a YAML file or a task name")
+        if isinstance(data, dict) and {"arm", "twin"} <= set(data):
+            named = str(data["twin"])
+            scene = twin_scene(named if named in TASKS else str(path.parent / named))
+            physics = scene.physics.model_copy(update={"servo": "track"})
+            return scene.model_copy(update={"physics": physics})
         return load_spec(twin)
     close = difflib.get_close_matches(twin, list(TASKS), n=1)
     hint = f" (did you mean '{close[0]}'?)" if close else ""
