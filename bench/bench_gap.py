@@ -51,6 +51,11 @@ def _jacobian_ratio(scene, episodes) -> tuple[float, float]:
     return batched, one_by_one
 
 
+def _shown(value: float | list[float], spec: str) -> str:
+    """A number, or a vector as ``a, b, c``."""
+    return ", ".join(format(float(v), spec) for v in np.atleast_1d(value))
+
+
 def main(
     episodes: Annotated[int, typer.Option(help="Excitation episodes recorded.")] = 20,
     duration: Annotated[float, typer.Option(help="Seconds per episode.")] = 10.0,
@@ -99,11 +104,11 @@ def main(
     print("| effect | parameter | hidden | named | 95 % (±) |")
     print("|---|---|---|---|---|")
     for effect, params in hidden.items():
-        ((param, truth),) = params.items()
         named = next((s for s in diagnosis.selected if s["effect"] == effect), None)
-        fitted = f"{named['params'][param]:.4g}" if named else "not named"
-        ci = f"{named['ci'][param]:.2g}" if named else ""
-        print(f"| {effect} | {param} | {truth:g} | {fitted} | {ci} |")
+        for param, truth in params.items():
+            fitted = _shown(named["params"][param], ".4g") if named else "not named"
+            ci = _shown(named["ci"][param], ".2g") if named else ""
+            print(f"| {effect} | {param} | {_shown(truth, 'g')} | {fitted} | {ci} |")
     extra = [s["effect"] for s in diagnosis.selected if s["effect"] not in hidden]
     print(f"named but not hidden: {extra or 'none'}")
     print(
