@@ -1,8 +1,11 @@
 """ur_rtde's own client against the emulator, call by call, as on a UR controller
 (issue 51): servoJ streams report smooth joint speeds, a watchdog kick never swallows a
 servo target, the joints keep within a UR5e's speed and acceleration limits, a target
-beyond the joint range is a protective stop seen through RTDE and the dashboard, and a
-stream that goes silent is stopped under control soon after the watchdog trips."""
+beyond the joint range is a protective stop seen through RTDE and the dashboard, a
+stream that goes silent is stopped under control soon after the watchdog trips; moveL
+keeps the tool on its line and within its speed, stopL and speedStop after speedL brake
+the tool in m/s^2, a path reaches its waypoints in order, teach mode holds the arm and
+blocks motion until it ends, and a longer servoJ lookahead lags more."""
 
 from __future__ import annotations
 
@@ -297,3 +300,233 @@ def test_a_silent_stream_is_at_rest_within_100_ms_of_the_watchdog_tripping(ur) -
     assert rested - tripped <= 0.1, f"at rest {(rested - tripped) * 1000:.0f} ms after the trip"
     deceleration = np.abs(np.diff(s.qd[:, WRIST]) / np.diff(s.timestamp))
     assert deceleration.max() < ACCELERATION_LIMIT * 1.5
+
+
+# ---------------------------------------------------------------- tool space (movel, ...)
+@dataclass
+class ToolSamples:
+    """What the receiver read of the tool, once per controller package."""
+
+    timestamp: np.ndarray  # s
+    pose: np.ndarray  # (n, 6) m, axis-angle rad
+
+    @property
+    def speed(self) -> np.ndarray:
+        """The TCP's linear speed (m/s) between consecutive packages."""
+        steps = np.linalg.norm(np.diff(self.pose[:, :3], axis=0), axis=1)
+        return steps / np.diff(self.timestamp)
+
+
+def record_tool(receive, seconds: float, until: Callable[[], bool] | None = None) -> ToolSamples:
+    """The TCP pose of every controller package for ``seconds`` (or until ``until``)."""
+    rows: list = []
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and not (until is not None and until()):
+        stamp = receive.getTimestamp()
+        pose = receive.getActualTCPPose()
+        if receive.getTimestamp() == stamp and (not rows or stamp > rows[-1][0]):
+            rows.append((stamp, pose))
+        time.sleep(0.001)
+    stamps, poses = zip(*rows, strict=True)
+    return ToolSamples(np.array(stamps), np.array(poses))
+
+
+def off_line(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Each point's distance (m) from the straight line through ``start`` and ``end``."""
+    direction = (end - start) / np.linalg.norm(end - start)
+    offsets = points - start
+    return np.linalg.norm(offsets - np.outer(offsets @ direction, direction), axis=1)
+
+
+def rest_time(samples: ToolSamples, after: float, below: float = 1e-3) -> float:
+    """When (controller time) the tool's speed fell below ``below`` m/s for good."""
+    moving = np.flatnonzero(samples.speed >= below)
+    return float(samples.timestamp[moving[-1] + 1]) if moving.size else after
+
+
+def test_movel_runs_the_tool_along_a_straight_line_within_its_speed(ur) -> None:
+    """moveL(pose, v, a): the TCP keeps to the straight line within a millimetre (a UR
+    plans it in Cartesian space, not joint space), its speed never passes v by more than
+    5 %, the move takes the trapezoid's time, and it ends on the pose, orientation too."""
+    control, receive = ur
+    start = np.array(receive.getActualTCPPose())
+    goal = start + np.array([0.08, 0.05, -0.06, 0.0, 0.0, 0.0])
+    # Turning the tool by 0.1 rad about the base's z on the way: less than the 0.11 m of
+    # line, which sets the move's pace (v bounds the turning in rad/s too).
+    goal[3:] = turned(start[3:], [0.0, 0.0, 0.1])
+    speed, acceleration = 0.15, 0.6
+    assert control.moveL(goal.tolist(), speed, acceleration, True)
+    s = record_tool(receive, 3.0, until=lambda: control.getAsyncOperationProgress() < 0)
+    assert off_line(s.pose[:, :3], start[:3], goal[:3]).max() < 1e-3
+    assert s.speed.max() < speed * 1.05
+    assert s.speed.max() > speed * 0.95, "it should cruise at v"
+    length = np.linalg.norm(goal[:3] - start[:3])
+    took = rest_time(s, s.timestamp[0]) - s.timestamp[0]
+    assert took == pytest.approx(length / speed + speed / acceleration, abs=0.08)
+    final = np.array(receive.getActualTCPPose())
+    assert final[:3] == pytest.approx(goal[:3], abs=1e-3)
+    assert angle_between(final[3:], goal[3:]) < 2e-3
+    # The synchronous call returns once the tool is there.
+    assert control.moveL(start.tolist(), 0.25, 1.0)
+    assert np.array(receive.getActualTCPPose())[:3] == pytest.approx(start[:3], abs=1e-3)
+
+
+def test_stopl_brings_the_tool_to_rest_on_its_line_in_the_time_v_over_a_predicts(ur) -> None:
+    """An asynchronous moveL stopped midway with stopL(a): the tool decelerates at a
+    (m/s^2), resting v/a after the stop (joint decelerations would take seconds at this
+    a), short of the goal and on the line."""
+    control, receive = ur
+    start = np.array(receive.getActualTCPPose())
+    goal = start + np.array([0.0, 0.2, -0.1, 0.0, 0.0, 0.0])
+    speed, deceleration = 0.2, 0.8
+    assert control.moveL(goal.tolist(), speed, 1.5, True)
+    time.sleep(0.5)  # cruising by now
+    stopped_at = receive.getTimestamp()
+    control.stopL(deceleration, True)
+    s = record_tool(receive, 0.8)
+    rested = rest_time(s, stopped_at) - stopped_at
+    assert rested == pytest.approx(speed / deceleration, abs=0.05)
+    assert wait_for(lambda: control.getAsyncOperationProgress() < 0, 0.2)
+    final = np.array(receive.getActualTCPPose())
+    assert off_line(final[None, :3], start[:3], goal[:3])[0] < 1e-3
+    assert np.linalg.norm(goal[:3] - final[:3]) > 0.03, "it should stop short of the goal"
+    assert control.moveL(start.tolist(), 0.25, 1.0)
+
+
+def test_speedl_runs_the_tool_at_its_speed_and_speed_stop_brakes_it_in_tool_space(ur) -> None:
+    """speedL(xd, a) streamed at 125 Hz: the TCP runs at xd, on its direction; speedStop(a)
+    then brings it to rest after v/a and v^2/2a of travel (a in m/s^2, not rad/s^2)."""
+    control, receive = ur
+    control.setWatchdog(2.0)  # the blocking stop sends nothing while the tool brakes
+    start = np.array(receive.getActualTCPPose())
+    xd = np.array([0.06, -0.08, 0.0, 0.0, 0.0, 0.0])  # 0.1 m/s
+    rows: list = []
+    for _ in range(round(0.7 * RATE)):
+        began = control.initPeriod()
+        assert control.speedL(xd.tolist(), 0.5, 1.0 / RATE)
+        rows.append((receive.getTimestamp(), receive.getActualTCPPose()))
+        control.waitPeriod(began)
+    stamps, poses = (np.array(x) for x in zip(*rows, strict=True))
+    keep = np.concatenate([[True], np.diff(stamps) > 0])
+    s = ToolSamples(stamps[keep], poses[keep])
+    assert np.median(s.speed[-30:]) == pytest.approx(0.1, rel=0.03)
+    assert off_line(s.pose[:, :3], start[:3], start[:3] + xd[:3]).max() < 1e-3
+    before, began_at = np.array(receive.getActualTCPPose()), receive.getTimestamp()
+    deceleration = 0.5
+    assert control.speedStop(deceleration)
+    took = receive.getTimestamp() - began_at
+    travelled = np.linalg.norm(np.array(receive.getActualTCPPose())[:3] - before[:3])
+    assert took == pytest.approx(0.1 / deceleration, abs=0.06)
+    # v^2/2a = 10 mm, and 0.1 m/s until the stop came: the pose read before it is up to a
+    # package (8 ms) old, and the command needs a few milliseconds more to arrive.
+    assert 0.0095 < travelled < 0.0135, f"{travelled * 1000:.1f} mm in {took * 1000:.0f} ms"
+    assert control.isProgramRunning()
+
+
+def test_a_path_of_waypoints_is_run_in_order_and_reports_its_progress(ur) -> None:
+    """moveL with a list of waypoints (ur_rtde writes them into its script and uploads it
+    again): each waypoint is reached in order, each straight segment kept, the progress
+    register counts the waypoints and says when the path is done; a moveJ path runs
+    synchronously to its last waypoint."""
+    control, receive = ur
+    start = np.array(receive.getActualTCPPose())
+    corners = [start + np.array([dx, dy, dz, 0, 0, 0]) for dx, dy, dz in PATH_CORNERS]
+    path = [[*c.tolist(), 0.25, 1.2, 0.0] for c in corners]
+    assert control.moveL(path, True)
+    rows: list = []
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline:
+        progress = control.getAsyncOperationProgress()
+        rows.append((progress, receive.getActualTCPPose()))
+        if progress < 0:
+            break
+        time.sleep(0.002)
+    progress, poses = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
+    assert progress[-1] < 0, "the path should finish"
+    counted = progress[progress >= 0]
+    assert set(counted) == set(range(len(corners))) and (np.diff(counted) >= 0).all()
+    ends = np.array(corners)[:, :3]
+    near = np.linalg.norm(poses[:, None, :3] - ends[None], axis=2) < 1e-3
+    assert near.any(axis=0).all(), "every waypoint should be reached"
+    reached = near.argmax(axis=0)
+    assert (np.diff(reached) > 0).all(), f"waypoints reached in the order {reached}"
+    for k in range(len(corners) - 1):
+        segment = poses[reached[k] : reached[k + 1] + 1, :3]
+        assert off_line(segment, ends[k], ends[k + 1]).max() < 1.5e-3
+    q = np.array(receive.getActualQ())
+    joints = [q + np.array([0.1, 0, 0, 0, 0, 0.2]), q]
+    assert control.moveJ([[*j.tolist(), 1.0, 2.0, 0.0] for j in joints])
+    assert np.array(receive.getActualQ()) == pytest.approx(q, abs=2e-3)
+
+
+PATH_CORNERS = [(0.05, 0.0, 0.0), (0.05, 0.05, -0.03), (0.0, 0.05, 0.0)]
+
+
+def turned(rotvec: np.ndarray, base_turn: list[float]) -> np.ndarray:
+    """The axis-angle of ``rotvec`` turned further by ``base_turn`` about base axes."""
+    from scipy.spatial.transform import Rotation
+
+    return (Rotation.from_rotvec(base_turn) * Rotation.from_rotvec(rotvec)).as_rotvec()
+
+
+def angle_between(rotvec: np.ndarray, other: np.ndarray) -> float:
+    """The angle (rad) of the rotation between two axis-angle orientations."""
+    from scipy.spatial.transform import Rotation
+
+    difference = Rotation.from_rotvec(rotvec) * Rotation.from_rotvec(other).inv()
+    return float(difference.magnitude())
+
+
+# ------------------------------------------------------------------------- teach mode
+def test_teach_mode_holds_the_arm_and_blocks_motion_until_end_teach_mode(ur) -> None:
+    """teachMode(): the arm gives way to a hand and follows no trajectory (here nobody
+    pushes it: it holds), getFreedriveStatus says 1, the program keeps running in robot
+    mode RUNNING; moveJ and servoJ move nothing. endTeachMode(): motion works again."""
+    control, receive = ur
+    start = np.array(receive.getActualQ())
+    goal = start + np.array([0.15, 0.0, 0.0, 0.0, 0.0, 0.2])
+    assert control.teachMode()
+    assert control.getFreedriveStatus() == 1
+    assert receive.getRobotMode() == 7 and control.isProgramRunning()
+    control.moveJ(goal.tolist(), 1.0, 2.0)
+    for _ in range(round(0.3 * RATE)):
+        began = control.initPeriod()
+        control.servoJ(goal.tolist(), 0.0, 0.0, 1.0 / RATE, 0.1, 300)
+        control.waitPeriod(began)
+    assert np.array(receive.getActualQ()) == pytest.approx(start, abs=1e-3)
+    assert np.abs(receive.getActualQd()).max() < 0.01
+    assert control.endTeachMode()
+    assert control.getFreedriveStatus() == 0
+    assert control.moveJ(goal.tolist(), 1.0, 2.0)
+    assert np.array(receive.getActualQ()) == pytest.approx(goal, abs=2e-3)
+    assert control.moveJ(start.tolist(), 1.0, 2.0)
+
+
+# ---------------------------------------------------------------- servoJ's lookahead
+def test_a_longer_servoj_lookahead_or_a_lower_gain_lags_the_stream_more(ur) -> None:
+    """The same 1 rad/s wrist stream with lookahead and gain (0.03, 2000), the defaults
+    (0.1, 300) and (0.2, 100): the steady lag behind the targets grows in that order (a
+    UR smooths over the lookahead; a higher gain follows tighter); the speed matches the
+    stream at every setting."""
+    control, receive = ur
+    lags = {}
+    for sign, (lookahead, gain) in zip(
+        (1, -1, 1), ((0.03, 2000), (0.1, 300), (0.2, 100)), strict=True
+    ):
+        start = np.array(receive.getActualQ())
+        rows: list = []
+        for i in range(round(0.8 * RATE)):
+            began = control.initPeriod()
+            q = start.copy()
+            q[WRIST] += sign * 1.0 * i / RATE
+            assert control.servoJ(q.tolist(), 0.0, 0.0, 1.0 / RATE, lookahead, gain)
+            rows.append((q[WRIST], receive.getActualQ()[WRIST], receive.getActualQd()[WRIST]))
+            control.waitPeriod(began)
+        target, actual, speed = np.array(rows[-40:]).T
+        lags[lookahead] = float(np.median(sign * (target - actual)))
+        assert np.median(sign * speed) == pytest.approx(1.0, abs=0.03)
+        assert control.servoStop(10.0)
+    assert lags[0.03] < lags[0.1] < lags[0.2]
+    # The filter's time constants: 0.45, 10 and 60 ms (at 1 rad/s, that many mrad).
+    assert lags[0.2] - lags[0.03] == pytest.approx(0.06, abs=0.015)
+    assert lags[0.1] - lags[0.03] == pytest.approx(0.01, abs=0.006)

@@ -1,9 +1,10 @@
 """The emulated arm: the plant's MuJoCo cell stepped at a UR controller's servo rate.
 
-It executes what a controller program asks (servo targets, joint speeds, moves, stops)
-one servo period at a time, raises a protective stop when the arm hits the table or
-presses on it harder than a UR's force limit, and reads back what the controller
-publishes (joint positions, speeds, torques, the TCP pose of the configured tool, modes).
+It executes what a controller program asks (servo targets, joint and tool speeds, joint
+and linear moves, stops, teach mode) one servo period at a time, raises a protective
+stop when the arm hits the table or presses on it harder than a UR's force limit, and
+reads back what the controller publishes (joint positions, speeds, torques, the TCP pose
+of the configured tool, modes).
 Nothing here knows about sockets: :mod:`.server` drives it from the protocols.
 """
 
@@ -17,7 +18,12 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from twinrl_robot.ur.emulator.reference import JointLimits, JointReference
+from twinrl_robot.ur.emulator.reference import (
+    SERVO_GAIN,
+    SERVO_LOOKAHEAD,
+    JointLimits,
+    JointReference,
+)
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -131,6 +137,7 @@ class EmulatedArm:
         self.safety_mode = SafetyMode.NORMAL
         self.speed_fraction = 1.0  # the pendant's speed slider: scales moves' speed
         self.program_running = False
+        self.teaching = False  # teach (freedrive) mode: back-drivable, no trajectories
         self.digital_out = 0
         self.gripper_position = 0.0
         self.ticks = 0
@@ -150,22 +157,37 @@ class EmulatedArm:
             acceleration=JOINT_ACCELERATION_LIMIT,
         )
         # The arm powers up at rest at the twin's home.
-        self.reference = JointReference(self.cell.arm_q, self.limits, self.period)
+        self.reference = JointReference(self.cell.arm_q, self.limits, self.period, self.tool)
 
     # -------------------------------------------------------------- commands
-    def servo_pose(self, pose: np.ndarray, duration: float = 0.0, age: float = 0.0) -> None:
+    def servo_pose(
+        self,
+        pose: np.ndarray,
+        duration: float = 0.0,
+        age: float = 0.0,
+        lookahead: float = SERVO_LOOKAHEAD,
+        gain: float = SERVO_GAIN,
+    ) -> None:
         """servoL: track the TCP pose ``pose`` (the controller's inverse kinematics)."""
         with self.lock:
             target = self.reference.servo_target
             start = self.reference.q if target is None else target
-            self.servo(self.tool.solve(pose, start), duration, age)
+            self.servo(self.tool.solve(pose, start), duration, age, lookahead, gain)
 
-    def servo(self, q: np.ndarray, duration: float = 0.0, age: float = 0.0) -> None:
+    def servo(
+        self,
+        q: np.ndarray,
+        duration: float = 0.0,
+        age: float = 0.0,
+        lookahead: float = SERVO_LOOKAHEAD,
+        gain: float = SERVO_GAIN,
+    ) -> None:
         """servoJ: reach ``q`` ``duration`` s (at least one servo period) after it came,
-        ``age`` s ago (the newest target wins)."""
+        ``age`` s ago (the newest target wins), smoothed as ``lookahead`` (s) and
+        ``gain`` say."""
         with self.lock:
             if self._may_move() and self._within_range(q, "servo target"):
-                self.reference.servo(q, duration, age)
+                self.reference.servo(q, duration, age, lookahead, gain)
 
     def speed(self, qd: np.ndarray, acceleration: float) -> None:
         """speedJ: run the joints at ``qd`` (rad/s), reached at ``acceleration``."""
@@ -178,6 +200,45 @@ class EmulatedArm:
         with self.lock:
             if self._may_move() and self._within_range(q, "move target"):
                 self.reference.move(q, speed, acceleration)
+
+    def move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None:
+        """moveL: the TCP to ``pose`` along a straight line, at ``speed`` (m/s) and
+        ``acceleration`` (m/s^2). A joint that would leave its range on the way is a
+        protective stop when it gets there."""
+        with self.lock:
+            if self._may_move():
+                self.reference.move_linear(pose, speed, acceleration)
+
+    def speed_tool(self, twist: np.ndarray, acceleration: float) -> None:
+        """speedL: run the tool at ``twist`` (m/s, rad/s; base frame), reached at
+        ``acceleration`` (m/s^2)."""
+        with self.lock:
+            if self._may_move():
+                self.reference.speed_tool(twist, acceleration)
+
+    def stop_tool(self, deceleration: float) -> None:
+        """stopL: bring the tool to rest along its line at ``deceleration`` (m/s^2)."""
+        with self.lock:
+            self.reference.stop_tool(deceleration)
+
+    def inverse_kinematics(self, pose: np.ndarray) -> np.ndarray:
+        """Joint positions near the reference's that put the TCP at ``pose``."""
+        with self.lock:
+            return self.tool.solve(pose, self.reference.q)
+
+    def forward_kinematics(self, q: np.ndarray) -> np.ndarray:
+        """The TCP pose of joint positions ``q``."""
+        with self.lock:
+            return self.tool.pose(q)
+
+    def teach(self, on: bool) -> None:
+        """Enter or leave teach mode. A UR's arm then gives way to a hand and follows no
+        trajectory; here nobody pushes it, so it holds where it is (braking first if it
+        was moving) and refuses motion until teach mode ends."""
+        with self.lock:
+            if on and not self.teaching:
+                self.reference.stop(self.limits.acceleration)
+            self.teaching = on
 
     def stop(self, deceleration: float | None = None) -> None:
         """Bring the joints to rest along their path at ``deceleration`` (rad/s^2 of the
@@ -205,7 +266,11 @@ class EmulatedArm:
             self.digital_out = (self.digital_out & ~mask) | (bits & mask)
 
     def _may_move(self) -> bool:
-        return self.safety_mode == SafetyMode.NORMAL and self.robot_mode == RobotMode.RUNNING
+        return (
+            self.safety_mode == SafetyMode.NORMAL
+            and self.robot_mode == RobotMode.RUNNING
+            and not self.teaching
+        )
 
     # ----------------------------------------------------------------- faults
     def protective_stop(self, reason: str = "a protective stop was triggered") -> None:
@@ -219,7 +284,7 @@ class EmulatedArm:
         the acceleration limit (a controlled stop) and locks until unlocked."""
         with self.lock:
             self._lock_out(reason)
-            self.program_running = False
+            self.program_running = self.teaching = False
             self.reference.stop(self.limits.acceleration)
 
     def _lock_out(self, reason: str) -> None:
@@ -257,7 +322,7 @@ class EmulatedArm:
                 self.robot_mode = RobotMode.RUNNING
 
     def _halt(self) -> None:
-        self.program_running = False
+        self.program_running = self.teaching = False
         self.reference.hold(self.cell.arm_q)
 
     # ------------------------------------------------------------------ scene

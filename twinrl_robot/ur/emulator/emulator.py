@@ -31,8 +31,9 @@ from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.ur.emulator.arm import EmulatedArm
 from twinrl_robot.ur.emulator.camera_server import CameraServer
-from twinrl_robot.ur.emulator.program import ControlProgram, complete_script
+from twinrl_robot.ur.emulator.program import ControlProgram
 from twinrl_robot.ur.emulator.rtde_server import Registers, RTDEServer, received
+from twinrl_robot.ur.emulator.script import complete_script
 from twinrl_robot.ur.emulator.text_servers import Dashboard, Harness, LineServer, RobotiqSocket
 from twinrl_robot.ur.gripper import STROKES
 from twinrl_sim.tasks import Task
@@ -239,9 +240,9 @@ class _ScriptHandler(socketserver.BaseRequestHandler):
         text = ""
         for chunk in received(self.request):
             text += chunk.decode(errors="replace")
-            offset = complete_script(text)
-            if offset is not None:
-                self.server.program.start(offset)
+            script = complete_script(text)
+            if script is not None:
+                self.server.program.start(script)
                 text = ""
             elif len(text) > 1_000_000:
                 text = ""  # not a control script: the controller would reject it

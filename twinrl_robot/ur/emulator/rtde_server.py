@@ -28,6 +28,8 @@ from twinrl_robot.ur.emulator.arm import ArmReading, SafetyMode
 
 PROTOCOL_VERSION = 2
 CONTROLLER_VERSION = (5, 15, 0, 1234)  # PolyScope 5.15 (e-Series)
+CLOCK_TOLERANCE = 1e-6  # s: two readings this close in time are one control cycle
+POLL = 5e-4  # s between looks for the next control cycle while streaming
 REQUEST_PROTOCOL_VERSION, GET_URCONTROL_VERSION = ord("V"), ord("v")
 TEXT_MESSAGE, DATA_PACKAGE = ord("M"), ord("U")
 SETUP_OUTPUTS, SETUP_INPUTS, START, PAUSE = ord("O"), ord("I"), ord("S"), ord("P")
@@ -334,14 +336,24 @@ class _RTDEHandler(socketserver.BaseRequestHandler):
             )
 
     def stream(self) -> None:
+        """Send the output recipe once per ``1 / frequency`` of the controller's clock.
+
+        As on a controller, a package is a control cycle: each one carries a new cycle's
+        reading (its ``timestamp`` a whole number of servo periods on), never the same
+        one twice, however late the host wakes this thread."""
         assert self.output is not None
         frequency, names, fmt, casts = self.output
         widths = [_width(VARIABLE_TYPES[name]) for name in names]
         period = 1.0 / frequency
         registers = self.server.registers
-        next_send = time.monotonic()
+        last: float | None = None
         while self.streaming.is_set() and self.server.running:
-            variables = arm_variables(self.server.reading())
+            reading = self.server.reading()
+            if last is not None and reading.timestamp < last + period - CLOCK_TOLERANCE:
+                time.sleep(min(period / 4, POLL))
+                continue
+            last = reading.timestamp
+            variables = arm_variables(reading)
             row: list[object] = [1]
             with registers.lock:
                 for name, width in zip(names, widths, strict=True):
@@ -355,12 +367,6 @@ class _RTDEHandler(socketserver.BaseRequestHandler):
                 self.send(DATA_PACKAGE, struct.pack(fmt, *values))
             except OSError:
                 return
-            next_send += period
-            delay = next_send - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            else:
-                next_send = time.monotonic()
 
 
 def _width(kind: str) -> int:
