@@ -36,6 +36,7 @@ SERVO_LOOKAHEAD = 0.1  # s: servoJ's lookahead time (0.03..0.2); smooths the tar
 SERVO_GAIN = 300.0  # servoJ's proportional gain (100..2000)
 GIL_SWITCH_INTERVAL = 2e-4  # s: how soon the stream thread gets the interpreter back
 MIN_SEGMENT = 0.5  # of a control period: the fastest a segment may run to catch up
+STOP_WAIT = 0.5  # s: the longest stop() waits for a target in flight
 IDLE, SERVO, SILENT, CLOSED = "idle", "servo", "silent", "closed"
 
 
@@ -98,6 +99,7 @@ class ServoStream:
         self._previous: tuple[np.ndarray, np.ndarray, float, float] | None = None
         self._mode = SILENT
         self._thread: threading.Thread | None = None
+        self._periods_run = 0  # the thread's periods so far (stop waits for one to pass)
 
     def open(self) -> None:
         """Start the thread, kicking the watchdog (call once, right after connecting)."""
@@ -139,9 +141,17 @@ class ServoStream:
 
     def stop(self) -> None:
         """Stop sending targets (the controller holds the last one); the watchdog is
-        still kicked, so the driver may move the arm with other commands."""
-        if self._mode == SERVO:
-            self._mode = IDLE
+        still kicked, so the driver may move the arm with other commands. Returns once
+        no target is in flight: a servoJ the thread was about to send would otherwise
+        reach the controller after the driver's next move and cancel it, as a UR's
+        control script does (the arm then stopped short of the start pose)."""
+        if self._mode != SERVO:
+            return
+        self._mode = IDLE
+        seen, deadline = self._periods_run, time.monotonic() + STOP_WAIT
+        running = self._thread is not None and self._thread is not threading.current_thread()
+        while running and self._periods_run < seen + 2 and time.monotonic() < deadline:
+            time.sleep(self.servo_period / 2)
 
     def resume(self) -> None:
         """After an acknowledged fault: kick the watchdog again."""
@@ -197,6 +207,7 @@ class ServoStream:
                     self._fail(f"the controller refused {what}: its program is not running")
                     continue
                 last = self._count_period(last) if mode == SERVO else None
+            self._periods_run += 1
             control.waitPeriod(began)
 
     def _send_target(self) -> bool:
