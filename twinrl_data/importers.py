@@ -217,7 +217,7 @@ def rtde_map(
         torque = present[0] if present else "none"
     if torque == "current" and torque_constants is None:
         raise SettingError(
-            "torque", "current needs the drives' torque constants (--torque-constants, N m/A)"
+            "torque", "current needs the drives' torque constants (torque_constants, N m/A)"
         )
     if torque == "none":
         return replace(RTDE_MAP, effort=[]), (
@@ -225,7 +225,7 @@ def rtde_map(
         )
     missing = sorted(set(columns[torque]) - header)
     if missing:
-        raise DataError(f"{path}: --torque {torque} needs column(s) {missing}; the log lacks them")
+        raise DataError(f"{path}: torque {torque} needs column(s) {missing}; the log lacks them")
     described = {
         "target_moment": "target_moment (N m: the torques the controller commands)",
         "current_as_torque": "actual_current_as_torque (N m: the measured currents)",
