@@ -47,7 +47,7 @@ from twinrl_robot.ur.emulator.tool_motion import (
 SERVO_CORRECTION = 0.02  # s: time constant with which the reference closes on the path
 SERVO_GRACE = 0.004  # s: a target this late still finds the stream's speed unchanged
 SERVO_LOOKAHEAD, SERVO_GAIN = 0.1, 300.0  # servoj's defaults
-SERVO_SMOOTHING = 0.1  # the smoothing time constant per second of lookahead, at gain 300
+SERVO_SMOOTHING = 0.02  # the smoothing time constant per second of lookahead, at gain 300
 
 
 def servo_smoothing(lookahead: float, gain: float) -> float:
@@ -58,10 +58,10 @@ def servo_smoothing(lookahead: float, gain: float) -> float:
     position ``lookahead`` s ahead with the current speed (the URScript manual: a low
     lookahead reacts fast, a high one prevents overshoot; a high gain reacts faster).
     Its filter is not published; one first-order lag that grows with the lookahead and
-    shrinks with the gain keeps both trends. At the defaults (0.1 s, 300) it is 10 ms: a
-    stream that stops still leaves the arm at rest well within 100 ms, as before these
-    parameters were modelled; at 0.2 s and gain 100 it is 60 ms, at 0.03 s and 2000
-    under a millisecond. The factor is a choice, not a measurement of a UR.
+    shrinks with the gain keeps both trends. At the defaults (0.1 s, 300) it is 2 ms, so
+    a default stream tracks, and echoes its targets, as it did before these parameters
+    were modelled; at 0.2 s and gain 100 it is 12 ms, at 0.03 s and 2000 under 0.1 ms.
+    The factor is a choice, not a measurement of a UR.
     """
     return SERVO_SMOOTHING * lookahead * SERVO_GAIN / max(gain, 1.0)
 
