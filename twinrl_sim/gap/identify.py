@@ -262,8 +262,11 @@ class WindowReplay:
             return len(self.layout.arm_joints) if components is None else len(components)
         return 3 if field.vector else 1
 
-    def _expand(self, field: Fitted, values: np.ndarray, rest: float) -> np.ndarray:
-        """A field's fitted components as its full per-joint vector, ``rest`` elsewhere."""
+    def _expand(
+        self, field: Fitted, values: np.ndarray, rest: float | tuple[float, ...]
+    ) -> np.ndarray:
+        """A field's fitted components as its full per-joint vector, ``rest`` (a number:
+        only per-joint fields are fitted in part) elsewhere."""
         components = self._components(field)
         if components is None:
             return values
@@ -304,7 +307,7 @@ class WindowReplay:
         params = {}
         for field, part in self._parts(candidate):
             values = np.clip(np.asarray(value[part], float) * field.scale, *field.bounds())
-            values = self._expand(field, values, float(np.mean(self._resolve(field.null))))
+            values = self._expand(field, values, self._resolve(field.null))
             params[field.param] = [float(v) for v in values] if field.vector else float(values[0])
         return params
 
