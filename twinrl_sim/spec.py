@@ -387,9 +387,16 @@ def parse_spec(data: dict[str, Any], source: str = "scene spec") -> SceneSpec:
 def load_spec(path: str | Path) -> SceneSpec:
     """Read and validate a scene spec YAML file."""
     path = Path(path)
-    data = read_yaml(path, "scene spec", SpecError, "; give a YAML file or a task name")
-    spec = parse_spec(data or {}, source=str(path))
-    return resolve_files(spec, path.parent)
+    return spec_from_yaml(read_yaml(path, "scene spec", SpecError, SPEC_HINT), path)
+
+
+SPEC_HINT = "; give a YAML file or a task name"  # said when a scene spec file is missing
+
+
+def spec_from_yaml(data: object, path: Path) -> SceneSpec:
+    """The scene spec of the YAML document ``data`` read from ``path`` (its relative
+    file paths resolved from the file's folder)."""
+    return resolve_files(parse_spec(data or {}, source=str(path)), path.parent)
 
 
 def resolve_files(spec: SceneSpec, folder: Path) -> SceneSpec:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from twinrl_data.errors import SettingError
 from twinrl_sim.errors import TwinError
-from twinrl_sim.spec import SceneSpec, SpecError, load_spec, read_yaml
+from twinrl_sim.spec import SPEC_HINT, SceneSpec, SpecError, read_yaml, spec_from_yaml
 from twinrl_sim.tasks.base import REGION_NAMES as REGION_NAMES
 from twinrl_sim.tasks.base import Progress as Progress
 from twinrl_sim.tasks.base import Region as Region
@@ -46,13 +46,13 @@ def twin_scene(twin: str) -> SceneSpec:
         return make_task(twin).scene
     path = Path(twin)
     if path.suffix in (".yaml", ".yml") or path.exists():
-        data = read_yaml(path, "scene spec", SpecError, "; give a YAML file or a task name")
+        data = read_yaml(path, "scene spec", SpecError, SPEC_HINT)
         if isinstance(data, dict) and {"arm", "twin"} <= set(data):
             named = str(data["twin"])
             scene = twin_scene(named if named in TASKS else str(path.parent / named))
             physics = scene.physics.model_copy(update={"servo": "track"})
             return scene.model_copy(update={"physics": physics})
-        return load_spec(twin)
+        return spec_from_yaml(data, path)
     close = difflib.get_close_matches(twin, list(TASKS), n=1)
     hint = f" (did you mean '{close[0]}'?)" if close else ""
     raise SettingError(
