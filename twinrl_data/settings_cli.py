@@ -274,6 +274,19 @@ def settings_command(
     """Register ``name`` on ``app``: its options are ``made`` then ``extra`` (plain typer
     parameters). On a call, ``run`` gets the options' values nested by their paths (as
     ``settings=``) and the extra parameters by name."""
+    app.command(name)(settings_function(name, made, run, help=help, extra=extra))
+
+
+def settings_function(
+    name: str,
+    made: Sequence[Option],
+    run: Callable[..., None],
+    *,
+    help: str,
+    extra: Sequence[inspect.Parameter] = (),
+) -> Callable[..., None]:
+    """The command function :func:`settings_command` registers, for an app that
+    registers it itself (``app.command(name)(function)``)."""
     seen = [o.name for o in made] + [p.name for p in extra]
     doubled = sorted({n for n in seen if seen.count(n) > 1})
     if doubled:
@@ -306,4 +319,4 @@ def settings_command(
     command.__annotations__ = {p.name: p.annotation for p in parameters}
     command.__doc__ = help
     command.__name__ = name.replace("-", "_")
-    app.command(name)(command)
+    return command

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Any
 
-import typer
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from twinrl_robot.cli import CellOption, EmulatedOption, PlantEffects
-from twinrl_sim.tasks import TASKS
+from twinrl_data.settings_cli import options, settings_function
+from twinrl_robot.record_settings import RecordSettings
 
 console = Console(soft_wrap=True)
 
@@ -28,94 +27,18 @@ def _status_line(status) -> str:
     )
 
 
-def record(
-    out: Annotated[
-        Path, typer.Option(help="Session folder (created, or continued when it exists).")
-    ],
-    task: Annotated[str, typer.Option(help=f"Task: {', '.join(TASKS)}.")] = "pick_place",
-    robot: Annotated[str, typer.Option(help="plant, or ur (with --cell).")] = "plant",
-    cell: CellOption = None,
-    emulated: EmulatedOption = False,
-    teleop: Annotated[
-        str,
-        typer.Option(
-            help="spacemouse, gamepad (or gamepad:/dev/input/eventN; gamepad:sdl for SDL's "
-            "controller layout), keyboard, or scripted "
-            "(the task's expert at a virtual device: plant and emulator only)."
-        ),
-    ] = "spacemouse",
-    episodes: Annotated[
-        int, typer.Option(help="Episodes to keep (discarded ones are redone).", min=1)
-    ] = 10,
-    plan: Annotated[
-        str | None,
-        typer.Option(
-            help="Where episodes start: ID or OOD (sampled), a targets.json from 'twinrl mine', "
-            "or a JSON list of configurations. Default: ID."
-        ),
-    ] = None,
-    viewer: Annotated[bool, typer.Option(help="Spawn a Rerun viewer with the live view.")] = False,
-    connect: Annotated[
-        str | None, typer.Option(help="Send the live view to a running Rerun viewer at this URL.")
-    ] = None,
-    save_view: Annotated[
-        Path | None, typer.Option(help="Save the live view to this .rrd file.")
-    ] = None,
-    keys: Annotated[
-        bool, typer.Option(help="Read the marks' keys from the terminal (when it is one).")
-    ] = True,
-    effects: PlantEffects = None,
-    settle: Annotated[
-        int,
-        typer.Option(
-            help="Steps recorded after a success mark with the arm held still, so the last "
-            "frames show the success (what 'twinrl train reward-classifier' learns from).",
-            min=0,
-        ),
-    ] = 3,
-    max_steps: Annotated[
-        int | None,
-        typer.Option(
-            help="Steps before an episode ends as a failure (default: the task's).", min=1
-        ),
-    ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of sampled configurations.")] = 0,
-) -> None:
-    """Record episodes with a person at a teleop device: reset guidance, live view, marks.
-
-    Each episode: set the cell up as the live view shows, press Enter (or the device's
-    start button), drive, then s (success), f (failure) or d (discard and record again);
-    n types a note, q stops. Every episode is on disk as it is recorded; run the same
-    command again to continue a session (a crash's partial episode is recovered first).
-    """
-    from twinrl_data.errors import UsageError
+def _record(settings: dict[str, Any]) -> None:
     from twinrl_robot.recording import run_recording
 
-    targets = [t for t in (viewer and "spawn", connect, save_view and str(save_view)) if t]
-    if len(targets) > 1:
-        raise UsageError("give one of --viewer, --connect and --save-view")
-    if save_view is not None and save_view.suffix != ".rrd":
-        raise UsageError(f"--save-view must name a .rrd file, got {save_view}")
+    config = RecordSettings(**settings)
     with Live(console=console, auto_refresh=False, transient=True) as live:
         report = run_recording(
-            task,
-            out,
-            robot=robot,
-            teleop=teleop,
-            episodes=episodes,
-            plan=plan,
-            cell=cell,
-            emulated=emulated,
-            effects=effects,
-            view=targets[0] if targets else None,
-            keys=keys,
-            seed=seed,
-            max_steps=max_steps,
-            settle=settle,
+            config,
             on_status=lambda status: live.update(
                 Text.from_markup(_status_line(status)), refresh=True
             ),
         )
+    out = config.out
     table = Table("episode", "outcome", "steps", "note", title=f"recorded into {out}")
     for episode in report.episodes:
         table.add_row(
@@ -129,3 +52,18 @@ def record(
     console.print(
         f"inspect: twinrl view {out}  |  for learning: twinrl data export {out} --to DATASET"
     )
+
+
+# ``twinrl record``: its options derive from RecordSettings (all but the scripted
+# person's marks, which tests give).
+record = settings_function(
+    "record",
+    options(RecordSettings, only=[f for f in RecordSettings.__dataclass_fields__ if f != "marks"]),
+    _record,
+    help="Record episodes with a person at a teleop device: reset guidance, live view, "
+    "marks.\n\nEach episode: set the cell up as the live view shows, press Enter (or the "
+    "device's start button), drive, then s (success), f (failure) or d (discard and "
+    "record again); n types a note, q stops. Every episode is on disk as it is "
+    "recorded; run the same command again to continue a session (a crash's partial "
+    "episode is recovered first).",
+)

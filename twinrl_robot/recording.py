@@ -23,7 +23,6 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +34,7 @@ from twinrl_data.session import Session
 from twinrl_robot.errors import RobotError
 from twinrl_robot.live_view import LiveView
 from twinrl_robot.loop import run_episode, sensor_counts
+from twinrl_robot.record_settings import RecordSettings
 from twinrl_robot.reset_plan import ResetPlan
 from twinrl_robot.robot import Robot, Sent
 from twinrl_robot.teleop.device import TeleopError
@@ -340,75 +340,57 @@ def _dropped(robot: Robot) -> int:
 
 
 def run_recording(
-    task_name: str,
-    out: str | Path,
-    *,
-    robot: str = "plant",
-    teleop: str = "spacemouse",
-    episodes: int = 10,
-    plan: str | None = None,
-    cell: str | Path | None = None,
-    emulated: bool = False,
-    effects: str | Path | None = None,
-    view: str | None = None,
-    keys: bool = True,
-    seed: int = 0,
-    marks: tuple[str, ...] = (),
-    max_steps: int | None = None,
-    settle: int = 3,
-    on_status: Callable[[RecordStatus], None] | None = None,
+    settings: RecordSettings, on_status: Callable[[RecordStatus], None] | None = None
 ) -> RecordReport:
-    """``twinrl record``: open the cell (``robot``: ``plant``, or ``ur`` with its ``cell``
-    file, ``emulated`` for the emulator), the session folder ``out`` (continued when it
-    exists), the terminal's keys (``keys``, when standard input is a terminal), the
-    ``teleop`` device and the live ``view`` (``spawn``, a URL, or an ``.rrd`` path), and
-    record (see :func:`record_session`). ``marks``: the scripted person's marks;
-    ``settle``: steps recorded after a success mark with the arm held."""
+    """``twinrl record``: open the cell (the plant, or the UR arm of the settings' cell
+    file, on the emulator when ``emulated``), the session folder (continued when it
+    exists), the terminal's keys (when standard input is a terminal and ``keys``), the
+    teleop device and the live view, and record (see :func:`record_session`);
+    ``on_status`` gets the status line's contents as they change."""
     from twinrl_robot.backends import ROBOTS, open_robot, recorded_cameras
     from twinrl_robot.cell_file import CellFile, load_cell
     from twinrl_robot.teleop import open_teleop
     from twinrl_sim.tasks import make_task, task_on_twin
 
-    if robot not in ("plant", "ur"):
-        raise RobotError(f"unknown robot '{robot}'; record on plant or ur (with its cell file)")
-    world = ROBOTS[robot]
+    world = ROBOTS[settings.robot]
     cell_file: CellFile | None = None
-    if world == "real":
-        if cell is None:
-            raise RobotError("recording on a UR arm needs its cell file (`cell`)")
-        cell_file = load_cell(cell)
-        task = make_task(task_name, task_on_twin(task_name, cell_file.twin))
+    if settings.cell is not None:
+        cell_file = load_cell(settings.cell)
+        task = make_task(settings.task, task_on_twin(settings.task, cell_file.twin))
     else:
-        if cell is not None or emulated:
-            raise RobotError("a cell file describes a UR arm; record on it with `robot` ur")
-        task = make_task(task_name)
-    reset_plan = ResetPlan(task, plan, seed=seed)
+        task = make_task(settings.task)
+    reset_plan = ResetPlan(task, settings.plan, seed=settings.seed)
     cameras = recorded_cameras(world, cell_file)
-    session = Session.create(out, exist_ok=True)
-    terminal = TerminalKeys() if keys and sys.stdin.isatty() else None
+    session = Session.create(settings.out, exist_ok=True)
+    terminal = TerminalKeys() if settings.keys and sys.stdin.isatty() else None
     opened: list[Any] = [terminal] if terminal is not None else []
     try:
         arm = open_robot(
             world,
             task,
-            effects=effects if world == "plant" else None,
-            seed=seed,
+            effects=settings.effects,
+            seed=settings.seed,
             cameras=cameras,
             effort=True,
-            object_poses=world == "plant" or emulated,
+            object_poses=world == "plant" or settings.emulated,
             cell=cell_file,
-            emulated=emulated,
+            emulated=settings.emulated,
         )
         opened.append(arm)
         spec = cell_file.teleop if cell_file is not None else None
         device = open_teleop(
-            teleop, spec, terminal=terminal, privileged=arm.privileged, seed=seed, marks=marks
+            settings.teleop,
+            spec,
+            terminal=terminal,
+            privileged=arm.privileged,
+            seed=settings.seed,
+            marks=settings.marks,
         )
         opened.append(device)
         live = None
-        if view is not None:
+        if settings.view is not None:
             live = LiveView(
-                view,
+                settings.view,
                 task,
                 cameras,
                 arm.names.get(STATE, []),
@@ -420,13 +402,13 @@ def run_recording(
             task,
             device,
             session,
-            episodes=episodes,
+            episodes=settings.episodes,
             plan=reset_plan,
             terminal=terminal,
             view=live,
             on_status=on_status,
-            max_steps=max_steps,
-            settle=settle,
+            max_steps=settings.max_steps,
+            settle=settings.settle,
         )
     finally:
         for thing in reversed(opened):

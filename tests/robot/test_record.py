@@ -23,6 +23,7 @@ from twinrl_data.schema import CONTROLLER_TARGET, CONTROLLER_TIME, JOINT_TARGET
 from twinrl_data.session import Session
 from twinrl_data.sources import open_episode
 from twinrl_robot.backends import open_robot
+from twinrl_robot.record_settings import RecordSettings
 from twinrl_robot.recording import record_session, run_recording
 from twinrl_robot.reset_plan import ResetPlan
 from twinrl_robot.teleop import TeleopError, open_teleop
@@ -43,13 +44,14 @@ def test_a_scripted_person_records_in_the_plant_with_every_mark(tmp_path: Path) 
 
     view = tmp_path / "live.rrd"
     report = run_recording(
-        "pick_place",
-        tmp_path / "day1",
-        teleop="scripted",
-        episodes=3,
-        keys=False,
-        view=str(view),
-        marks=("discard", "success", "failure"),
+        RecordSettings(
+            str(tmp_path / "day1"),
+            teleop="scripted",
+            episodes=3,
+            keys=False,
+            save_view=str(view),
+            marks=("discard", "success", "failure"),
+        )
     )
     # The discarded episode was recorded again from the same configuration.
     assert _outcomes(report) == ["success", "failure", "success"]
@@ -79,15 +81,16 @@ def test_a_scripted_person_records_on_the_emulated_arm(tmp_path: Path) -> None:
     cell = write_cell(tmp_path)
     with EmulatorProcess(cell, effects=None):
         report = run_recording(
-            "pick_place",
-            tmp_path / "ur",
-            robot="ur",
-            cell=cell,
-            emulated=True,
-            teleop="scripted",
-            episodes=2,
-            keys=False,
-            marks=("failure",),
+            RecordSettings(
+                str(tmp_path / "ur"),
+                robot="ur",
+                cell=str(cell),
+                emulated=True,
+                teleop="scripted",
+                episodes=2,
+                keys=False,
+                marks=("failure",),
+            )
         )
     assert _outcomes(report) == ["failure", "success"]
     episode = read_episode(report.episodes[1].path, images=False)
