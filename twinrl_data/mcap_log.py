@@ -12,7 +12,12 @@ topic                               schema                       content
 /transition                         twinrl.Transition            reward, done, success, ...
 /camera/<name>                      foxglove.CompressedImage     JPEG (default) or PNG
 /tf                                 foxglove.FrameTransforms     TCP and object poses
+/samples/<stream>                   twinrl.FloatVector           a live episode's samples
 ==================================  ===========================  ==========================
+
+A live episode (a real cell's, :mod:`twinrl_data.streams`) has every camera frame at the
+camera's rate and sample streams (the controller's state at 500 Hz), all on the host's
+clock; its ``twinrl.streams`` metadata record names them.
 
 Episode metadata is an MCAP metadata record ``twinrl.episode`` written when recording
 starts (values JSON-encoded), and ``twinrl.episode_end`` when it ends. The writer closes
@@ -70,6 +75,7 @@ BASE_FRAME = "base"
 META_START = "twinrl.episode"
 META_FIELDS = "twinrl.fields"
 META_END = "twinrl.episode_end"
+META_STREAMS = "twinrl.streams"  # a live episode's cameras and sample streams, at their rates
 POSE_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
 IMAGE_FORMATS = ("jpeg", "png")
 
@@ -127,7 +133,8 @@ class EpisodeWriter:
         self.meta = meta
         self.image_format = image_format
         self.jpeg_quality = jpeg_quality
-        self._flush_every = max(1, math.ceil(flush_seconds * meta.fps))
+        # 0: the owner flushes (a live episode, by its own clock; see twinrl_data.streams)
+        self._flush_every = max(1, math.ceil(flush_seconds * meta.fps)) if flush_seconds else 0
         self._period_ns = round(1e9 / meta.fps)
         self._start_ns = start_ns if start_ns is not None else _iso_to_ns(meta.created_at)
         try:
@@ -195,24 +202,39 @@ class EpisodeWriter:
             )
         return self._channels[topic]
 
-    def _write(self, topic: str, message: Any, time_ns: int) -> None:
+    def _write(self, topic: str, message: Any, time_ns: int, sequence: int | None = None) -> None:
         channel = self._channel(topic, type(message))
         self._writer.add_message(
             channel_id=channel,
             log_time=time_ns,
             publish_time=time_ns,
             data=message.SerializeToString(),
-            sequence=self.steps,
+            sequence=self.steps if sequence is None else sequence,
         )
 
-    def append(self, step: Mapping[str, Any]) -> None:
-        """Log one control step (observation, action and what it led to)."""
+    def append(self, step: Mapping[str, Any], time_ns: int | None = None) -> None:
+        """Log one control step (observation, action and what it led to) at ``time_ns``
+        on the episode's clock (default: the step's place at the episode's rate)."""
         if self._closed:
             raise McapError(f"{self.path}: episode already closed; start a new EpisodeWriter")
         contract.validate_step(step, self._shapes)
-        self._guarded(lambda: self._write_step(step))
+        self._guarded(lambda: self._write_step(step, time_ns))
 
-    def _write_step(self, step: Mapping[str, Any]) -> None:
+    def write(self, topic: str, message: Any, time_ns: int, sequence: int) -> None:
+        """Log one message of a stream at its own rate (see :mod:`twinrl_data.streams`)."""
+        if self._closed:
+            raise McapError(f"{self.path}: episode already closed; start a new EpisodeWriter")
+        self._guarded(lambda: self._write(topic, message, time_ns, sequence))
+
+    def add_metadata(self, name: str, values: Mapping[str, Any]) -> None:
+        """Write a metadata record (values JSON-encoded)."""
+        self._guarded(lambda: self._writer.add_metadata(name, _encode(values)))
+
+    def flush(self) -> None:
+        """Close the open chunk: what was written so far survives a crash."""
+        self._guarded(self._writer.flush)
+
+    def _write_step(self, step: Mapping[str, Any], time_ns: int | None) -> None:
         if self.steps == 0:
             self._shapes = {k: np.shape(v) for k, v in step.items() if k in contract.VECTOR_FIELDS}
             fields = sorted(k for k, v in step.items() if v is not None)
@@ -220,7 +242,8 @@ class EpisodeWriter:
                 fields.append(contract.ACTION_POLICY)  # defaults to the executed action
             self._fields = set(fields)
             self._writer.add_metadata(META_FIELDS, _encode({"fields": sorted(fields)}))
-        time_ns = self._start_ns + self.steps * self._period_ns
+        if time_ns is None:
+            time_ns = self._start_ns + self.steps * self._period_ns
         for key, topic in TOPICS.items():
             value = step.get(key)
             if key == contract.ACTION_POLICY and value is None:
@@ -253,7 +276,7 @@ class EpisodeWriter:
         self.interventions += intervention
         self.last_success = bool(step.get(contract.SUCCESS, False))
         self.steps += 1
-        if self.steps % self._flush_every == 0:
+        if self._flush_every and self.steps % self._flush_every == 0:
             self._writer.flush()  # closes the chunk: a crash loses at most flush_seconds
 
     def _write_poses(self, step: Mapping[str, Any], time_ns: int) -> None:
@@ -463,7 +486,8 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     path = _open_checked(path)
     vectors: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
     transitions: dict[int, Any] = {}
-    frames: dict[str, dict[int, np.ndarray]] = defaultdict(dict)
+    frames: dict[str, dict[int, tuple[int, bytes]]] = defaultdict(dict)
+    step_times: list[int] = []  # ns, the state's, in step order
     records: dict[str, dict[str, Any]] = {}
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -485,6 +509,8 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
                     if channel is not None:
                         schema = schemas.get(channel.schema_id)
                         _collect(schema, channel, record, vectors, transitions, frames, images)
+                        if channel.topic == TOPICS[contract.STATE]:
+                            step_times.append(record.log_time)
                 elif isinstance(record, Channel):
                     channels[record.id] = record
                 elif isinstance(record, Schema):
@@ -507,6 +533,11 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
         raise McapError(
             f"{path} has no {TOPICS[contract.STATE]} messages: no complete step was logged"
         )
+    from twinrl_data.streams import frames_of_steps  # (it writes through this module)
+
+    streamed = records.get(META_STREAMS, {}).get("cameras", {})
+    frames = {cam: frames_of_steps(rows, step_times) if cam in streamed else rows
+              for cam, rows in frames.items()}  # fmt: skip
     streams = [*vectors.values(), *frames.values()] + ([transitions] if transitions else [])
     steps = _complete_steps(vectors[contract.STATE], streams)
     fields = set(records.get(META_FIELDS, {}).get("fields", contract.SCALAR_FIELDS))
@@ -523,7 +554,9 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
             if key in fields:
                 data[key] = np.array([getattr(transitions[s], attribute) for s in steps], dtype)
     camera_arrays = {
-        cam: np.stack([rows[s] for s in steps]) for cam, rows in frames.items() if steps
+        cam: np.stack([_decode_image(rows[s][1]) for s in steps])
+        for cam, rows in frames.items()
+        if steps
     }
     return contract.Episode(meta=meta, data=data, images=camera_arrays)
 
@@ -545,7 +578,7 @@ def _collect(
     message: Message,
     vectors: dict[str, dict[int, np.ndarray]],
     transitions: dict[int, Any],
-    frames: dict[str, dict[int, np.ndarray]],
+    frames: dict[str, dict[int, tuple[int, bytes]]],
     images: bool,
 ) -> None:
     name = schema.name if schema is not None else ""
@@ -557,5 +590,9 @@ def _collect(
         transitions[transition.step] = transition
     elif images and channel.topic.startswith(CAMERA_PREFIX) and name == "foxglove.CompressedImage":
         image = CompressedImage.FromString(message.data)
-        pixels = np.asarray(PIL.Image.open(io.BytesIO(image.data)).convert("RGB"))
-        frames[channel.topic[len(CAMERA_PREFIX) :]][message.sequence] = pixels
+        camera = channel.topic[len(CAMERA_PREFIX) :]
+        frames[camera][message.sequence] = (message.log_time, image.data)
+
+
+def _decode_image(data: bytes) -> np.ndarray:
+    return np.asarray(PIL.Image.open(io.BytesIO(data)).convert("RGB"))

@@ -16,7 +16,8 @@ parent process registers later, as parallel synthesis does).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -25,6 +26,7 @@ from twinrl_data.errors import DataError
 from twinrl_data.mcap_log import EpisodeWriter
 from twinrl_data.schema import EpisodeMeta
 from twinrl_data.session import FREE_MARGIN
+from twinrl_data.streams import LiveEpisode
 
 
 class EpisodeTarget(Protocol):
@@ -54,6 +56,8 @@ class Recorder:
         self.target = target
         self.writer_options = writer_options
         self._writer: EpisodeWriter | None = None
+        self.live: LiveEpisode | None = None  # the open episode's streams, when it has any
+        self.saved_live: LiveEpisode | None = None  # the last saved one's (its counts, CPU)
         self.saved: EpisodeMeta | None = None  # the last saved episode's final metadata
         self.saved_path: Path | None = None  # and its file
 
@@ -67,17 +71,38 @@ class Recorder:
         """Frames added to the open episode (0 when none is open)."""
         return self._writer.steps if self._writer is not None else 0
 
-    def start_episode(self, meta: EpisodeMeta) -> None:
+    def start_episode(
+        self,
+        meta: EpisodeMeta,
+        *,
+        cameras: Mapping[str, float] | None = None,
+        samples: Mapping[str, Sequence[str]] | None = None,
+    ) -> None:
+        """Open an episode; with ``cameras`` (name -> fps) or ``samples`` (stream -> entry
+        names) it is a live episode (:mod:`twinrl_data.streams`): those cameras' every
+        frame and those sample streams go to :attr:`live`, and steps are written on the
+        host's clock from a background thread."""
         if self._writer is not None:
             raise DataError(
                 f"episode {self._writer.meta.episode_id} is still open; save_episode() first"
             )
-        self._writer = self.target.record(meta, **self.writer_options)
+        if not cameras and not samples:
+            self._writer = self.target.record(meta, **self.writer_options)
+            return
+        self._writer = self.target.record(meta, **{**self.writer_options, "flush_seconds": 0})
+        self.live = LiveEpisode(
+            self._writer, cameras=cameras or {}, samples=samples or {}, started=time.monotonic()
+        )
 
-    def add_frame(self, frame: Mapping[str, Any]) -> None:
+    def add_frame(self, frame: Mapping[str, Any], observed: float | None = None) -> None:
         """Write one control step; a frame that breaks the contract is an error naming
-        every problem, and nothing of it is written."""
-        self._require_open().append(frame)
+        every problem, and nothing of it is written. ``observed``: when its observation
+        was taken (``time.monotonic()``; a live episode's clock, default now)."""
+        writer = self._require_open()
+        if self.live is not None:
+            self.live.step(frame, time.monotonic() if observed is None else observed)
+        else:
+            writer.append(frame)
 
     def save_episode(
         self,
@@ -92,6 +117,9 @@ class Recorder:
         ``note``: a person's words about it) and return its file."""
         writer = self._require_open()
         self._writer = None
+        if self.live is not None:
+            self.saved_live, self.live = self.live, None
+            self.saved_live.close()
         self.saved = writer.close(success=success, aborted=aborted, sensors=sensors, note=note)
         self.saved_path = writer.path
         return writer.path

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -72,6 +72,13 @@ def sensor_counts(robot: Robot) -> dict:
     return counts() if callable(counts) else {}
 
 
+def sensor_streams(robot: Robot) -> Any:
+    """The backend's sensors at their own rates (a real cell's cameras and controller
+    state: ``cameras``, ``samples``, ``start(live)``, ``stop()``), or ``None``."""
+    streams = getattr(list(layers(robot))[-1], "sensor_streams", None)
+    return streams() if callable(streams) else None
+
+
 def privileged_success(robot: Robot) -> Judge:
     """The judge of a simulated cell: its ground-truth success."""
     channel = require_privileged(robot, "judging success from the task's ground truth")
@@ -122,9 +129,15 @@ def run_episode(
     if ready is not None:
         ready(observation)
         observation = robot.observe()
+    observed = time.monotonic()
     source.reset(task, config)
+    streams = sensor_streams(robot) if recorder is not None else None
     if recorder is not None and meta is not None:
-        recorder.start_episode(meta)
+        if streams is None:
+            recorder.start_episode(meta)
+        else:  # a live episode: every camera frame and controller sample at their rates
+            recorder.start_episode(meta, cameras=streams.cameras, samples=streams.samples)
+            streams.start(recorder.live)
     success, interventions, steps, settled = False, 0, 0, 0
     executed = np.zeros(7, np.float32)  # the last step's action (held while settling)
     stamps: list[float] = []
@@ -142,6 +155,7 @@ def run_episode(
                 source.interrupted()
                 interventions += 1
             following = robot.observe()
+            following_at = time.monotonic()
             if success:
                 settled += 1
             else:
@@ -160,14 +174,17 @@ def run_episode(
                         success,
                         action_policy=proposed,
                         intervention=sent.intervention,
-                    )
+                    ),
+                    observed,
                 )
             if on_step is not None:
                 on_step(t, sent)
-            observation = following
+            observation, observed = following, following_at
             if done:
                 break
     except BaseException as err:
+        if streams is not None:
+            streams.stop()
         if recorder is not None and recorder.recording:  # keep what was recorded, and why
             reason = str(err) or type(err).__name__
             recorder.save_episode(
@@ -175,6 +192,8 @@ def run_episode(
             )
         raise
     path = None
+    if streams is not None:
+        streams.stop()
     if recorder is not None:
         path = recorder.save_episode(
             success=success, sensors=sensor_counts(robot), note=note and note()

@@ -19,6 +19,7 @@ from __future__ import annotations
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -65,6 +66,7 @@ class Camera(Protocol):
     name: str
     fps: float
     stats: CameraStats
+    tap: Callable[[Frame], None] | None
 
     def latest(self) -> Frame | None: ...
 
@@ -81,6 +83,7 @@ class ThreadedCamera(ABC):
         self._lock = threading.Lock()
         self._running = True
         self._failure: str | None = None
+        self.tap: Callable[[Frame], None] | None = None  # given every frame (a recorder)
         self._thread = threading.Thread(target=self._run, name=f"camera-{name}", daemon=True)
 
     def _start(self) -> None:
@@ -129,6 +132,9 @@ class ThreadedCamera(ABC):
                 self.stats.first_stamp = self.stats.first_stamp or stamp
                 self.stats.last_stamp = stamp
                 self._latest = Frame(image, stamp, self.stats.frames)
+            tap = self.tap
+            if tap is not None:
+                tap(self._latest)
 
     def latest(self) -> Frame | None:
         if self._failure and self._running:

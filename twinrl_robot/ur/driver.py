@@ -52,6 +52,7 @@ from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.ur.cameras import CameraRig
 from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused, LinkLost
 from twinrl_robot.ur.gripper import Gripper, NoGripper
+from twinrl_robot.ur.sensor_streams import SensorStreams
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -177,6 +178,7 @@ class URArm:
         _connect(self._link)  # the stream kicks the watchdog from here on
         self._apply_cell_settings()
         self._next_step: float | None = None
+        self.sensors = SensorStreams(self.cameras, self._receive, self.servo_hz)
 
     # ---------------------------------------------------------------- episode
     def reset(self, config: TaskConfig | dict) -> dict[str, np.ndarray]:
@@ -245,6 +247,7 @@ class URArm:
         if self.effort:  # the torques the controller applies (RTDE target_moment)
             getters += ("getTargetMoment", "getActualTCPForce")
         clock, q, qd, target, *forces = self._link.snapshot(getters)
+        self.sensors.saw(clock, time.monotonic())
         q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
         state = np.concatenate([q, qd, position, quat, [self.gripper.opening()]])
@@ -258,6 +261,11 @@ class URArm:
             observation[WRENCH] = np.array(forces[1], np.float32)
         observation.update(self.cameras.images())
         return observation
+
+    def sensor_streams(self) -> SensorStreams:
+        """The cameras' every frame and the controller's every package, for a live episode."""
+        self.sensors.rig = self.cameras  # the cameras are opened after the arm
+        return self.sensors
 
     def sensor_counts(self) -> dict[str, dict[str, int]]:
         """Per camera, frames delivered, dropped and stale since the last reset (what an

@@ -1,0 +1,222 @@
+"""Recording at a real cell's rates, against the emulator.
+
+The emulator serves a UR5e (servo 500 Hz) with two 640x480 cameras at 30 fps; the
+host runs the robot loop at 10 Hz with a small end-effector wave as its action source,
+three ways, one after another on the same arm: the loop alone; the loop recording live
+episodes (every camera frame and every controller package, :mod:`twinrl_data.streams`)
+for ``--duration`` seconds in episodes of ``--episode-seconds``; the loop recording with
+the live view saved to an .rrd. It reports the frames and samples delivered and
+written (dropped = delivered, not written), the packages the emulator itself did not
+send in time (gaps in the controller's clock: the emulator's, not the recorder's), the
+recorder's share of one core (its threads' CPU over the recording's wall time), the
+whole host process's share, the loop's period p50/p99 each way, and the LeRobot export
+of the first recorded episode against lerobot's own loop on the same frames. Usage::
+
+    MUJOCO_GL=egl python bench/bench_recording.py --duration 600
+    MUJOCO_GL=egl python bench/bench_recording.py --duration 20 --episode-seconds 10
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+import yaml
+
+from twinrl_data.lerobot_io import WRITE_OPTIONS, export_dataset, features_for
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.recorder import EpisodeFolder, Recorder
+from twinrl_data.streams import read_samples
+from twinrl_robot.backends import open_robot
+from twinrl_robot.live_view import LiveView
+from twinrl_robot.loop import run_episode
+from twinrl_robot.ur.emulator.harness import EmulatorProcess
+from twinrl_sim.tasks import Task, TaskConfig, make_task
+
+HOST = "127.0.0.9"
+CAMERAS = ("front", "wrist")
+CONTROL_HZ, SERVO_HZ, FPS = 10, 500, 30
+
+
+class Wave:
+    """A slow circle of the TCP (1 cm a step at most), the gripper still."""
+
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        self.t = 0
+
+    def act(self, observation: dict) -> np.ndarray:
+        self.t += 1
+        self.observation = observation
+        phase = 2 * np.pi * self.t / 40
+        return np.array([0.01 * np.cos(phase), 0.01 * np.sin(phase), 0, 0, 0, 0, 0], np.float32)
+
+    def interrupted(self) -> None:
+        pass
+
+
+def write_cell(folder: Path) -> Path:
+    cameras = [
+        {"name": name, "kind": "opencv", "source": f"http://{HOST}:8080/{name}",
+         "width": 640, "height": 480, "fps": FPS}
+        for name in CAMERAS
+    ]  # fmt: skip
+    cell = {
+        "name": "real_rates",
+        "twin": "pick_place",
+        "arm": {"model": "ur5e", "host": HOST, "control_hz": CONTROL_HZ, "servo_hz": SERVO_HZ},
+        "gripper": {"kind": "robotiq_2f85"},
+        "cameras": cameras,
+        "safety": {"max_step_translation": 0.05},
+    }
+    path = folder / "cell.yaml"
+    path.write_text(yaml.safe_dump(cell))
+    return path
+
+
+def percentiles(periods: list[float]) -> str:
+    ms = 1000 * np.asarray(periods)
+    return f"{np.percentile(ms, 50):.1f} / {np.percentile(ms, 99):.1f} / {ms.max():.1f}"
+
+
+def lerobot_loop(episode, root: Path) -> float:
+    """lerobot's own recording path on the episode's frames held in memory."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    start = time.perf_counter()
+    dataset = LeRobotDataset.create(
+        "bench/own", fps=CONTROL_HZ, features=features_for(episode), root=root,
+        robot_type="ur5e", **WRITE_OPTIONS,
+    )  # fmt: skip
+    for t in range(len(episode)):
+        frame = {"task": episode.meta.task}
+        for key, values in episode.data.items():
+            value = values[t]
+            frame[key] = value.astype(np.float32) if value.ndim else np.array([value], value.dtype)
+        for camera, frames in episode.images.items():
+            frame[f"observation.images.{camera}"] = frames[t]
+        dataset.add_frame(frame)
+    dataset.save_episode()
+    dataset.finalize()
+    return time.perf_counter() - start
+
+
+def main(
+    duration: Annotated[float, typer.Option(help="Seconds of recording.")] = 600.0,
+    episode_seconds: Annotated[float, typer.Option(help="Seconds per episode.")] = 60.0,
+    compare_seconds: Annotated[
+        float, typer.Option(help="Seconds of the loop alone and with the live view.")
+    ] = 60.0,
+) -> None:
+    os.environ.setdefault("SVT_LOG", "1")
+    import datasets
+
+    datasets.disable_progress_bars()
+    work = Path(tempfile.mkdtemp(prefix="twinrl-bench-recording-"))
+    cell = write_cell(work)
+    task = make_task("pick_place")
+    config = task.sample_config(np.random.default_rng(0), "ID")
+    rows: list[tuple[str, str]] = []
+    try:
+        with EmulatorProcess(cell):
+            robot = open_robot(
+                "real", task, cameras=CAMERAS, effort=True, object_poses=False,
+                cell=cell, emulated=True,
+            )  # fmt: skip
+            names = robot.names
+
+            def meta():
+                return task.episode_meta(source="teleop", world="real", names=names, config=config)
+
+            steps = lambda seconds: max(2, round(seconds * CONTROL_HZ))  # noqa: E731
+            try:
+                alone = run_episode(
+                    robot, Wave(), task, config, judge=None, max_steps=steps(compare_seconds)
+                )
+                recorder = Recorder(EpisodeFolder(work / "episodes"))
+                backend = _backend(robot)
+                periods: list[float] = []
+                delivered = written = received = samples = 0
+                cpu = wall = 0.0
+                process_cpu = time.process_time()
+                backlog = 0
+                left = duration
+                paths = []
+                while left > 0:
+                    seconds = min(episode_seconds, left)
+                    left -= seconds
+                    started = time.perf_counter()
+                    result = run_episode(
+                        robot, Wave(), task, config, judge=None, max_steps=steps(seconds),
+                        recorder=recorder, meta=meta(),
+                    )  # fmt: skip
+                    wall += time.perf_counter() - started
+                    paths.append(result.path)
+                    periods += result.periods
+                    sensors = backend.sensors
+                    delivered += sum(sensors.handed.values())
+                    received += sensors.received
+                    cpu += sensors.cpu
+                    live = recorder.saved_live
+                    written += sum(live.counts[c] for c in CAMERAS)
+                    samples += live.counts["controller"]
+                    cpu += live.cpu
+                    backlog = max(backlog, live.backlog)
+                process_cpu = time.process_time() - process_cpu
+                view = LiveView(str(work / "live.rrd"), task, CAMERAS, names["observation.state"])
+                wave = Wave()
+                viewed = run_episode(
+                    robot, wave, task, config, judge=None, max_steps=steps(compare_seconds),
+                    recorder=Recorder(EpisodeFolder(work / "viewed")),
+                    meta=meta(),
+                    on_step=lambda t, sent: view.step(wave.observation, sent),
+                )  # fmt: skip
+                view.close()
+            finally:
+                robot.close()
+        gaps = 0
+        for path in paths:
+            clock = read_samples(path)["controller"].clock
+            gaps += int(np.sum(np.round(np.diff(clock) * SERVO_HZ) - 1))
+        episode = read_episode(paths[0])
+        own = lerobot_loop(episode, work / "own")
+        start = time.perf_counter()
+        export_dataset([read_episode(paths[0])], work / "ours")
+        ours = time.perf_counter() - start
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    rows += [
+        ("camera frames: delivered / written / dropped", f"{delivered} / {written} / "
+         f"{delivered - written}"),
+        ("controller samples: received / written / dropped", f"{received} / {samples} / "
+         f"{received - samples}"),
+        ("controller packages the emulator did not send in time", f"{gaps}"),
+        ("recorder's share of one core (its threads)", f"{100 * cpu / wall:.1f} %"),
+        ("host process's share of one core (cameras' decoding, loop, recorder)",
+         f"{100 * process_cpu / wall:.1f} %"),
+        ("recorder's most items waiting", f"{backlog}"),
+        ("loop period p50 / p99 / max (ms), loop alone", percentiles(alone.periods)),
+        ("loop period p50 / p99 / max (ms), recording", percentiles(periods)),
+        ("loop period p50 / p99 / max (ms), recording + live view", percentiles(viewed.periods)),
+        ("export of the first episode: twinrl / lerobot's own loop", f"{ours / own:.2f}"),
+    ]  # fmt: skip
+    print(f"{duration:g} s recorded in {len(paths)} episodes: 2 cameras 640x480 at {FPS} fps, "
+          f"controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz\n")  # fmt: skip
+    print("| what | figure |\n|---|---|")
+    for name, figure in rows:
+        print(f"| {name} | {figure} |")
+
+
+def _backend(robot):
+    from twinrl_robot.wrappers.base import layers
+
+    return list(layers(robot))[-1]
+
+
+if __name__ == "__main__":
+    typer.run(main)

@@ -1,0 +1,63 @@
+"""Live episodes: steps, every camera frame and a 500 Hz sample stream written from a
+background thread into one MCAP file, on one clock, and read back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.schema import EpisodeMeta, step_record
+from twinrl_data.streams import LiveEpisode, read_samples
+
+START = 1000.0  # s, the host's monotonic clock when the episode starts
+
+
+def _frame(value: int) -> np.ndarray:
+    return np.full((48, 64, 3), value, np.uint8)
+
+
+def test_a_live_episode_keeps_every_frame_and_sample_on_the_steps_clock(tmp_path: Path) -> None:
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=10.0)
+    writer = EpisodeWriter(tmp_path / "live.mcap", meta, flush_seconds=0)
+    live = LiveEpisode(
+        writer, cameras={"front": 30.0}, samples={"controller": ["q.0", "q.1"]}, started=START
+    )
+    for k in range(30):  # 1 s of a 30 fps camera
+        live.frame("front", _frame(8 * k), START + k / 30, k + 1)
+    clock = 50.0 + np.arange(500) / 500  # 1 s of the controller's own clock, at 500 Hz
+    for batch in np.split(np.arange(500), 5):
+        rows = np.stack([clock[batch], -clock[batch]], axis=1).astype(np.float32)
+        live.samples("controller", START + clock[batch] - 50.0, rows, clock[batch])
+    for t in range(10):  # 10 Hz steps; a step's own image of a streamed camera is not kept
+        observation = {
+            "observation.state": np.full(3, t, np.float32),
+            "observation.images.front": _frame(255),
+        }
+        step = step_record(observation, np.zeros(7, np.float32), np.zeros(6), 0.0, t == 9, False)
+        live.step(step, START + t / 10 + 0.001)
+    live.close()
+    writer.close()
+    assert live.counts == {"front": 30, "controller": 500}
+    episode = read_episode(tmp_path / "live.mcap")
+    assert len(episode) == 10
+    # Step t saw the newest frame captured by its time: frame 3t, 8 * 3t bright.
+    brightness = episode.images["front"].reshape(10, -1).mean(axis=1)
+    np.testing.assert_allclose(brightness, 24 * np.arange(10), atol=2)
+    (samples,) = read_samples(tmp_path / "live.mcap").values()
+    assert samples.names == ["q.0", "q.1"] and len(samples.values) == 500
+    np.testing.assert_allclose(samples.times, np.arange(500) / 500, atol=1e-6)
+    np.testing.assert_allclose(samples.clock, clock, atol=1e-6)
+    np.testing.assert_allclose(samples.values[:, 0], clock, rtol=1e-6)
+
+
+def test_a_step_that_breaks_the_contract_is_refused_where_it_is_given(tmp_path: Path) -> None:
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real")
+    writer = EpisodeWriter(tmp_path / "live.mcap", meta, flush_seconds=0)
+    live = LiveEpisode(writer, cameras={}, samples={}, started=START)
+    with pytest.raises(Exception, match="missing"):
+        live.step({"observation.state": np.zeros(3)}, START)
+    live.close()
+    writer.close()

@@ -1,0 +1,57 @@
+"""Recording on a UR cell at its sensors' rates: every camera frame and every package
+of the controller's 500 Hz state in the episode's file, on the steps' clock."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.robot.test_ur_cell import write_cell
+from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.streams import read_samples
+from twinrl_robot.record_settings import RecordSettings
+from twinrl_robot.recording import run_recording
+from twinrl_robot.ur.emulator.harness import EmulatorProcess
+from twinrl_robot.ur.sensor_streams import controller_names
+
+pytestmark = pytest.mark.realtime
+
+
+def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
+    tmp_path: Path,
+) -> None:
+    cell = write_cell(tmp_path)
+    host = cell.read_text().split("host: ")[1].split()[0]
+    camera = {"name": "front", "kind": "opencv", "source": f"http://{host}:8080/front",
+              "width": 160, "height": 120, "fps": 30}  # fmt: skip
+    cell = write_cell(tmp_path, cameras=[camera], arm={"model": "ur5e", "host": host,
+                      "control_hz": 10})  # fmt: skip
+    with EmulatorProcess(cell, effects=None):
+        report = run_recording(
+            RecordSettings(
+                str(tmp_path / "s"), robot="ur", cell=str(cell), emulated=True,
+                teleop="scripted", episodes=1, keys=False, max_steps=30,
+            )
+        )  # fmt: skip
+    path = report.episodes[0].path
+    episode = read_episode(path)
+    (samples,) = read_samples(path).values()
+    assert samples.names == controller_names()
+    # Every package once, in order, on the controller's 2 ms cycle.
+    cycles = np.round(np.diff(samples.clock) * 500)
+    assert (cycles >= 1).all() and np.allclose(np.diff(samples.clock) * 500, cycles, atol=0.01)
+    # One clock: the 500 Hz state spans the steps, and its joints agree with each step's.
+    steps = len(episode)
+    assert samples.times[0] < 0.2 and samples.times[-1] > (steps - 1) / 10
+    step_q = episode.data["observation.state"][:, :6]
+    nearest = np.clip(
+        np.searchsorted(samples.times, np.arange(steps) / 10), 0, len(samples.times) - 1
+    )
+    assert np.abs(samples.values[nearest, :6] - step_q).max() < 0.05
+    # The camera: each step given the frame it saw.
+    assert episode.images["front"].shape == (steps, 120, 160, 3)
+    result = export_dataset([episode], tmp_path / "dataset", repo_id="tests/live")
+    assert result.frames == steps

@@ -1,0 +1,128 @@
+"""A UR cell's sensors at their own rates, for a live episode (:mod:`twinrl_data.streams`).
+
+- **Cameras**: every frame each camera's thread delivers, handed over as it comes (the
+  recorder encodes it in its own thread).
+- **The controller's state** at its servo rate (500 Hz on an e-Series): ur_rtde's
+  receive interface, in the controller link's process, writes every package it
+  receives to a CSV file of its own (``startFileRecording``, in its C++ receive thread:
+  no package is skipped however busy the host's interpreter is), and a thread here
+  reads the new rows every :data:`READ_PERIOD` and hands them over, each stamped with
+  the controller's time mapped onto the host's clock (the offset is the smallest
+  host-minus-controller time seen at any observation, so a package never looks older
+  than it is). ur_rtde writes a package's row again when no new one came in between;
+  a row whose timestamp is not newer than the last is skipped.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twinrl_robot.ur.cameras import CameraRig, Frame
+
+READ_PERIOD = 0.2  # s between reads of the controller's new rows
+VARIABLES = ("timestamp", "actual_q", "actual_qd", "target_q", "target_moment", "actual_TCP_force")
+JOINTS = 6
+
+
+def controller_names() -> list[str]:
+    """Names of a controller sample's entries (timestamp aside)."""
+    names = [f"q.{i}" for i in range(JOINTS)] + [f"qd.{i}" for i in range(JOINTS)]
+    names += [f"target_q.{i}" for i in range(JOINTS)] + [f"tau.{i}" for i in range(JOINTS)]
+    return names + ["force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z"]
+
+
+class SensorStreams:
+    """The cameras of ``rig`` and the controller's state through ``receive`` (ur_rtde's
+    receive interface, or the link's proxy of it), handed to a live episode."""
+
+    def __init__(self, rig: CameraRig, receive: Any, servo_hz: float) -> None:
+        self.rig, self.receive, self.servo_hz = rig, receive, servo_hz
+        self.samples = {"controller": controller_names()}
+        self.offset: float | None = None  # s, host monotonic minus controller time
+        self.received = 0  # controller packages read this episode
+        self.handed: dict[str, int] = {}  # frames handed over this episode, per camera
+        self.cpu = 0.0  # s of CPU the reading thread used this episode
+        self._live: Any = None
+        self._folder: Path | None = None
+        self._stop = threading.Event()
+        self._reader: threading.Thread | None = None
+
+    @property
+    def cameras(self) -> dict[str, float]:
+        """The streamed cameras and their frame rates."""
+        return {camera.name: camera.fps for camera in self.rig.cameras}
+
+    def saw(self, controller_time: float, host_time: float) -> None:
+        """An observation read the controller's ``controller_time`` by ``host_time``."""
+        offset = host_time - controller_time
+        self.offset = offset if self.offset is None else min(self.offset, offset)
+
+    def start(self, live: Any) -> None:
+        """Hand every camera frame and controller package to ``live`` from now on."""
+        self._live, self.received = live, 0
+        self.handed = dict.fromkeys(self.cameras, 0)
+        for camera in self.rig.cameras:
+            camera.tap = lambda frame, name=camera.name: self._hand_frame(name, frame)
+        self._folder = Path(tempfile.mkdtemp(prefix="twinrl-controller-"))
+        path = self._folder / "controller.csv"
+        self.receive.startFileRecording(str(path), list(VARIABLES))
+        self._stop.clear()
+        self._reader = threading.Thread(
+            target=self._read, args=(path,), name="controller-samples", daemon=True
+        )
+        self._reader.start()
+
+    def _hand_frame(self, camera: str, frame: Frame) -> None:
+        self._live.frame(camera, frame.image, frame.stamp, frame.index)
+        self.handed[camera] += 1
+
+    def stop(self) -> None:
+        """Stop handing over (the rows written so far are read first)."""
+        for camera in self.rig.cameras:
+            camera.tap = None
+        if self._reader is None:
+            return
+        self.receive.stopFileRecording()
+        self._stop.set()
+        self._reader.join()
+        self._reader = None
+        if self._folder is not None:
+            shutil.rmtree(self._folder, ignore_errors=True)
+
+    def _read(self, path: Path) -> None:
+        while not path.exists():  # ur_rtde creates it with the first package
+            if self._stop.wait(READ_PERIOD / 4):
+                return
+        rest, last = b"", -np.inf
+        with open(path, "rb") as handle:
+            while True:
+                stopping = self._stop.wait(READ_PERIOD)
+                if self.offset is not None:
+                    rest, last = self._hand_over(rest + handle.read(), last)
+                if stopping:
+                    self.cpu = time.thread_time()
+                    return
+
+    def _hand_over(self, data: bytes, last: float) -> tuple[bytes, float]:
+        """Hand the complete rows of ``data`` newer than ``last`` over; (the incomplete
+        rest, the newest timestamp)."""
+        complete, _, rest = data.rpartition(b"\n")
+        lines = [line for line in complete.split(b"\n") if line[:1].isdigit()]  # no header
+        if not lines:
+            return rest, last
+        rows = np.loadtxt(lines, delimiter=",", ndmin=2)
+        rows = rows[rows[:, 0] > np.maximum.accumulate(np.r_[last, rows[:-1, 0]])]
+        if len(rows):
+            clock = rows[:, 0]
+            values = rows[:, 1:].astype(np.float32)
+            self._live.samples("controller", clock + self.offset, values, clock)
+            self.received += len(rows)
+            last = float(clock[-1])
+        return rest, last
