@@ -55,6 +55,7 @@ from twinrl_data import schema as contract
 from twinrl_data.atomic import disk_error
 from twinrl_data.errors import DataError, McapError
 from twinrl_data.messages import FloatVector, Transition
+from twinrl_data.step_frames import frames_of_steps
 
 TOPICS = {
     contract.STATE: "/observation/state",
@@ -533,8 +534,6 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
         raise McapError(
             f"{path} has no {TOPICS[contract.STATE]} messages: no complete step was logged"
         )
-    from twinrl_data.streams import frames_of_steps  # (it writes through this module)
-
     streamed = records.get(META_STREAMS, {}).get("cameras", {})
     frames = {cam: frames_of_steps(rows, step_times) if cam in streamed else rows
               for cam, rows in frames.items()}  # fmt: skip

@@ -179,20 +179,6 @@ class LiveEpisode:
                 self.counts[stream] += 1
 
 
-def frames_of_steps(
-    frames: Mapping[int, tuple[int, bytes]], step_times: list[int]
-) -> dict[int, tuple[int, bytes]]:
-    """A live episode's camera, every frame at its own rate, as one frame per step: the
-    newest frame captured by the step's time (what the step's observation saw), or the
-    first frame for steps before it."""
-    if not frames:
-        return {}
-    ordered = sorted(frames.values())
-    times = np.array([t for t, _ in ordered])
-    chosen = np.clip(np.searchsorted(times, step_times, side="right") - 1, 0, len(ordered) - 1)
-    return {step: ordered[index] for step, index in enumerate(chosen)}
-
-
 def read_samples(path: str | Path) -> dict[str, Samples]:
     """The sample streams of a live episode (none for an episode of steps only)."""
     from mcap.records import Channel, Message, Metadata
