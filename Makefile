@@ -77,6 +77,7 @@ demo: setup
 bench: setup
 	$(BIN)/python bench/bench_batch.py --episodes 32 --steps 60
 	$(BIN)/python bench/bench_data.py --episodes 4 --steps 100
+	MUJOCO_GL=egl $(BIN)/python bench/bench_recording.py --duration 60 --episode-seconds 30 --compare-seconds 20
 	$(BIN)/python bench/bench_expand.py --task insert_hexagon --demos 90
 	$(BIN)/python bench/bench_gap.py --episodes 20 --duration 10
 	$(BIN)/python bench/bench_reconstruct.py --seconds 60
