@@ -9,6 +9,10 @@ tracking servos. Usage::
 
     python bench/bench_gap.py --episodes 20 --duration 10
     python bench/bench_gap.py --episodes 20 --duration 10 --rate 125
+    python bench/bench_gap.py --episodes 20 --duration 10 --rate 125 --unscreened
+
+``--unscreened`` diagnoses the same log a second time fitting every candidate in every
+round (no first-step screen) and prints the time ratio side by side.
 """
 
 from __future__ import annotations
@@ -67,6 +71,10 @@ def main(
         float | None,
         typer.Option(help="Log rate (Hz), e.g. 125 as a CB3 logs; default the cell's 10 Hz."),
     ] = None,
+    unscreened: Annotated[
+        bool,
+        typer.Option(help="Also diagnose fitting every candidate in every round (no screen)."),
+    ] = False,
 ) -> None:
     hidden = load_effects(effects) if effects else DEFAULT_HIDDEN
     scene = make_task("pick_place").scene
@@ -87,14 +95,24 @@ def main(
     recording = time.perf_counter() - start
     measured = [read_episode(p, images=False) for p in session.episode_paths()]
     diagnosis = diagnose(measured, scene)
+    if unscreened:
+        full = diagnose(measured, scene, fitted_per_round=None)
+        named = lambda d: ", ".join(s["effect"] for s in d.selected) or "nothing"  # noqa: E731
+        print(
+            f"unscreened (every candidate fitted): {full.seconds:.1f} s, named {named(full)}, "
+            f"held-out {full.gap_before:.3g} -> {full.gap_after:.3g}; screened / unscreened "
+            f"time = {diagnosis.seconds / full.seconds:.2f}"
+        )
     batched, one_by_one, count = _jacobian_ratio(scene, measured)
     rows = sum(len(e) for e in measured)
+    results = [r for rnd in diagnosis.rounds for r in rnd]
+    screens = sum(r.screened for r in results)
     print(
         f"recording {episodes} x {duration:g} s at {measured[0].meta.fps:g} Hz ({rows} rows): "
         f"{recording:.1f} s"
     )
     print(
-        f"diagnose (whole library, {sum(len(r) for r in diagnosis.rounds)} fits): "
+        f"diagnose (whole library, {len(results) - screens} fits, {screens} screened): "
         f"{diagnosis.seconds:.1f} s = {diagnosis.seconds / TARGET_SECONDS:.2f} x the "
         f"{TARGET_SECONDS:.0f} s target"
     )
@@ -116,10 +134,11 @@ def main(
         f"held-out error {diagnosis.gap_before:.3g} -> {diagnosis.gap_after:.3g} "
         f"({100 * diagnosis.heldout_reduction:.1f} % smaller)"
     )
-    print("\nwhere the time goes: | round | effect | LM iterations | seconds |")
+    print("\nwhere the time goes: | round | effect | LM iterations | seconds | screened |")
     for number, results in enumerate(diagnosis.rounds, start=1):
         for r in results:
-            print(f"| {number} | {r.effect} | {r.iterations} | {r.seconds:.1f} |")
+            screened = "yes" if r.screened else ""
+            print(f"| {number} | {r.effect} | {r.iterations} | {r.seconds:.1f} | {screened} |")
 
 
 if __name__ == "__main__":

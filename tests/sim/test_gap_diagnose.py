@@ -398,6 +398,7 @@ def test_names_a_hidden_joint_offset_in_imported_rtde_logs(tmp_path):
         ("--effects-allowed friction", "names 'friction', not an effect"),
         ("--heldout 1.5", "heldout must be a fraction"),
         ("--noise q=-1", "must be positive"),
+        ("--fitted-per-round -1", "fitted_per_round must be at least 1"),
     ],
 )
 def test_cli_rejects_bad_input(tmp_path, option, message):

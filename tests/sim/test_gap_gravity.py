@@ -93,7 +93,8 @@ def test_a_hidden_tool_and_gravity_error_are_named_at_ur_rates(tmp_path, rate):
 def test_an_effect_that_others_explain_once_named_is_dropped(tmp_path):
     """A constant torque offset stands in for a tool's weight over a few poses; once the
     payload is named beside it, the payload alone explains the log and the offset goes."""
-    from twinrl_sim.gap.diagnose import _prune, split_windows
+    from twinrl_sim.gap.diagnose import split_windows
+    from twinrl_sim.gap.search import prune
 
     episodes = _logs(tmp_path, 125.0, episodes=3, duration=6.0, hidden={"payload": TOOL})
     scene = _ur_twin(125.0)
@@ -111,5 +112,5 @@ def test_an_effect_that_others_explain_once_named_is_dropped(tmp_path):
     named += [{"effect": "payload", "params": fitted["payload"]}]
     named[0]["params"] = fitted["torque_offset"]
     with Rollout(nthread=2) as pool:
-        _, kept, dropped = _prune(scene, split.train, split.held, NoiseFloor(), named, pool)
+        _, kept, dropped = prune(scene, split.train, split.held, NoiseFloor(), named, pool)
     assert [k["effect"] for k in kept] == ["payload"] and "torque_offset" in dropped

@@ -133,11 +133,19 @@ def diagnose_command(
         ),
     ] = "",
     seed: Annotated[int, typer.Option(help="Seeds the held-out split and window choice.")] = 0,
+    fitted_per_round: Annotated[
+        int | None,
+        typer.Option(
+            help="Candidates fitted in full per round, those whose first Gauss-Newton step "
+            "explains most (default: the diagnosis's own few; 0: every candidate, "
+            "unscreened, slower)."
+        ),
+    ] = None,
 ) -> None:
-    """Name the physical effects the twin lacks: fit every candidate effect to the
-    measured episodes (mujoco.sysid over shooting windows), keep the one that held-out
-    episodes and BIC support, repeat until none is significant, and write the fitted
-    twin with a report of the gap before and after."""
+    """Name the physical effects the twin lacks: screen every candidate effect on the
+    measured episodes (mujoco.sysid over shooting windows) and fit the most promising,
+    keep the one that held-out episodes and BIC support, repeat until none is
+    significant, and write the fitted twin with a report of the gap before and after."""
     from twinrl_data.sources import discover_episodes
     from twinrl_sim.gap.diagnose import diagnose
     from twinrl_sim.gap.identify import NoiseFloor
@@ -164,6 +172,7 @@ def diagnose_command(
             window=window,
             noise=noise_floor,
             seed=seed,
+            **({} if fitted_per_round is None else {"fitted_per_round": fitted_per_round or None}),
             log=lambda message: bar.update(job, description=message),
         )
         bar.update(job, description="localise and write the report")

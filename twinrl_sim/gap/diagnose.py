@@ -2,23 +2,26 @@
 
 1. The measured episodes are split into training and held-out episodes (``heldout``);
    one long log is split in time (its last span held out).
-2. Every candidate effect (:data:`CANDIDATES`) is fitted on the training windows with
-   the effects already named held fixed, then scored on the held-out windows
-   (``heldout_error``: RMS residual in sensor-noise units, 1 at the noise floor) and by
-   AIC/BIC on the training windows.
-3. The candidate with the lowest held-out error is named when it is *significant*: its
-   BIC beats the twin without it by more than :data:`BIC_MARGIN` (very strong evidence)
-   **and** it cuts the held-out error by at least :data:`MIN_HELDOUT_GAIN`. Time-
-   correlated residuals make information criteria over-confident; the held-out test
-   keeps a candidate that only fits noise from being named.
-4. Repeat with the named effects added, until no candidate is significant, refitting
-   every remaining candidate (a large effect can mask a smaller one in the first round:
-   a rotor inertia beside joint friction is not significant on its own, yet explains
-   most of what the friction leaves). When none is significant with the named effects
-   held, the best :data:`JOINT_REFITS` are refit together with them (held, a named
-   effect keeps what it absorbed of the next one). After each effect is named, all
-   named effects are refit together, and the search stops once the held-out error is at
-   the noise floor (:data:`AT_NOISE`).
+2. Every candidate effect (:data:`CANDIDATES`) is screened on the training windows with
+   the effects already named held fixed (one Gauss-Newton step), and the most promising
+   are fitted in full (:mod:`twinrl_sim.gap.search`), then scored on the held-out
+   windows (``heldout_error``: RMS residual in sensor-noise units, 1 at the noise floor)
+   and by AIC/BIC on the training windows.
+3. The fitted candidate with the lowest held-out error is named when it is
+   *significant*: its BIC beats the twin without it by more than ``BIC_MARGIN`` (very
+   strong evidence) **and** it cuts the held-out error by at least
+   ``MIN_HELDOUT_GAIN``. Time-correlated residuals make information criteria
+   over-confident; the held-out test keeps a candidate that only fits noise from being
+   named.
+4. Repeat with the named effects added, until no candidate is significant, screening
+   every remaining candidate again (a large effect can mask a smaller one in the first
+   round: a rotor inertia beside joint friction is not significant on its own, yet
+   explains most of what the friction leaves). When none is significant with the named
+   effects held, the best few are refit together with them (held, a named effect keeps
+   what it absorbed of the next one). After each effect is named, all named effects are
+   refit together, and the search stops once the held-out error is at the noise floor
+   (:data:`AT_NOISE`). Then each named effect that the others, refit without it,
+   explain as well is dropped.
 5. When the episodes log camera images, ``camera_pose`` is fitted per camera on its own
    residuals (:mod:`twinrl_sim.gap.camera`: the twin's render at the measured state
    against the logged image) and named by the same rule; the camera it helps most is
@@ -30,10 +33,9 @@
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 from mujoco.rollout import Rollout
@@ -48,46 +50,33 @@ from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_fra
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.gap.command_lag import command_lag
 from twinrl_sim.gap.gravity import GRAVITY_EFFECTS, separable_parts
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, likelihood_term
+from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
+from twinrl_sim.gap.search import (
+    BIC_MARGIN,
+    SCREEN_KEEP,
+    CandidateResult,
+    information,
+    prune,
+    refit,
+    rms,
+    score,
+    search_round,
+)
 from twinrl_sim.gap.windows import Windows, cut_windows
 from twinrl_sim.spec import SceneSpec
 
-BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
-MIN_HELDOUT_GAIN = 0.05  # relative held-out error reduction a named effect must bring
 # The same for a camera pose: pixel residuals are strongly correlated and carry the
 # lighting and tracking differences no pose can explain, on which a sub-millimetre
 # nudge of a well-mounted camera gains a few per cent; a real mounting error gains more.
 # Appearance is judged by the same bar.
 MIN_IMAGE_GAIN = 0.2
 FIT_WINDOWS = 24  # training windows a candidate is fitted on (spread over the episodes)
-JOINT_REFITS = 2  # best candidates refit with the named effects when none is significant
 MAX_EFFECTS = 3  # rounds of naming
 # Held-out error (noise units: 1 is a twin that explains everything but sensor noise)
 # above which the report calls the twin far off, not close.
 FAR_ABOVE_NOISE = 2.0
 AT_NOISE = 1.2  # held-out error at which the named effects explain all but sensor noise
-
-
-@dataclass
-class CandidateResult:
-    """One candidate effect fitted in one round."""
-
-    effect: str
-    params: dict[str, float | list[float]]
-    ci: dict[str, float | list[float]]  # 95 % half-widths, same units as params
-    heldout_error: float
-    aic: float
-    bic: float
-    delta_bic: float  # against the twin without this candidate (negative: better)
-    significant: bool
-    iterations: int
-    seconds: float
-    compared: str = "motion"  # the residuals it was judged on: motion, or images:<camera>
-    fit_failed: bool = False  # its fit ended worse than it started: never named
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 @dataclass
@@ -279,13 +268,22 @@ def diagnose(
     noise: NoiseFloor | None = None,
     seed: int = 0,
     fit_windows: int = FIT_WINDOWS,
+    fitted_per_round: int | None = SCREEN_KEEP,
     log: Callable[[str], None] = lambda _: None,
 ) -> Diagnosis:
-    """Find, fit and name the effects that ``scene`` lacks to explain ``episodes``."""
+    """Find, fit and name the effects that ``scene`` lacks to explain ``episodes``.
+
+    Each round fits the ``fitted_per_round`` candidates whose first step explains most
+    (None: every candidate, unscreened; slower, for checking the screen)."""
     started = time.perf_counter()
     noise = noise or NoiseFloor()
     if not 0 < heldout < 1:
         raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
+    if fitted_per_round is not None and fitted_per_round < 1:
+        raise SettingError(
+            "fitted_per_round",
+            f"must be at least 1 (or unset: every candidate), got {fitted_per_round}",
+        )
     layout = compile_scene(scene).layout
     objects = [o.name for o in scene.objects]
     windows = cut_windows(episodes, layout, objects, window=window)
@@ -313,29 +311,13 @@ def diagnose(
     rollout = Rollout(nthread=2)
     try:
         fixed: dict[str, dict] = {}
-        baseline = _score(scene, fit_on, held, noise, fixed, rollout)
+        baseline = score(scene, fit_on, held, noise, fixed, rollout)
         first_baseline = baseline
         rounds: list[list[CandidateResult]] = []
         selected: list[dict] = []
         while pool and len(selected) < MAX_EFFECTS:
-            results = []
-            for name in pool:
-                log(f"round {len(rounds) + 1}: fitting {name}")
-                results.append(
-                    _fit_candidate(scene, fit_on, held, noise, fixed, name, baseline, rollout)
-                )
-            results.sort(key=lambda r: r.heldout_error)
-            if fixed and not results[0].significant:
-                # Held where they were named, the named effects keep what they absorbed
-                # of the next one (a friction fitted without the rotor inertia beside it
-                # takes part of its torque): the best few are refit together with them.
-                joint = [
-                    _fit_candidate(
-                        scene, fit_on, held, noise, fixed, r.effect, baseline, rollout, jointly=True
-                    )
-                    for r in results[:JOINT_REFITS]
-                ]
-                results = sorted(joint + results[JOINT_REFITS:], key=lambda r: r.heldout_error)
+            log(f"round {len(rounds) + 1}: {len(pool)} candidates")
+            results = search_round(scene, fit_on, held, noise, fixed, pool, baseline, rollout, log)
             rounds.append(results)
             best = results[0]
             if not best.significant:
@@ -347,8 +329,8 @@ def diagnose(
                 # Fitted one after the other, each effect absorbs some of the next; fitted
                 # together they explain what they really do, before anything more is sought.
                 log(f"refitting {', '.join(s['effect'] for s in selected)} together")
-                fixed, selected = _refit(scene, fit_on, noise, selected, rollout)
-            baseline = _score(scene, fit_on, held, noise, fixed, rollout)
+                fixed, selected = refit(scene, fit_on, noise, selected, rollout)
+            baseline = score(scene, fit_on, held, noise, fixed, rollout)
             if baseline.heldout_error <= AT_NOISE:
                 break  # what is left is sensor noise: nothing more to name
             # Every other candidate is refit on what remains: an effect masked by a
@@ -358,7 +340,7 @@ def diagnose(
         dropped: dict[str, str] = {}
         if len(selected) > 1:
             log(f"checking that each of {', '.join(s['effect'] for s in selected)} is needed")
-            fixed, selected, dropped = _prune(scene, fit_on, held, noise, selected, rollout)
+            fixed, selected, dropped = prune(scene, fit_on, held, noise, selected, rollout)
         camera_results, image_gap = [], {}
         for camera in cameras:
             log(f"fitting camera_pose of the {camera} camera on its images")
@@ -393,9 +375,9 @@ def diagnose(
         rollout.close()
     named_cameras = [s["params"]["camera"] for s in selected if s["effect"] == "camera_pose"]
     scale = np.array([getattr(noise, f) for f in windows.families])
-    rms = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
-    gap_before = _rms((held.measured - predicted_before) / scale)
-    gap_after = _rms((held.measured - predicted_after) / scale)
+    per_signal = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731
+    gap_before = rms((held.measured - predicted_before) / scale)
+    gap_after = rms((held.measured - predicted_after) / scale)
     torque_before = inverse_dynamics_gap(held_episodes, scene)
     torque_after = inverse_dynamics_gap(held_episodes, scene, fixed)
     return Diagnosis(
@@ -411,8 +393,8 @@ def diagnose(
         gap_after=gap_after,
         signals=list(windows.names),
         units=[UNITS[f] for f in windows.families],
-        heldout_rms_before=rms(predicted_before).tolist(),
-        heldout_rms_after=rms(predicted_after).tolist(),
+        heldout_rms_before=per_signal(predicted_before).tolist(),
+        heldout_rms_after=per_signal(predicted_after).tolist(),
         inverse_dynamics={
             name: {"before": torque_before[name], "after": torque_after[name]}
             for name in torque_before
@@ -435,121 +417,6 @@ def diagnose(
         predicted_after=predicted_after,
         command_lag=command_lag(episodes),
     )
-
-
-@dataclass
-class _Score:
-    heldout_error: float
-    aic: float
-    bic: float
-
-
-def _information(residuals: np.ndarray, k: int) -> tuple[float, float]:
-    """(AIC, BIC) of residuals (n, W, n_signals) with a Gaussian likelihood whose
-    variance is fitted per signal (:func:`likelihood_term`), for ``k`` fitted parameters."""
-    rows = residuals.shape[0] * residuals.shape[1]
-    neg2_loglik = likelihood_term(residuals)
-    return neg2_loglik + 2 * k, neg2_loglik + k * math.log(residuals.shape[2] * rows)
-
-
-def _rms(residuals: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(residuals**2)))
-
-
-def _score(scene, fit_on, held, noise, fixed, rollout, parameters: int = 0) -> _Score:
-    train = WindowReplay(scene, fit_on, noise, fixed=fixed, pool=rollout).residuals()
-    heldout = WindowReplay(scene, held, noise, fixed=fixed, pool=rollout).residuals()
-    aic, bic = _information(train, parameters)
-    return _Score(_rms(heldout), aic, bic)
-
-
-def _size(effects: dict[str, dict]) -> int:
-    """How many numbers ``effects`` hold (their fitted parameters)."""
-    return sum(np.size(value) for params in effects.values() for value in params.values())
-
-
-def _prune(
-    scene, fit_on, held, noise, selected: list[dict], rollout
-) -> tuple[dict, list[dict], dict[str, str]]:
-    """The named effects without any that the others, refit without it, explain as well.
-
-    Named one after another, an effect named early can stand in for part of one named
-    later (a constant torque offset for a payload's weight over a narrow range of poses)
-    and stay named once the later one explains it. Each is tried in the order named and
-    dropped unless the set with it is significantly better (the naming rule: BIC better
-    by :data:`BIC_MARGIN` and held-out error :data:`MIN_HELDOUT_GAIN` lower) than the
-    others refit without it. Returns the kept effects, their records and what was
-    dropped with why."""
-    fixed = {s["effect"]: s["params"] for s in selected}
-    full = _score(scene, fit_on, held, noise, fixed, rollout, _size(fixed))
-    dropped: dict[str, str] = {}
-    for name in [s["effect"] for s in selected]:
-        others = [s for s in selected if s["effect"] != name]
-        if not others:
-            break
-        effects, refitted = _refit(scene, fit_on, noise, others, rollout)
-        without = _score(scene, fit_on, held, noise, effects, rollout, _size(effects))
-        needed = (
-            full.bic < without.bic - BIC_MARGIN
-            and full.heldout_error <= (1 - MIN_HELDOUT_GAIN) * without.heldout_error
-        )
-        if not needed:
-            kept = ", ".join(s["effect"] for s in others)
-            dropped[name] = f"named, then explained as well by {kept} refit without it"
-            selected, fixed, full = refitted, effects, without
-    return fixed, selected, dropped
-
-
-def _fit_candidate(
-    scene, fit_on, held, noise, fixed, name, baseline: _Score, rollout, jointly: bool = False
-) -> CandidateResult:
-    """``name`` fitted with the named effects (``fixed``) held, or ``jointly`` refit with
-    them (counted in the information criteria as the candidate's parameters only)."""
-    started = time.perf_counter()
-    if jointly:
-        kept, refit, start = {}, list(fixed), fixed
-    else:
-        kept, refit, start = fixed, [], None
-    replay = WindowReplay(
-        scene, fit_on, noise, fixed=kept, free=[*refit, name], start=start, pool=rollout
-    )
-    x, half_width, iterations = replay.fit()
-    refitted = sum(np.size(value) for n in refit for value in fixed[n].values())
-    aic, bic = _information(replay.residuals(x), len(x) - refitted)
-    effects = replay.effects_at(x)
-    heldout = WindowReplay(scene, held, noise, fixed=effects, pool=rollout).residuals()
-    error = _rms(heldout)
-    # A fit must never end worse than it started by the likelihood the BIC scores; one
-    # that does failed, and is reported so rather than as an insignificant candidate.
-    significant = (
-        not replay.ended_worse
-        and bic < baseline.bic - BIC_MARGIN
-        and error <= (1 - MIN_HELDOUT_GAIN) * baseline.heldout_error
-    )
-    return CandidateResult(
-        effect=name,
-        params=effects[name],
-        ci=replay.intervals_at(half_width)[name],
-        heldout_error=error,
-        aic=aic,
-        bic=bic,
-        delta_bic=bic - baseline.bic,
-        significant=bool(significant),
-        iterations=iterations,
-        seconds=time.perf_counter() - started,
-        fit_failed=replay.ended_worse,
-    )
-
-
-def _refit(scene, fit_on, noise, selected, rollout) -> tuple[dict, list[dict]]:
-    """Fit all named effects together, starting where they were named."""
-    names = [s["effect"] for s in selected]
-    start = {s["effect"]: s["params"] for s in selected}
-    replay = WindowReplay(scene, fit_on, noise, free=names, start=start, pool=rollout)
-    x, half_width, _ = replay.fit()
-    effects, intervals = replay.effects_at(x), replay.intervals_at(half_width)
-    refitted = [{"effect": n, "params": effects[n], "ci": intervals[n]} for n in names]
-    return effects, refitted
 
 
 def _fit_camera(
@@ -601,12 +468,12 @@ def _judge_image_fit(
         before = fit.residuals()
         x, half_width, iterations = fit.fit()
         after = fit.residuals(x)
-        gap = {"before": _rms(check.residuals()), "after": _rms(check.residuals(x))}
+        gap = {"before": rms(check.residuals()), "after": rms(check.residuals(x))}
     finally:
         fit.close()
         check.close()
-    _, bic_before = _information(before.reshape(1, -1, 1), 0)
-    aic, bic = _information(after.reshape(1, -1, 1), len(x))
+    _, bic_before = information(before.reshape(1, -1, 1), 0)
+    aic, bic = information(after.reshape(1, -1, 1), len(x))
     gain = 1 - gap["after"] / gap["before"] if gap["before"] > 0 else 0.0
     significant = bic < bic_before - BIC_MARGIN and gain >= MIN_IMAGE_GAIN
     return CandidateResult(

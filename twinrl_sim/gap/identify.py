@@ -430,6 +430,30 @@ class WindowReplay:
         self.ended_worse = likelihood_term(self.residuals(x)) > before + 1e-6
         return x, np.where(loose, np.inf, half_width), iterations
 
+    def first_step(self) -> tuple[np.ndarray, np.ndarray]:
+        """One Gauss-Newton step from the start, as a screen of what a fit could reach:
+        (the best of the start, the step and half of it, in optimiser units; the
+        residuals there, shaped as :meth:`residuals`). Costs the Jacobian's rollouts and
+        one more batch, a single iteration of :meth:`fit`."""
+        shape = self.windows.measured.shape
+        start = self.params.as_vector()[:, None]
+        bounds = [bound[:, None] for bound in self.params.get_bounds()]
+
+        def residual(z: np.ndarray) -> np.ndarray:
+            return np.concatenate(self.residual_fn(z, self.params.copy())[0])
+
+        at_start = residual(start)
+        jac, _ = minimize.jacobian_fd(residual, start, at_start, FD_STEP, 0, bounds)
+        norms = np.linalg.norm(jac, axis=0)
+        norms[norms == 0] = 1.0  # a parameter the data do not see: no step
+        step = np.linalg.lstsq(jac / norms, -at_start[:, 0], rcond=None)[0] / norms
+        trials = np.clip(start + step[:, None] * np.array([[1.0, 0.5]]), *bounds)
+        points = np.column_stack([start, trials])
+        residuals = np.column_stack([at_start, residual(trials)])
+        scores = [likelihood_term(residuals[:, i].reshape(shape)) for i in range(3)]
+        best = int(np.argmin(scores))
+        return points[:, best], residuals[:, best].reshape(shape)
+
     def _null_vector(self) -> np.ndarray:
         """The free parameters' "no effect" values, in optimiser units."""
         null = np.empty(self.params.size)

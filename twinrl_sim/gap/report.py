@@ -15,15 +15,9 @@ from twinrl_data.view import GHOST_ALPHA, log_cell_geometry, log_cell_poses
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell_view import TwinCell
 from twinrl_sim.errors import TwinError
-from twinrl_sim.gap.diagnose import (
-    AT_NOISE,
-    BIC_MARGIN,
-    FAR_ABOVE_NOISE,
-    MIN_HELDOUT_GAIN,
-    MIN_IMAGE_GAIN,
-    Diagnosis,
-)
+from twinrl_sim.gap.diagnose import AT_NOISE, FAR_ABOVE_NOISE, MIN_IMAGE_GAIN, Diagnosis
 from twinrl_sim.gap.localize import Disagreement, plot_localization
+from twinrl_sim.gap.search import BIC_MARGIN, MIN_HELDOUT_GAIN, SCREEN_KEEP
 from twinrl_sim.spec import SceneSpec, save_spec
 
 PLOTTED_SIGNALS = 4  # signals of the held-out overlay plot (largest gap first)
@@ -116,11 +110,14 @@ def plot_candidates(diagnosis: Diagnosis, path: Path) -> None:
     for i, (ax, results) in enumerate(zip(axes, rounds, strict=False)):
         names = [r.effect for r in results]
         errors = [r.heldout_error for r in results]
-        colors = ["tab:green" if r.significant else "tab:gray" for r in results]
+        colors = [
+            "tab:green" if r.significant else "silver" if r.screened else "tab:gray"
+            for r in results
+        ]
         ax.barh(names[::-1], errors[::-1], color=colors[::-1])
         ax.set_xscale("log")
         ax.set_xlabel("held-out error (noise units, log)")
-        ax.set_title(f"round {i + 1}: green = significant")
+        ax.set_title(f"round {i + 1}: green significant, light screened")
         ax.axvline(1.0, color="k", lw=0.8, ls=":")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -332,7 +329,9 @@ def write_markdown(diagnosis: Diagnosis, localization: list[Disagreement], path:
         "",
         f"A candidate is significant when its BIC beats the twin without it by more than "
         f"{BIC_MARGIN:g} and it cuts the held-out error by at least "
-        f"{100 * MIN_HELDOUT_GAIN:.0f} %. Intervals assume independent residuals and are "
+        f"{100 * MIN_HELDOUT_GAIN:.0f} %. Each round takes one Gauss-Newton step of every "
+        f"candidate and fits the {SCREEN_KEEP} whose step explains most; the others are "
+        "shown at their step (screened). Intervals assume independent residuals and are "
         "therefore optimistic.",
         "",
     ]
@@ -499,4 +498,6 @@ def _verdict(result) -> str:
     """A candidate's significance column; a fit that ended worse than it started says so."""
     if result.fit_failed:
         return "no: its fit ended worse than it started"
+    if result.screened:
+        return "no: screened (one step; others explained more)"
     return "yes" if result.significant else "no"
