@@ -37,6 +37,7 @@ from twinrl_data.lerobot_io import (
     open_dataset,
     read_sidecar,
 )
+from twinrl_data.live_export import LiveRows, read_for_export
 from twinrl_data.mcap_log import CAMERA_PREFIX, read_episode
 from twinrl_data.session import Session, is_session
 
@@ -332,11 +333,12 @@ def _run(
         raise DataError(f"query failed: {message}") from None
 
 
-def load_selected(table: pa.Table) -> Iterator[contract.Episode]:
-    """The episodes behind catalog rows (as selected by :func:`query`), in row order."""
+def load_selected(table: pa.Table, *, live: bool = False) -> Iterator[contract.Episode | LiveRows]:
+    """The episodes behind catalog rows (as selected by :func:`query`), in row order;
+    ``live``: live episode files as their rows at their cameras' rate (for export)."""
     rows = table.select(["kind", "path", "dataset_index"]).to_pylist() if table.num_rows else []
     for row in rows:
         if row["kind"] == "mcap":
-            yield read_episode(row["path"])
+            yield read_for_export(row["path"]) if live else read_episode(row["path"])
         else:
             yield next(iter_dataset_episodes(row["path"], episodes=[int(row["dataset_index"])]))

@@ -21,6 +21,7 @@ from twinrl_data.lerobot_io import (
     missing_contract_fields,
     open_dataset,
 )
+from twinrl_data.live_export import LiveRows
 from twinrl_data.repair import repair_session, verify
 from twinrl_data.salvage import recover
 from twinrl_data.session import Session
@@ -49,7 +50,12 @@ DEFAULT_COLUMNS = (
 
 
 def export_with_progress(
-    episodes: Iterator[contract.Episode], count: int, to: Path, *, repo_id: str | None, force: bool
+    episodes: Iterator[contract.Episode | LiveRows],
+    count: int,
+    to: Path,
+    *,
+    repo_id: str | None,
+    force: bool,
 ) -> None:
     """Export with a progress bar and a one-line summary."""
     quiet_encoders()
@@ -149,7 +155,7 @@ def export_command(
     """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved)."""
     if where is not None and source.suffix != ".parquet":
         raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
-    episodes, count = open_episodes(source, where=where)
+    episodes, count = open_episodes(source, where=where, live=True)
     export_with_progress(episodes, count, to, repo_id=repo_id, force=force)
 
 
@@ -305,5 +311,9 @@ def curate_command(
             "the selection is empty; loosen the filters (try `twinrl data query` first)"
         )
     export_with_progress(
-        catalog_lib.load_selected(table), table.num_rows, to, repo_id=repo_id, force=force
+        catalog_lib.load_selected(table, live=True),
+        table.num_rows,
+        to,
+        repo_id=repo_id,
+        force=force,
     )

@@ -11,6 +11,10 @@ metadata (source, world, region, config, twin digest, policy, success, intervent
       data/chunk-000/file-000.parquet                                          (lerobot)
       videos/observation.images.front/chunk-000/file-000.mp4                   (lerobot)
 
+A live episode (every camera frame and the controller's state at their own rates) is
+exported at its cameras' rate, its videos as they were encoded while recording
+(:mod:`twinrl_data.live_export` says what each row holds).
+
 Import reads any LeRobotDataset (twinrl's or one recorded with lerobot's tools) back
 into episodes; contract fields the dataset lacks are reported, not invented.
 """
@@ -30,6 +34,16 @@ import numpy as np
 from twinrl_data import schema as contract
 from twinrl_data.atomic import publishing, write_text_atomic
 from twinrl_data.errors import DataError
+from twinrl_data.live_export import (
+    INFO_KEY,
+    LiveRows,
+    LiveVideos,
+    decode_jpeg,
+    encoder_config,
+    live_dataset_class,
+    live_info,
+    video_stats,
+)
 
 SIDECAR = Path("meta") / "twinrl" / "episodes.jsonl"
 CHECKSUMS = Path("meta") / "twinrl" / "files.json"  # sha256 of every file, at export
@@ -52,8 +66,17 @@ def _lerobot():
     return LeRobotDataset
 
 
-def features_for(episode: contract.Episode) -> dict[str, dict[str, Any]]:
+def features_for(episode: contract.Episode | LiveRows) -> dict[str, dict[str, Any]]:
     """LeRobot feature spec of an episode's fields (vectors, flags, camera videos)."""
+    if isinstance(episode, LiveRows):
+        features = features_for(episode.episode)
+        for camera in episode.frames:
+            features[contract.image_field(camera)] = {
+                "dtype": "video",
+                "shape": episode.shape(camera),
+                "names": ["height", "width", "channels"],
+            }
+        return features
     features: dict[str, dict[str, Any]] = {}
     for key in contract.VECTOR_FIELDS:
         if key in episode.data:
@@ -102,14 +125,15 @@ class ExportResult:
 
 
 def export_dataset(
-    episodes: Iterable[contract.Episode],
+    episodes: Iterable[contract.Episode | LiveRows],
     to: str | Path,
     *,
     repo_id: str | None = None,
     force: bool = False,
     on_episode: Callable[[contract.Episode], None] | None = None,
 ) -> ExportResult:
-    """Write ``episodes`` (all with the same fields and shapes) as one LeRobotDataset.
+    """Write ``episodes`` (all with the same fields, shapes and rate) as one LeRobotDataset;
+    a live episode's :class:`~twinrl_data.live_export.LiveRows` at its cameras' rate.
 
     ``to`` must not exist unless ``force`` (then it is replaced). Raises
     :class:`~twinrl_data.errors.DataError` when episodes disagree on their fields.
@@ -149,62 +173,107 @@ def _write_checksums(root: Path) -> None:
 def _write(
     root: Path,
     repo_id: str,
-    first: contract.Episode,
-    rest: Iterable[contract.Episode],
+    first: contract.Episode | LiveRows,
+    rest: Iterable[contract.Episode | LiveRows],
     on_episode: Callable[[contract.Episode], None] | None,
 ) -> tuple[int, int]:
     """Write ``first`` and ``rest`` as a new LeRobotDataset at ``root``: (episodes, frames)."""
     features = features_for(first)
-    dataset = _lerobot().create(
+    fps = round(_episode(first).meta.fps)
+    live = LiveVideos() if isinstance(first, LiveRows) else None
+    create = live_dataset_class(live).create if live is not None else _lerobot().create
+    dataset = create(
         repo_id=repo_id,
-        fps=round(first.meta.fps),
+        fps=fps,
         features=features,
         root=root,
-        robot_type=first.meta.robot,
+        robot_type=_episode(first).meta.robot,
         **WRITE_OPTIONS,
+        **({"rgb_encoder": encoder_config()} if live is not None else {}),
     )
     sidecar = root / SIDECAR
     sidecar.parent.mkdir(parents=True, exist_ok=True)
     count = frames = 0
     try:
         with open(sidecar, "w") as lines:
-            for episode in _chain(first, rest):
-                mismatch = _same_features(features, features_for(episode))
+            for item in _chain(first, rest):
+                episode = _episode(item)
+                mismatch = _same_features(features, features_for(item))
+                if round(episode.meta.fps) != fps:
+                    mismatch = f"{episode.meta.fps:g} fps, the first {fps} fps"
                 if mismatch:
                     raise DataError(
                         f"episode {episode.meta.episode_id} does not match the first one "
-                        f"({mismatch}); export episodes of one task and recorder together"
+                        f"({mismatch}); export episodes of one task and recorder together "
+                        "(a live episode exports at its cameras' rate)"
                     )
-                _add_episode(dataset, episode)
+                if isinstance(item, LiveRows) and live is not None:
+                    _add_live(dataset, item, live)
+                else:
+                    _add_episode(dataset, episode)
                 lines.write(json.dumps({"episode_index": count, **episode.meta.to_dict()}) + "\n")
                 count += 1
-                frames += len(episode)
+                frames += len(item)
                 if on_episode is not None:
                     on_episode(episode)
     finally:
         dataset.finalize()
+    if isinstance(first, LiveRows):
+        info_path = root / "meta" / "info.json"
+        info = json.loads(info_path.read_text())
+        write_text_atomic(info_path, json.dumps({**info, INFO_KEY: live_info(first)}, indent=4))
     return count, frames
 
 
-def _chain(first: contract.Episode, rest: Iterable[contract.Episode]) -> Iterable[contract.Episode]:
+def _episode(item: contract.Episode | LiveRows) -> contract.Episode:
+    return item.episode if isinstance(item, LiveRows) else item
+
+
+def _chain(first: Any, rest: Iterable[Any]) -> Iterable[Any]:
     yield first
     yield from rest
 
 
-def _add_episode(dataset: Any, episode: contract.Episode) -> None:
-    task = episode.meta.instruction or episode.meta.task
-    vector_keys = [k for k in contract.VECTOR_FIELDS if k in episode.data]
-    flag_keys = [k for k in contract.SCALAR_FIELDS if k in episode.data]
-    for t in range(len(episode)):
-        frame: dict[str, Any] = {"task": task}
-        for key in vector_keys:
+def _fields(episode: contract.Episode, t: int) -> dict[str, Any]:
+    """Row ``t`` of an episode's vector and scalar fields, as lerobot's frame holds them."""
+    frame: dict[str, Any] = {"task": episode.meta.instruction or episode.meta.task}
+    for key in contract.VECTOR_FIELDS:
+        if key in episode.data:
             frame[key] = episode.data[key][t].astype(np.float32)
-        for key in flag_keys:
-            value = episode.data[key][t]
+    for key in contract.SCALAR_FIELDS:
+        if key in episode.data:
             dtype = np.float32 if key == contract.REWARD else bool
-            frame[key] = np.array([value], dtype=dtype)
+            frame[key] = np.array([episode.data[key][t]], dtype=dtype)
+    return frame
+
+
+def _add_episode(dataset: Any, episode: contract.Episode) -> None:
+    for t in range(len(episode)):
+        frame = _fields(episode, t)
         for camera, frames in episode.images.items():
             frame[contract.image_field(camera)] = frames[t]
+        dataset.add_frame(frame)
+    dataset.save_episode()
+
+
+def _add_live(dataset: Any, rows: LiveRows, videos: LiveVideos) -> None:
+    """A live episode's rows; its videos as encoded while recording when it has them all
+    (a crashed episode has none: its frames are encoded here)."""
+    encoded = set(rows.videos) == set(rows.frames)
+    videos.use(
+        {
+            contract.image_field(camera): (rows.videos[camera], video_stats(rows.frames[camera]))
+            for camera in rows.frames
+        }
+        if encoded
+        else None
+    )
+    blank = {camera: np.zeros(rows.shape(camera), np.uint8) for camera in rows.frames}
+    for t in range(len(rows)):
+        frame = _fields(rows.episode, t)
+        for camera, jpegs in rows.frames.items():
+            image = blank[camera] if encoded else decode_jpeg(jpegs[t])
+            frame[contract.image_field(camera)] = image
         dataset.add_frame(frame)
     dataset.save_episode()
 

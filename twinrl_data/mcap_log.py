@@ -231,6 +231,10 @@ class EpisodeWriter:
         """Write a metadata record (values JSON-encoded)."""
         self._guarded(lambda: self._writer.add_metadata(name, _encode(values)))
 
+    def attach(self, name: str, media_type: str, data: bytes) -> None:
+        """Write a file into the episode (an MCAP attachment)."""
+        self._guarded(lambda: self._writer.add_attachment(0, 0, name, media_type, data))
+
     def flush(self) -> None:
         """Close the open chunk: what was written so far survives a crash."""
         self._guarded(self._writer.flush)

@@ -20,6 +20,7 @@ from pathlib import Path
 from twinrl_data import catalog
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import iter_dataset_episodes
+from twinrl_data.live_export import LiveRows, read_for_export
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode
 from twinrl_data.session import Session, is_session
@@ -32,24 +33,29 @@ def is_dataset(path: Path) -> bool:
 
 
 def open_episodes(
-    source: str | Path, *, where: str | None = None, images: bool = True
-) -> tuple[Iterator[Episode], int]:
+    source: str | Path, *, where: str | None = None, images: bool = True, live: bool = False
+) -> tuple[Iterator[Episode | LiveRows], int]:
     """The episodes of ``source`` in order, read as they are consumed, and their count.
 
     ``where`` is an SQL filter over a catalog's columns (catalogs only); ``images=False``
-    skips decoding camera frames.
+    skips decoding camera frames; ``live``: live episode files as their rows at their
+    cameras' rate (:mod:`twinrl_data.live_export`, for export).
     """
     path = Path(source)
     if path.suffix == ".parquet":
         table = catalog.query(path, where=where)
-        return catalog.load_selected(table), table.num_rows
+        return catalog.load_selected(table, live=live), table.num_rows
     if where is not None:
         raise DataError(f"a filter selects rows of a catalog (.parquet); {path} is not one")
+
+    def read(file: Path) -> Episode | LiveRows:
+        return read_for_export(file) if live else read_episode(file, images=images)
+
     if path.suffix == ".mcap":
-        return iter([read_episode(path, images=images)]), 1
+        return iter([read(path)]), 1
     if is_session(path):
         paths = _session_paths(path)
-        return (read_episode(p, images=images) for p in paths), len(paths)
+        return (read(p) for p in paths), len(paths)
     if is_dataset(path):
         count = int(json.loads((path / "meta" / "info.json").read_text())["total_episodes"])
         return iter_dataset_episodes(path, cameras=None if images else []), count

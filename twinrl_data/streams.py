@@ -16,7 +16,10 @@ sample streams.
 :class:`LiveEpisode` writes one from a background thread: the control loop, the
 cameras' threads and the sample readers only hand their data over (a queue), and the
 thread encodes the frames (JPEG), writes and closes a chunk every ``flush_seconds`` of
-the host's clock, so a crash loses at most that much (plus what is queued).
+the host's clock, so a crash loses at most that much (plus what is queued). It also
+encodes the cameras' videos for export (:mod:`twinrl_data.live_video`), attached to the
+file when the episode closes (``video/<camera>.mp4``, described by the metadata record
+``twinrl.videos``); a crashed episode has none, and its export encodes its frames.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
+from twinrl_data.live_video import VIDEO_CODEC, VIDEO_OPTIONS, RowVideos
 from twinrl_data.mcap_log import (
     CAMERA_PREFIX,
     META_START,
@@ -46,6 +50,8 @@ from twinrl_data.mcap_log import (
 from twinrl_data.messages import FloatVector
 
 SAMPLES_PREFIX = "/samples/"
+VIDEO_ATTACHMENT = "video/{camera}.mp4"
+META_VIDEOS = "twinrl.videos"
 JPEG_QUALITY = 90
 
 
@@ -87,6 +93,9 @@ class LiveEpisode:
             META_STREAMS,
             {"cameras": self.cameras, "samples": {k: list(v) for k, v in samples.items()}},
         )
+        self._videos = (
+            RowVideos(list(cameras), round(cameras[next(iter(cameras))])) if cameras else None
+        )
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="live-episode", daemon=True)
@@ -118,11 +127,28 @@ class LiveEpisode:
 
     # ---------------------------------------------------------------- closing
     def close(self) -> None:
-        """Write what is queued and stop the thread (the writer stays open)."""
+        """Write what is queued, stop the thread and attach the cameras' videos (the
+        writer stays open)."""
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
             raise DataError(f"the episode's writer stopped: {self._error}")
+        if self._videos is None:
+            return
+        videos = self._videos.close()
+        for camera, data in videos.items():
+            self.writer.attach(VIDEO_ATTACHMENT.format(camera=camera), "video/mp4", data)
+        self.writer.add_metadata(
+            META_VIDEOS,
+            {
+                "reference": self._videos.reference,
+                "fps": self._videos.videos[self._videos.reference].fps,
+                "frames": self._videos.videos[self._videos.reference].frames,
+                "codec": VIDEO_CODEC,
+                "options": VIDEO_OPTIONS,
+                "cameras": sorted(videos),
+            },
+        )
 
     # ------------------------------------------------------------ the thread
     def _ns(self, seconds: float) -> int:
@@ -167,6 +193,7 @@ class LiveEpisode:
             message = CompressedImage(frame_id=camera, format="jpeg", data=jpeg.tobytes())
             message.timestamp.FromNanoseconds(time_ns)
             self.writer.write(CAMERA_PREFIX + camera, message, time_ns, index)
+            self._videos.frame(camera, image, captured)
             self.counts[camera] += 1
         else:
             _, stream, received, rows, clock = item

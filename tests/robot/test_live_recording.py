@@ -1,5 +1,6 @@
 """Recording on a UR cell at its sensors' rates: every camera frame and every package
-of the controller's 500 Hz state in the episode's file, on the steps' clock."""
+of the controller's 500 Hz state in the episode's file, on the steps' clock, exported
+to LeRobot at the camera's rate."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 
 from tests.robot.test_ur_cell import write_cell
-from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.lerobot_io import export_dataset, open_dataset
+from twinrl_data.live_export import read_live
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.streams import read_samples
 from twinrl_robot.record_settings import RecordSettings
@@ -38,8 +40,12 @@ def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
         )  # fmt: skip
     path = report.episodes[0].path
     episode = read_episode(path)
-    (samples,) = read_samples(path).values()
+    streams = read_samples(path)
+    samples, state = streams["controller"], streams["observation.state"]
     assert samples.names == controller_names()
+    # The observation's state at the same rate: each package's joints, the TCP from them.
+    assert state.names == episode.meta.names["observation.state"]
+    np.testing.assert_array_equal(state.values[:, :12], samples.values[:, :12])
     # Every package once, in order, on the controller's 2 ms cycle.
     cycles = np.round(np.diff(samples.clock) * 500)
     assert (cycles >= 1).all() and np.allclose(np.diff(samples.clock) * 500, cycles, atol=0.01)
@@ -51,7 +57,16 @@ def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
         np.searchsorted(samples.times, np.arange(steps) / 10), 0, len(samples.times) - 1
     )
     assert np.abs(samples.values[nearest, :6] - step_q).max() < 0.05
+    step_tcp = episode.data["observation.state"][:, 12:19]  # and the TCP computed from them
+    assert np.abs(state.values[nearest, 12:19] - step_tcp).max() < 0.02
     # The camera: each step given the frame it saw.
     assert episode.images["front"].shape == (steps, 120, 160, 3)
-    result = export_dataset([episode], tmp_path / "dataset", repo_id="tests/live")
-    assert result.frames == steps
+    # Exported at the camera's rate: every frame a row, the video encoded while recording.
+    rows = read_live(path)
+    assert set(rows.videos) == {"front"} and len(rows) > 2 * steps
+    result = export_dataset([rows], tmp_path / "dataset", repo_id="tests/live")
+    dataset = open_dataset(result.root)
+    assert dataset.fps == 30 and dataset.num_frames == len(rows)
+    row = dataset[len(rows) // 2]
+    newest = np.searchsorted(state.times, rows.times[len(rows) // 2], side="right") - 1
+    np.testing.assert_allclose(row["observation.state"].numpy(), state.values[newest])

@@ -41,6 +41,7 @@ from twinrl_data.schema import (
     EFFORT,
     ENVIRONMENT_STATE,
     JOINT_TARGET,
+    STATE,
     WRENCH,
     WRENCH_NAMES,
     effort_names,
@@ -178,7 +179,13 @@ class URArm:
         _connect(self._link)  # the stream kicks the watchdog from here on
         self._apply_cell_settings()
         self._next_step: float | None = None
-        self.sensors = SensorStreams(self.cameras, self._receive, self.servo_hz)
+        self._opening = 0.0  # the gripper's opening at the last observation
+        self._stream_kinematics = EndEffectorController(  # its own data: another thread's
+            twin.model, twin.layout, workspace, 1.0 / self.control_hz, settings
+        )
+        self.sensors = SensorStreams(
+            self.cameras, self._receive, self.servo_hz, self._state_of, self.names[STATE]
+        )
 
     # ---------------------------------------------------------------- episode
     def reset(self, config: TaskConfig | dict) -> dict[str, np.ndarray]:
@@ -250,7 +257,8 @@ class URArm:
         self.sensors.saw(clock, time.monotonic())
         q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
-        state = np.concatenate([q, qd, position, quat, [self.gripper.opening()]])
+        self._opening = self.gripper.opening()
+        state = np.concatenate([q, qd, position, quat, [self._opening]])
         observation = {
             "observation.state": state.astype(np.float32),
             CONTROLLER_TIME: np.array([clock - self._clock_at_reset], np.float32),
@@ -261,6 +269,14 @@ class URArm:
             observation[WRENCH] = np.array(forces[1], np.float32)
         observation.update(self.cameras.images())
         return observation
+
+    def _state_of(self, joints: np.ndarray, speeds: np.ndarray) -> np.ndarray:
+        """The observation's state of controller packages (see ``observe``)."""
+        poses = [np.concatenate(self._stream_kinematics.forward(q)) for q in joints]
+        opening = np.full((len(joints), 1), self._opening)
+        return np.hstack([joints, speeds, np.array(poses).reshape(-1, 7), opening]).astype(
+            np.float32
+        )
 
     def sensor_streams(self) -> SensorStreams:
         """The cameras' every frame and the controller's every package, for a live episode."""

@@ -11,6 +11,11 @@
   host-minus-controller time seen at any observation, so a package never looks older
   than it is). ur_rtde writes a package's row again when no new one came in between;
   a row whose timestamp is not newer than the last is skipped.
+- **The observation's state at the same rate** (stream ``observation.state``, the
+  contract's entries): each package's joints and speeds, the TCP pose from the twin's
+  kinematics of those joints, and the gripper's opening as the last observation read it
+  (the gripper reports at the control rate). Export to LeRobot at the cameras' rate
+  reads the state from it (:mod:`twinrl_data.live_export`).
 """
 
 from __future__ import annotations
@@ -19,11 +24,13 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from twinrl_data.schema import STATE
 from twinrl_robot.ur.cameras import CameraRig, Frame
 
 READ_PERIOD = 0.2  # s between reads of the controller's new rows
@@ -38,13 +45,28 @@ def controller_names() -> list[str]:
     return names + ["force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z"]
 
 
+StateOf = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""The observation's state (n x entries) of ``n`` packages' joints and speeds (n x 6 each)."""
+
+
 class SensorStreams:
     """The cameras of ``rig`` and the controller's state through ``receive`` (ur_rtde's
-    receive interface, or the link's proxy of it), handed to a live episode."""
+    receive interface, or the link's proxy of it), handed to a live episode; with
+    ``state_of`` (and its entries' ``state_names``) the observation's state as well."""
 
-    def __init__(self, rig: CameraRig, receive: Any, servo_hz: float) -> None:
+    def __init__(
+        self,
+        rig: CameraRig,
+        receive: Any,
+        servo_hz: float,
+        state_of: StateOf | None = None,
+        state_names: list[str] | None = None,
+    ) -> None:
         self.rig, self.receive, self.servo_hz = rig, receive, servo_hz
+        self.state_of = state_of
         self.samples = {"controller": controller_names()}
+        if state_of is not None:
+            self.samples[STATE] = list(state_names or [])
         self.offset: float | None = None  # s, host monotonic minus controller time
         self.received = 0  # controller packages read this episode
         self.handed: dict[str, int] = {}  # frames handed over this episode, per camera
@@ -123,6 +145,9 @@ class SensorStreams:
             clock = rows[:, 0]
             values = rows[:, 1:].astype(np.float32)
             self._live.samples("controller", clock + self.offset, values, clock)
+            if self.state_of is not None:
+                joints, speeds = values[:, :JOINTS], values[:, JOINTS : 2 * JOINTS]
+                self._live.samples(STATE, clock + self.offset, self.state_of(joints, speeds), clock)
             self.received += len(rows)
             last = float(clock[-1])
         return rest, last

@@ -1,0 +1,130 @@
+"""A live episode exported to LeRobot at its cameras' rate: every frame of the first
+camera a row, the state resampled from its 500 Hz stream, the control steps held."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from twinrl_data.errors import DataError
+from twinrl_data.lerobot_io import export_dataset
+from twinrl_data.live_export import INFO_KEY, encoder_config, read_live
+from twinrl_data.live_video import VIDEO_OPTIONS
+from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.salvage import recover
+from twinrl_data.schema import STATE, EpisodeMeta, step_record
+from twinrl_data.streams import LiveEpisode
+
+START = 1000.0  # s, the host's monotonic clock when the episode starts
+FPS, SERVO_HZ, CONTROL_HZ = 30, 500, 10
+FRONT_AT = 0.005  # s, the front camera's first capture after the start
+WRIST_AT = 0.020  # s, the wrist camera's
+
+
+def _frame(value: int) -> np.ndarray:
+    return np.full((48, 64, 3), value, np.uint8)
+
+
+def record_live(path: Path, seconds: float = 1.0) -> None:
+    """A live episode: two 30 fps cameras (frame k of the front one 8k bright, of the
+    wrist one 255 - 8k), a 500 Hz state stream (its entries the sample's time), 10 Hz
+    steps (step t's action t, its state -1)."""
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=CONTROL_HZ)
+    meta = meta.replace(names={STATE: ["a", "b", "c"]})
+    writer = EpisodeWriter(path, meta, flush_seconds=0)
+    live = LiveEpisode(
+        writer,
+        cameras={"front": FPS, "wrist": FPS},
+        samples={"controller": ["q.0"], STATE: ["a", "b", "c"]},
+        started=START,
+    )
+    frames = round(seconds * FPS)
+    for k in range(frames):
+        live.frame("front", _frame(8 * k), START + FRONT_AT + k / FPS, k)
+        live.frame("wrist", _frame(255 - 8 * k), START + WRIST_AT + k / FPS, k)
+    times = np.arange(round(seconds * SERVO_HZ)) / SERVO_HZ
+    for batch in np.array_split(np.arange(len(times)), 5):
+        rows = np.repeat(times[batch, None], 3, axis=1).astype(np.float32)
+        live.samples(STATE, START + times[batch], rows, times[batch])
+        live.samples("controller", START + times[batch], rows[:, :1], times[batch])
+    for t in range(round(seconds * CONTROL_HZ)):
+        observation = {STATE: np.full(3, -1, np.float32), "observation.images.front": _frame(0)}
+        action = np.full(7, t, np.float32)
+        step = step_record(observation, action, np.zeros(6), 0.0, False, False)
+        live.step(step, START + t / CONTROL_HZ)
+    live.close()
+    writer.close()
+
+
+def test_a_live_episode_exports_every_frame_at_the_cameras_rate(tmp_path: Path) -> None:
+    record_live(tmp_path / "live.mcap")
+    result = export_dataset([read_live(tmp_path / "live.mcap")], tmp_path / "ds", repo_id="t/live")
+    assert result.frames == FPS  # one row per front frame
+    dataset = LeRobotDataset("t/live", root=tmp_path / "ds", video_backend="pyav")
+    assert dataset.fps == FPS and dataset.num_frames == FPS
+    # Each camera's video holds the rows' frames, encoded as recorded.
+    for camera in ("front", "wrist"):
+        (video,) = (tmp_path / "ds" / "videos" / f"observation.images.{camera}").rglob("*.mp4")
+        with av.open(str(video)) as container:
+            assert sum(1 for _ in container.decode(video=0)) == FPS
+            assert container.streams.video[0].codec_context.name == "h264"
+    info = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())
+    assert info[INFO_KEY]["control_fps"] == CONTROL_HZ
+    for i in (0, 1, 14, 29):
+        row = dataset[i]
+        captured = FRONT_AT + i / FPS  # the row's time on the episode's clock
+        assert float(row["timestamp"]) == pytest.approx(i / FPS)
+        # The state: the newest 500 Hz sample at or before the frame's capture.
+        newest = np.floor(captured * SERVO_HZ + 1e-6) / SERVO_HZ
+        np.testing.assert_allclose(row[STATE].numpy(), newest, atol=1e-6)
+        # The action: the control step in force (step t observed at t / 10).
+        assert row["action"].numpy()[0] == np.floor(captured * CONTROL_HZ)
+        # The front camera's frame i; the wrist's newest frame captured by then.
+        front = 255 * row["observation.images.front"].numpy().mean()
+        assert front == pytest.approx(8 * i, abs=4)
+        seen = max(0, int(np.floor((captured - WRIST_AT) * FPS + 1e-6)))
+        wrist = 255 * row["observation.images.wrist"].numpy().mean()
+        assert wrist == pytest.approx(255 - 8 * seen, abs=4)
+
+
+def test_a_crashed_live_episode_exports_the_same_rows_encoding_its_frames(tmp_path: Path) -> None:
+    record_live(tmp_path / "live.mcap")
+    # Recovery keeps messages and metadata, not the videos attached at the end.
+    recovered = recover(tmp_path / "live.mcap", tmp_path / "recovered.mcap").output
+    rows = read_live(recovered)
+    assert rows.videos == {} and read_live(tmp_path / "live.mcap").videos.keys() == {
+        "front",
+        "wrist",
+    }
+    export_dataset([rows], tmp_path / "ds", repo_id="t/recovered")
+    dataset = LeRobotDataset("t/recovered", root=tmp_path / "ds", video_backend="pyav")
+    assert dataset.num_frames == FPS
+    front = 255 * dataset[14]["observation.images.front"].numpy().mean()
+    assert front == pytest.approx(8 * 14, abs=4)
+
+
+def test_live_and_step_rate_episodes_do_not_mix_in_one_dataset(tmp_path: Path) -> None:
+    record_live(tmp_path / "live.mcap")
+    rows = read_live(tmp_path / "live.mcap")
+    steps = read_episode(tmp_path / "live.mcap")  # the same episode at its control rate
+    with pytest.raises(DataError, match="10 fps, the first 30 fps.*cameras' rate"):
+        export_dataset([rows, steps], tmp_path / "ds")
+    assert not (tmp_path / "ds").exists()
+
+
+def test_an_episode_of_steps_only_is_not_read_as_live(tmp_path: Path) -> None:
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=CONTROL_HZ)
+    with EpisodeWriter(tmp_path / "steps.mcap", meta) as writer:
+        observation = {STATE: np.zeros(3, np.float32)}
+        writer.append(step_record(observation, np.zeros(7), np.zeros(6), 0.0, True, False))
+    with pytest.raises(DataError, match="not a live episode.*control rate"):
+        read_live(tmp_path / "steps.mcap")
+
+
+def test_the_videos_are_encoded_with_the_settings_lerobot_is_told() -> None:
+    assert encoder_config().get_codec_options(as_strings=True) == VIDEO_OPTIONS
