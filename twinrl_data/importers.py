@@ -331,6 +331,50 @@ def _relative_rotvec(q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
     return np.divide(v * angle, s, out=np.zeros_like(v), where=s > 1e-12)
 
 
+def _without_repeats(
+    times: np.ndarray, values: dict[str, np.ndarray], path: Path
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The rows without the copies a file recorder writes, saying how many it dropped.
+
+    ur_rtde's file recording writes a row per period of its own, not per package: a row
+    repeats the one before exactly (stamp and values) when no new package came in
+    between, and a row read while the next package arrived mixes the two (a stamp shared
+    with a neighbour, each value either that neighbour's or the row's on its other
+    side). Neither is a new sample; a clock coarser than the rows (every row's values
+    new) is neither, and is left to :func:`_clock`."""
+    table = np.column_stack([times, *values.values()])
+    exact = np.flatnonzero(np.all(table[1:] == table[:-1], axis=1)) + 1
+    keep = np.ones(len(times), bool)
+    keep[exact] = False
+    table = table[keep]
+    values_of = table[:, 1:]
+
+    def mixes(row: int, a: int, b: int) -> bool:  # each value is row a's or row b's
+        inside = 0 <= a < len(table) and 0 <= b < len(table)
+        return inside and bool(
+            np.all((values_of[row] == values_of[a]) | (values_of[row] == values_of[b]))
+        )
+
+    torn = []
+    for i in np.flatnonzero(table[1:, 0] == table[:-1, 0]):  # rows i and i+1 share a stamp
+        if mixes(i + 1, i, i + 2):
+            torn.append(i + 1)  # this stamp, partly the next package's values
+        elif mixes(i, i - 1, i + 1):
+            torn.append(i)  # the next stamp, partly the last package's values
+    if not len(exact) and not torn:
+        return times, values
+    rows = np.flatnonzero(keep)
+    keep[rows[torn]] = False
+    warnings.warn(
+        f"{path}: dropped {len(exact)} of {len(times)} rows that repeat the row before "
+        f"exactly and {len(torn)} that mix two packages under one stamp "
+        "(a file recorder writing on its own clock, as ur_rtde's does)",
+        DataWarning,
+        stacklevel=3,
+    )
+    return times[keep], {c: v[keep] for c, v in values.items()}
+
+
 def _clock(times: np.ndarray, cmap: ColumnMap, path: Path) -> np.ndarray:
     """Each row's time (s, from 0): from the log's rate and the row index when the column
     map gives one, else from the stamps, which must advance at every row (a row is never
@@ -384,6 +428,8 @@ def import_csv(
                 f"{path}: column {column} has a missing, non-numeric or absurd value in data "
                 f"row {bad[0] + 1}{more}; fix or drop those rows"
             )
+    if cmap.time is not None:
+        times, values = _without_repeats(times, values, path)
     times = _clock(times, cmap, path)
     rate = float(f"{1.0 / float(np.median(np.diff(times))):.4g}")  # 125 Hz, not 124.99998
     fps = float(fps or rate)

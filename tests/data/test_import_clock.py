@@ -58,3 +58,16 @@ def test_a_column_map_may_give_the_rate_instead_of_a_time_column(tmp_path):
         ColumnMap.load(tmp_path / "bad.yaml")
     with pytest.raises(DataError, match="rate must be a sample rate"):
         replace(RTDE_MAP, rate=float("nan"))
+
+
+def test_rows_that_repeat_the_row_before_exactly_are_dropped_and_said(tmp_path):
+    stamps = np.arange(400) / 125.0
+    path = _log(tmp_path, stamps)
+    lines = path.read_text().splitlines()
+    repeated = [lines[0]] + [
+        row for i, row in enumerate(lines[1:]) for _ in range(1 + (i % 7 == 3))
+    ]
+    path.write_text("\n".join(repeated) + "\n")
+    with pytest.warns(DataWarning, match=r"dropped 57 of 457 rows that repeat the row before exactly and 0"):
+        episode = import_csv(path)
+    assert len(episode) == 400 and episode.meta.fps == 125.0
