@@ -6,7 +6,9 @@ camera of the same name, when the twin has that camera), then every step's camer
 images, the cell in 3D (the twin's arm, gripper, table and objects posed by the live
 joints, gripper opening and, where the cell measures them, object poses) with the TCP's
 path, joint positions and targets, the action and who chose it. One blueprint lays it
-out: cameras and guidance, the scene, the plots.
+out: cameras and guidance, the scene, the plots. The live cameras are sent as JPEG
+previews at most :data:`PREVIEW_WIDTH` wide: a full 640x480 image logged every step
+cost the control loop milliseconds (the episode records them whole).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
+import cv2
 import mujoco
 import numpy as np
 import rerun as rr
@@ -30,6 +33,23 @@ from twinrl_sim.tasks import Task, TaskConfig
 
 OUTLINE_COLOUR = [255, 200, 0]
 GUIDE_WIDTH = 480  # px of the twin's guidance renders
+PREVIEW_WIDTH = 320  # px, the live cameras' previews at most
+PREVIEW_QUALITY = 80  # JPEG quality of the previews
+
+
+def preview_stride(width: int) -> int:
+    """Every how many pixels a live camera ``width`` px wide is previewed."""
+    return -(-width // PREVIEW_WIDTH)
+
+
+def preview(image: np.ndarray) -> rr.EncodedImage:
+    """A live camera's image (RGB) as a JPEG preview, :func:`preview_stride` downscaled."""
+    stride = preview_stride(image.shape[1])
+    small = np.ascontiguousarray(image[::stride, ::stride, ::-1])  # RGB to OpenCV's BGR
+    ok, jpeg = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, PREVIEW_QUALITY])
+    if not ok:
+        raise ValueError(f"a {image.shape} camera image could not be encoded as JPEG")
+    return rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg")
 
 
 class TwinGuide:
@@ -150,8 +170,8 @@ class LiveView:
                 recording=self.stream,
             )
             live = observation.get(image_field(camera))
-            if live is not None:  # the twin's camera at the live image's size
-                scale = live.shape[1] / image.shape[1]
+            if live is not None:  # the twin's camera at the live preview's size
+                scale = live.shape[1] / preview_stride(live.shape[1]) / image.shape[1]
                 rr.log(
                     f"cameras/{camera}/target",
                     rr.LineStrips2D([o * scale for o in outlines], colors=[OUTLINE_COLOUR]),
@@ -164,7 +184,7 @@ class LiveView:
         for camera in self.cameras:
             image = observation.get(image_field(camera))
             if image is not None:
-                self.stream.log(f"cameras/{camera}", rr.Image(image))
+                self.stream.log(f"cameras/{camera}", preview(image))
 
     def step(self, observation: Mapping[str, np.ndarray], sent: Sent) -> None:
         self._step += 1
