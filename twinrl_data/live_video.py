@@ -47,7 +47,8 @@ class CameraVideo:
         """Append one RGB frame (H x W x 3, uint8)."""
         if self._container is None:
             self._container = av.open(self._buffer, "w", format="mp4")
-            options = {**VIDEO_OPTIONS, "threads": "1"}  # one core: the recorder's budget
+            # one core (the recorder's budget), and no statistics printed when it closes
+            options = {**VIDEO_OPTIONS, "threads": "1", "x264-params": "log=-1"}
             self._stream = self._container.add_stream(VIDEO_CODEC, self.fps, options=options)
             self._stream.pix_fmt = VIDEO_PIX_FMT
             self._stream.height, self._stream.width = image.shape[:2]

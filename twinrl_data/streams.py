@@ -16,7 +16,8 @@ sample streams.
 :class:`LiveEpisode` writes one from a background thread: the control loop, the
 cameras' threads and the sample readers only hand their data over (a queue), and the
 thread encodes the frames (JPEG), writes and closes a chunk every ``flush_seconds`` of
-the host's clock, so a crash loses at most that much (plus what is queued). It also
+the host's clock (half a second by default: with the controller's samples read every
+0.2 s, a crash loses under a second of any stream, plus what is queued). It also
 encodes the cameras' videos for export (:mod:`twinrl_data.live_video`), attached to the
 file when the episode closes (``video/<camera>.mp4``, described by the metadata record
 ``twinrl.videos``); a crashed episode has none, and its export encodes its frames.
@@ -81,7 +82,7 @@ class LiveEpisode:
         cameras: Mapping[str, float],
         samples: Mapping[str, Sequence[str]],
         started: float,
-        flush_seconds: float = 1.0,
+        flush_seconds: float = 0.5,
     ) -> None:
         self.writer, self.started, self.flush_seconds = writer, started, flush_seconds
         self.cameras = dict(cameras)
