@@ -152,7 +152,8 @@ def export_command(
     ] = None,
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
 ) -> None:
-    """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved)."""
+    """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved); a
+    live episode (a real cell's) at its cameras' rate, each frame a dataset frame."""
     if where is not None and source.suffix != ".parquet":
         raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
     episodes, count = open_episodes(source, where=where, live=True)
@@ -295,7 +296,8 @@ def curate_command(
         ),
     ] = False,
 ) -> None:
-    """Export exactly the selected catalog episodes as a new LeRobotDataset."""
+    """Export exactly the selected catalog episodes as a new LeRobotDataset (live
+    episodes at their cameras' rate)."""
     filters = dict(task=task, source=source, world=world, region=region, success=success)
     table = catalog_lib.query(
         catalog, **filters, where=where, aborted=None if keep_aborted else False

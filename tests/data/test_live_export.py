@@ -4,6 +4,8 @@ camera a row, the state resampled from its 500 Hz stream, the control steps held
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import av
@@ -128,3 +130,19 @@ def test_an_episode_of_steps_only_is_not_read_as_live(tmp_path: Path) -> None:
 
 def test_the_videos_are_encoded_with_the_settings_lerobot_is_told() -> None:
     assert encoder_config().get_codec_options(as_strings=True) == VIDEO_OPTIONS
+
+
+def test_data_export_writes_a_live_episode_at_its_cameras_rate(tmp_path: Path) -> None:
+    record_live(tmp_path / "live.mcap")
+    run = subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", "data", "export", str(tmp_path / "live.mcap"),
+         "--to", str(tmp_path / "ds")],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    assert f"1 episodes, {FPS} frames" in run.stdout
+    info = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())
+    assert (
+        info["fps"] == FPS
+        and info["features"]["observation.images.front"]["info"]["video.codec"] == "h264"
+    )
