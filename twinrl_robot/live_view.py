@@ -6,13 +6,17 @@ camera of the same name, when the twin has that camera), then every step's camer
 images, the cell in 3D (the twin's arm, gripper, table and objects posed by the live
 joints, gripper opening and, where the cell measures them, object poses) with the TCP's
 path, joint positions and targets, the action and who chose it. One blueprint lays it
-out: cameras and guidance, the scene, the plots. The live cameras are sent as JPEG
-previews at most :data:`PREVIEW_WIDTH` wide: a full 640x480 image logged every step
-cost the control loop milliseconds (the episode records them whole).
+out: cameras and guidance, the scene, the plots. Each step is logged by a thread of the
+view's own, the newest step when it lags (the episode records every one), and the live
+cameras go as JPEG previews at most :data:`PREVIEW_WIDTH` wide: logging two full
+640x480 images, the plots and the cell's poses in the control loop's thread cost it
+milliseconds a step.
 """
 
 from __future__ import annotations
 
+import logging
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -130,6 +134,12 @@ class LiveView:
         self._step = 0
         if self.cell is not None:
             log_cell_geometry(self.cell, "world/cell", self.stream)
+        self._newest: tuple[Mapping[str, np.ndarray], Sent] | None = None
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._closing = False
+        self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
+        self._thread.start()
 
     def _blueprint(self) -> rrb.Blueprint:
         views = [rrb.Spatial2DView(origin=f"cameras/{c}", name=f"{c} (live)") for c in self.cameras]
@@ -187,6 +197,29 @@ class LiveView:
                 self.stream.log(f"cameras/{camera}", preview(image))
 
     def step(self, observation: Mapping[str, np.ndarray], sent: Sent) -> None:
+        """Hand a step to the view's thread (it logs the newest it has not logged)."""
+        with self._lock:
+            self._newest = (observation, sent)
+        self._wake.set()
+
+    def _run(self) -> None:
+        warned = False
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            with self._lock:
+                newest, self._newest = self._newest, None
+            if newest is not None:
+                try:
+                    self._log_step(*newest)
+                except Exception as err:  # a view must not stop the recording
+                    if not warned:
+                        logging.getLogger(__name__).warning("the live view failed: %s", err)
+                    warned = True
+            if self._closing and self._newest is None:
+                return
+
+    def _log_step(self, observation: Mapping[str, np.ndarray], sent: Sent) -> None:
         self._step += 1
         self.stream.set_time("step", sequence=self._step)
         self.live(observation)
@@ -210,6 +243,9 @@ class LiveView:
         self.stream.log("events", rr.TextLog(text))
 
     def close(self) -> None:
+        self._closing = True
+        self._wake.set()
+        self._thread.join()
         self.guide.close()
         self.stream.flush()
         self.stream.disconnect()

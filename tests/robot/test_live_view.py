@@ -1,11 +1,19 @@
-"""The live view's camera previews: downscaled JPEG, not the full image every step."""
+"""The live view: camera previews as downscaled JPEG, each step logged off the control
+loop's thread."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from twinrl_robot.live_view import PREVIEW_WIDTH, preview, preview_stride
+from twinrl_data.schema import STATE
+from twinrl_robot.live_view import PREVIEW_WIDTH, LiveView, preview, preview_stride
+from twinrl_robot.robot import Sent
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.tasks import make_task
 
 
 def test_a_640x480_camera_is_previewed_as_a_320x240_jpeg_of_the_same_picture() -> None:
@@ -20,3 +28,21 @@ def test_a_640x480_camera_is_previewed_as_a_320x240_jpeg_of_the_same_picture() -
 
 def test_a_camera_no_wider_than_the_preview_is_sent_at_its_size() -> None:
     assert preview_stride(PREVIEW_WIDTH) == 1 and preview_stride(PREVIEW_WIDTH + 1) == 2
+
+
+def test_the_steps_handed_to_the_view_are_logged_by_its_thread(tmp_path: Path) -> None:
+    from rerun.experimental import RrdReader
+
+    task = make_task("pick_place")
+    names = Cell(compile_scene(task.scene)).contract_names()[STATE]
+    view = LiveView(str(tmp_path / "live.rrd"), task, ("front",), names)
+    observation = {STATE: np.zeros(len(names), np.float32),
+                   "observation.images.front": np.zeros((480, 640, 3), np.uint8)}  # fmt: skip
+    sent = Sent(action=np.zeros(7, np.float32), joint_target=np.zeros(6, np.float32))
+    for _ in range(3):
+        view.step(observation, sent)
+    view.close()  # logs what it was handed last before it returns
+    entities = {
+        c.entity_path for c in RrdReader(tmp_path / "live.rrd").store().stream().to_chunks()
+    }
+    assert {"/cameras/front", "/signals/actions/0", "/world/cell/link3"} <= entities
