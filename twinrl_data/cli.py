@@ -153,7 +153,7 @@ def export_command(
     force: Annotated[bool, typer.Option(help="Replace --to if it exists.")] = False,
 ) -> None:
     """Write episodes as a LeRobotDataset v3 (videos for cameras, metadata preserved); a
-    live episode (a real cell's) at its cameras' rate, each frame a dataset frame."""
+    live episode (a real cell's) at its cameras' rate, a dataset frame a camera period."""
     if where is not None and source.suffix != ".parquet":
         raise DataError("--where filters a catalog; give a catalog .parquet as SOURCE")
     episodes, count = open_episodes(source, where=where, live=True)

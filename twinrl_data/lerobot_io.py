@@ -8,6 +8,7 @@ metadata (source, world, region, config, twin digest, policy, success, intervent
     DATASET/
       meta/info.json, meta/episodes/..., meta/tasks.parquet, meta/stats.json   (lerobot)
       meta/twinrl/episodes.jsonl          {"episode_index": 0, "task": ..., "source": ...}
+      meta/twinrl/live.json               what a row of live episodes holds (if any)
       data/chunk-000/file-000.parquet                                          (lerobot)
       videos/observation.images.front/chunk-000/file-000.mp4                   (lerobot)
 
@@ -35,7 +36,7 @@ from twinrl_data import schema as contract
 from twinrl_data.atomic import publishing, write_text_atomic
 from twinrl_data.errors import DataError
 from twinrl_data.live_export import (
-    INFO_KEY,
+    LIVE_INFO,
     LiveRows,
     LiveVideos,
     decode_jpeg,
@@ -219,9 +220,7 @@ def _write(
     finally:
         dataset.finalize()
     if isinstance(first, LiveRows):
-        info_path = root / "meta" / "info.json"
-        info = json.loads(info_path.read_text())
-        write_text_atomic(info_path, json.dumps({**info, INFO_KEY: live_info(first)}, indent=4))
+        write_text_atomic(root / LIVE_INFO, json.dumps(live_info(first), indent=1))
     return count, frames
 
 

@@ -4,11 +4,13 @@ A LeRobotDataset has one rate for everything in it. A live episode
 (:mod:`twinrl_data.streams`) exports at its cameras' rate, so that every frame a camera
 captured is in the video, rather than one frame per control step:
 
-- **Rows**: one per frame of the episode's first camera (the *reference*), in capture
-  order; row ``i`` is that camera's ``i``-th frame (its timestamp ``i / fps``, nominally
-  the frame's capture time from the first frame). Every other camera gives each row the
-  newest frame it had captured by the row's time, as a policy running at that rate
-  would have seen it (its first frame before it had any).
+- **Rows**: one a period (``timestamp`` ``i / fps``) from the first frame of the
+  episode's first camera (the *reference*); row ``i`` is the frame that camera had
+  captured half a period after ``i / fps``: its ``i``-th frame when it delivers at its
+  rate, the frame before repeated where it dropped one, so the rows keep the host's
+  time. A row's *time* is its reference frame's capture. Every other camera gives each
+  row the newest frame it had captured by then, as a policy running at that rate would
+  have seen it (its first frame before it had any).
 - **Observation state**: the newest sample of the episode's ``observation.state`` stream
   (the controller's every package, 500 Hz on a UR e-Series) taken at or before the
   row's time: at most one controller period older than the image, and what the robot
@@ -23,7 +25,8 @@ captured is in the video, rather than one frame per control step:
   while it watches, and its outputs are sent at the control rate (every ``fps /
   control_fps`` rows); reward, done and success repeat on each row of their step.
 
-The dataset's ``meta/info.json`` says so under ``twinrl.live`` (:data:`INFO_KEY`).
+The dataset says so in ``meta/twinrl/live.json`` (:data:`LIVE_INFO`; lerobot's own
+``meta/info.json`` warns of any key it does not know), with the control rate.
 """
 
 from __future__ import annotations
@@ -38,7 +41,15 @@ import PIL.Image
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
-from twinrl_data.live_video import VIDEO_CODEC, VIDEO_CRF, VIDEO_GOP, VIDEO_PIX_FMT, VIDEO_PRESET
+from twinrl_data.live_video import (
+    VIDEO_CODEC,
+    VIDEO_CRF,
+    VIDEO_GOP,
+    VIDEO_PIX_FMT,
+    VIDEO_PRESET,
+    row_count,
+    row_time,
+)
 from twinrl_data.mcap_log import (
     CAMERA_PREFIX,
     META_START,
@@ -53,7 +64,7 @@ from twinrl_data.mcap_log import (
 from twinrl_data.step_frames import frames_of_steps
 from twinrl_data.streams import META_VIDEOS, VIDEO_ATTACHMENT, read_samples
 
-INFO_KEY = "twinrl.live"
+LIVE_INFO = Path("meta") / "twinrl" / "live.json"
 
 
 @dataclass(frozen=True)
@@ -137,9 +148,14 @@ def read_live(path: str | Path) -> LiveRows:
     videos_record = records.get(META_VIDEOS, {})
     reference = videos_record.get("reference", cameras[0])
     start = _iso_to_ns(records[META_START]["created_at"])
+    fps = round(float(records[META_STREAMS]["cameras"][reference]))
     ordered = sorted(frames[reference].values())
-    row_ns = [t for t, _ in ordered]
-    times = (np.array(row_ns) - start) / 1e9
+    captured = (np.array([t for t, _ in ordered]) - start) / 1e9
+    count = row_count(captured[0], captured[-1], fps)
+    ticks = [row_time(captured[0], row, fps) for row in range(count)]
+    chosen = np.clip(np.searchsorted(captured, ticks, side="right") - 1, 0, None)
+    times = captured[chosen]
+    row_ns = [ordered[i][0] for i in chosen]
     steps_ns = np.array([step_times[s] for s in range(len(episode))])
     steps = np.clip(np.searchsorted(steps_ns, row_ns, side="right") - 1, 0, len(episode) - 1)
     samples = read_samples(path)
@@ -151,14 +167,13 @@ def read_live(path: str | Path) -> LiveRows:
             data[key] = stream.values[newest]
         else:
             data[key] = values[steps]
-    fps = round(float(records[META_STREAMS]["cameras"][reference]))
     rows = {
         camera: [image for _, image in frames_of_steps(frames[camera], row_ns).values()]
         for camera in cameras
     }
-    rows[reference] = [image for _, image in ordered]
+    rows[reference] = [ordered[i][1] for i in chosen]
     videos = {}
-    if videos_record.get("frames") == len(ordered):
+    if videos_record.get("frames") == count:
         for camera in videos_record.get("cameras", []):
             data_mp4 = attachments.get(VIDEO_ATTACHMENT.format(camera=camera))
             if data_mp4:
@@ -175,9 +190,10 @@ def read_live(path: str | Path) -> LiveRows:
 
 
 def live_info(rows: LiveRows) -> dict[str, Any]:
-    """What a dataset of live episodes says about its rows (``meta/info.json``)."""
+    """What a dataset of live episodes says about its rows (:data:`LIVE_INFO`)."""
     return {
-        "rows": f"one per frame of camera '{rows.reference}', at its capture time",
+        "rows": f"one a period: the newest frame of camera '{rows.reference}' half a period on",
+        "row time": "that frame's capture, on the host's clock",
         "cameras": "each camera's newest frame captured by the row's time",
         "observation.state": "the newest controller sample at or before the row's time",
         "other fields": "the control step in force at the row's time (held over its rows)",

@@ -1,11 +1,13 @@
 """A live episode's cameras encoded as video while it is recorded, ready for a dataset.
 
-A live episode (:mod:`twinrl_data.streams`) exports to LeRobot at its cameras' rate: one
-dataset frame per frame of its first camera (the *reference*), at that frame's capture
-time. :class:`RowVideos` encodes every camera's video of those frames as they come, in
-the episode's writer thread: the reference camera's every frame, and for each other
-camera the newest frame it had captured by each reference frame's time (its first
-frame before it had any). Export then only copies the videos
+A live episode (:mod:`twinrl_data.streams`) exports to LeRobot at its cameras' rate, in
+*rows* one period apart from the first frame of its first camera (the *reference*):
+each row takes the reference camera's newest frame half a period after its time, which
+is every frame once when the camera delivers at its rate, a frame repeated where it
+dropped one (the rows keep the clock's time), and for each other camera the newest
+frame it had captured by that reference frame's capture (its first frame before it had
+any). :class:`RowVideos` encodes every camera's video of the rows as the frames come,
+in the episode's writer thread. Export then only copies the videos
 (:mod:`twinrl_data.live_export`), where encoding them from the episode's JPEG frames
 costs more than lerobot's own recording loop.
 
@@ -67,29 +69,54 @@ class CameraVideo:
         return self._buffer.getvalue()
 
 
-class RowVideos:
-    """Every camera's video at the reference camera's frames (see the module docstring).
+def row_count(first: float, last: float, fps: float) -> int:
+    """The rows of a live episode whose reference camera's frames were captured from
+    ``first`` to ``last`` (s): one a period from the first, as many as the frames when
+    the camera delivered at ``fps``."""
+    return math.floor((last - first) * fps + 0.25) + 1
 
-    Frames come as the cameras deliver them; each camera's own in capture order, the
-    cameras' interleaving by up to one frame out of order."""
+
+def row_time(first: float, row: int, fps: float) -> float:
+    """When a row takes the reference camera's newest frame (s, the frames' clock): half
+    a period after the frame the camera delivers then, whatever its jitter."""
+    return first + (row + 0.5) / fps
+
+
+class RowVideos:
+    """Every camera's video of a live episode's rows (see the module docstring).
+
+    Frames come as the cameras deliver them, each camera's own in capture order."""
 
     def __init__(self, cameras: Sequence[str], fps: int) -> None:
         self.reference, *others = cameras
+        self.fps = fps
         self.videos = {camera: CameraVideo(fps) for camera in cameras}
+        self.rows = 0
+        self._last_row = -math.inf  # the newest row's time
+        self._first: float | None = None  # the reference camera's first capture
+        self._newest: tuple[float, np.ndarray] | None = None  # and its newest frame
         self._waiting: dict[str, list[float]] = {camera: [] for camera in others}  # row times
         self._recent: dict[str, list[tuple[float, np.ndarray]]] = {c: [] for c in others}
 
     def frame(self, camera: str, image: np.ndarray, captured: float) -> None:
         """A camera's frame (RGB) captured at ``captured`` (any clock, the same for all)."""
         if camera == self.reference:
-            self.videos[camera].encode(image)
-            for times in self._waiting.values():
-                times.append(captured)
+            if self._first is None:
+                self._first = captured
+            while row_time(self._first, self.rows, self.fps) < captured:
+                self._add_row()  # the rows before this frame: the newest before it
+            self._newest = (captured, image)
             return
-        recent = self._recent[camera]
-        recent.append((captured, image))
-        del recent[:-2]  # the newest two: a row may come after a frame captured later
+        self._recent[camera].append((captured, image))
         self._resolve(camera, before=captured)
+
+    def _add_row(self) -> None:
+        captured, image = self._newest
+        self.videos[self.reference].encode(image)
+        for times in self._waiting.values():
+            times.append(captured)
+        self._last_row = captured
+        self.rows += 1
 
     def _resolve(self, camera: str, before: float) -> None:
         """Encode this camera's frame for every waiting row captured before ``before``."""
@@ -98,14 +125,21 @@ class RowVideos:
             row = times.pop(0)
             earlier = [image for captured, image in recent if captured <= row]
             self.videos[camera].encode(earlier[-1] if earlier else recent[0][1])
+        # Kept: the newest frame by the next row's time, and those after it.
+        horizon = times[0] if times else self._last_row
+        older = [i for i, (captured, _) in enumerate(recent) if captured <= horizon]
+        del recent[: older[-1] if older else 0]
 
     def close(self) -> dict[str, bytes]:
-        """Each camera's MP4 with one frame per reference frame (none for a camera that
-        delivered no frame)."""
+        """Each camera's MP4 with one frame per row (none for a camera that delivered no
+        frame)."""
+        if self._newest is not None:
+            while self.rows < row_count(self._first, self._newest[0], self.fps):
+                self._add_row()
         for camera in self._waiting:
             self._resolve(camera, before=math.inf)
         return {
             camera: data
             for camera, video in self.videos.items()
-            if (data := video.close()) and video.frames == self.videos[self.reference].frames
+            if (data := video.close()) and video.frames == self.rows
         }

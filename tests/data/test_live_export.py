@@ -15,7 +15,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.live_export import INFO_KEY, encoder_config, read_live
+from twinrl_data.live_export import LIVE_INFO, encoder_config, read_live
 from twinrl_data.live_video import VIDEO_OPTIONS
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.salvage import recover
@@ -32,10 +32,11 @@ def _frame(value: int) -> np.ndarray:
     return np.full((48, 64, 3), value, np.uint8)
 
 
-def record_live(path: Path, seconds: float = 1.0) -> None:
+def record_live(path: Path, seconds: float = 1.0, dropped: tuple[int, ...] = ()) -> None:
     """A live episode: two 30 fps cameras (frame k of the front one 8k bright, of the
-    wrist one 255 - 8k), a 500 Hz state stream (its entries the sample's time), 10 Hz
-    steps (step t's action t, its state -1)."""
+    wrist one 255 - 8k; the front's ``dropped`` frames never come), a 500 Hz state
+    stream (its entries the sample's time), 10 Hz steps (step t's action t, its state
+    -1)."""
     meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=CONTROL_HZ)
     meta = meta.replace(names={STATE: ["a", "b", "c"]})
     writer = EpisodeWriter(path, meta, flush_seconds=0)
@@ -47,7 +48,8 @@ def record_live(path: Path, seconds: float = 1.0) -> None:
     )
     frames = round(seconds * FPS)
     for k in range(frames):
-        live.frame("front", _frame(8 * k), START + FRONT_AT + k / FPS, k)
+        if k not in dropped:
+            live.frame("front", _frame(8 * k), START + FRONT_AT + k / FPS, k)
         live.frame("wrist", _frame(255 - 8 * k), START + WRIST_AT + k / FPS, k)
     times = np.arange(round(seconds * SERVO_HZ)) / SERVO_HZ
     for batch in np.array_split(np.arange(len(times)), 5):
@@ -75,8 +77,8 @@ def test_a_live_episode_exports_every_frame_at_the_cameras_rate(tmp_path: Path) 
         with av.open(str(video)) as container:
             assert sum(1 for _ in container.decode(video=0)) == FPS
             assert container.streams.video[0].codec_context.name == "h264"
-    info = json.loads((tmp_path / "ds" / "meta" / "info.json").read_text())
-    assert info[INFO_KEY]["control_fps"] == CONTROL_HZ
+    info = json.loads((tmp_path / "ds" / LIVE_INFO).read_text())
+    assert info["control_fps"] == CONTROL_HZ
     for i in (0, 1, 14, 29):
         row = dataset[i]
         captured = FRONT_AT + i / FPS  # the row's time on the episode's clock
@@ -92,6 +94,24 @@ def test_a_live_episode_exports_every_frame_at_the_cameras_rate(tmp_path: Path) 
         seen = max(0, int(np.floor((captured - WRIST_AT) * FPS + 1e-6)))
         wrist = 255 * row["observation.images.wrist"].numpy().mean()
         assert wrist == pytest.approx(255 - 8 * seen, abs=4)
+
+
+def test_a_dropped_frame_is_the_frame_before_repeated_and_the_rows_keep_the_clock(
+    tmp_path: Path,
+) -> None:
+    record_live(tmp_path / "live.mcap", dropped=(10,))
+    rows = read_live(tmp_path / "live.mcap")
+    assert len(rows) == FPS and set(rows.videos) == {"front", "wrist"}
+    # Row 10 is frame 9 again, captured a period before its time; row 11 frame 11.
+    np.testing.assert_allclose(rows.times[9:12], FRONT_AT + np.array([9, 9, 11]) / FPS)
+    export_dataset([rows], tmp_path / "ds", repo_id="t/dropped")
+    dataset = LeRobotDataset("t/dropped", root=tmp_path / "ds", video_backend="pyav")
+    brightness = [255 * dataset[i]["observation.images.front"].numpy().mean() for i in (9, 10, 11)]
+    np.testing.assert_allclose(brightness, [72, 72, 88], atol=4)
+    assert float(dataset[11]["timestamp"]) == pytest.approx(11 / FPS)
+    # The state is the robot's when the image was taken (frame 9's capture).
+    newest = np.floor((FRONT_AT + 9 / FPS) * SERVO_HZ + 1e-6) / SERVO_HZ
+    np.testing.assert_allclose(dataset[10][STATE].numpy(), newest, atol=1e-6)
 
 
 def test_a_crashed_live_episode_exports_the_same_rows_encoding_its_frames(tmp_path: Path) -> None:
