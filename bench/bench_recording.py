@@ -10,7 +10,10 @@ written (dropped = delivered, not written), the packages the emulator itself did
 send in time (gaps in the controller's clock: the emulator's, not the recorder's), the
 recorder's share of one core (its threads' CPU over the recording's wall time), the
 whole host process's share, the loop's period p50/p99 each way, and the LeRobot export
-of the first recorded episode against lerobot's own loop on the same frames. Usage::
+of the first recorded episode against lerobot's own loop on the same frames, side by
+side: at the cameras' rate (every frame a row, the videos encoded while recording, what
+``twinrl data export`` does with a live episode) and at the control rate (one frame per
+step, encoded at export). Usage::
 
     MUJOCO_GL=egl python bench/bench_recording.py --duration 600
     MUJOCO_GL=egl python bench/bench_recording.py --duration 20 --episode-seconds 10
@@ -18,10 +21,10 @@ of the first recorded episode against lerobot's own loop on the same frames. Usa
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
@@ -29,9 +32,12 @@ import numpy as np
 import typer
 import yaml
 
+from twinrl_data.console import quiet_encoders
 from twinrl_data.lerobot_io import WRITE_OPTIONS, export_dataset, features_for
+from twinrl_data.live_export import decode_jpeg, read_live
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import EpisodeFolder, Recorder
+from twinrl_data.schema import Episode
 from twinrl_data.streams import read_samples
 from twinrl_robot.backends import open_robot
 from twinrl_robot.live_view import LiveView
@@ -84,13 +90,13 @@ def percentiles(periods: list[float]) -> str:
     return f"{np.percentile(ms, 50):.1f} / {np.percentile(ms, 99):.1f} / {ms.max():.1f}"
 
 
-def lerobot_loop(episode, root: Path) -> float:
+def lerobot_loop(episode: Episode, root: Path) -> float:
     """lerobot's own recording path on the episode's frames held in memory."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     start = time.perf_counter()
     dataset = LeRobotDataset.create(
-        "bench/own", fps=CONTROL_HZ, features=features_for(episode), root=root,
+        "bench/own", fps=round(episode.meta.fps), features=features_for(episode), root=root,
         robot_type="ur5e", **WRITE_OPTIONS,
     )  # fmt: skip
     for t in range(len(episode)):
@@ -113,10 +119,7 @@ def main(
         float, typer.Option(help="Seconds of the loop alone and with the live view.")
     ] = 60.0,
 ) -> None:
-    os.environ.setdefault("SVT_LOG", "1")
-    import datasets
-
-    datasets.disable_progress_bars()
+    quiet_encoders()
     work = Path(tempfile.mkdtemp(prefix="twinrl-bench-recording-"))
     cell = write_cell(work)
     task = make_task("pick_place")
@@ -183,11 +186,17 @@ def main(
         for path in paths:
             clock = read_samples(path)["controller"].clock
             gaps += int(np.sum(np.round(np.diff(clock) * SERVO_HZ) - 1))
-        episode = read_episode(paths[0])
-        own = lerobot_loop(episode, work / "own")
+        first = read_live(paths[0])  # the rows' frames in memory, for lerobot's own loop
+        images = {c: np.stack([decode_jpeg(j) for j in f]) for c, f in first.frames.items()}
+        own_live = lerobot_loop(replace(first.episode, images=images), work / "own_live")
+        del first, images
         start = time.perf_counter()
-        export_dataset([read_episode(paths[0])], work / "ours")
-        ours = time.perf_counter() - start
+        export_dataset([read_live(paths[0])], work / "ours_live")
+        ours_live = time.perf_counter() - start
+        own_steps = lerobot_loop(read_episode(paths[0]), work / "own_steps")
+        start = time.perf_counter()
+        export_dataset([read_episode(paths[0])], work / "ours_steps")
+        ours_steps = time.perf_counter() - start
     finally:
         shutil.rmtree(work, ignore_errors=True)
     rows += [
@@ -203,7 +212,10 @@ def main(
         ("loop period p50 / p99 / max (ms), loop alone", percentiles(alone.periods)),
         ("loop period p50 / p99 / max (ms), recording", percentiles(periods)),
         ("loop period p50 / p99 / max (ms), recording + live view", percentiles(viewed.periods)),
-        ("export of the first episode: twinrl / lerobot's own loop", f"{ours / own:.2f}"),
+        ("export of the first episode at the cameras' rate: twinrl / lerobot's own loop (s)",
+         f"{ours_live / own_live:.2f} ({ours_live:.1f} / {own_live:.1f})"),
+        ("export of the first episode at the control rate: twinrl / lerobot's own loop (s)",
+         f"{ours_steps / own_steps:.2f} ({ours_steps:.1f} / {own_steps:.1f})"),
     ]  # fmt: skip
     print(f"{duration:g} s recorded in {len(paths)} episodes: 2 cameras 640x480 at {FPS} fps, "
           f"controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz\n")  # fmt: skip
