@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from twinrl_data.catalog import build_index, load_selected, query
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.live_export import LIVE_INFO, encoder_config, read_live
+from twinrl_data.live_export import LIVE_INFO, LiveRows, encoder_config, read_live
 from twinrl_data.live_video import VIDEO_OPTIONS
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.salvage import recover
@@ -39,6 +40,7 @@ def record_live(path: Path, seconds: float = 1.0, dropped: tuple[int, ...] = ())
     -1)."""
     meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=CONTROL_HZ)
     meta = meta.replace(names={STATE: ["a", "b", "c"]})
+    path.parent.mkdir(parents=True, exist_ok=True)
     writer = EpisodeWriter(path, meta, flush_seconds=0)
     live = LiveEpisode(
         writer,
@@ -166,3 +168,13 @@ def test_data_export_writes_a_live_episode_at_its_cameras_rate(tmp_path: Path) -
         info["fps"] == FPS
         and info["features"]["observation.images.front"]["info"]["video.codec"] == "h264"
     )
+
+
+def test_a_catalog_selection_reads_live_episodes_as_rows_for_export(tmp_path: Path) -> None:
+    record_live(tmp_path / "episodes" / "live.mcap")
+    build_index([tmp_path / "episodes" / "live.mcap"], tmp_path / "catalog.parquet")
+    table = query(tmp_path / "catalog.parquet")
+    (rows,) = load_selected(table, live=True)
+    assert isinstance(rows, LiveRows) and len(rows) == FPS
+    (steps,) = load_selected(table)  # as episodes of steps everywhere else
+    assert len(steps) == CONTROL_HZ
