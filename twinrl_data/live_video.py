@@ -125,10 +125,11 @@ class RowVideos:
             row = times.pop(0)
             earlier = [image for captured, image in recent if captured <= row]
             self.videos[camera].encode(earlier[-1] if earlier else recent[0][1])
-        # Kept: the newest frame by the next row's time, and those after it.
+        # Kept: the newest frame by the next row's time and those after it, a second's
+        # worth at most (while the reference camera delivers nothing, no row comes).
         horizon = times[0] if times else self._last_row
         older = [i for i, (captured, _) in enumerate(recent) if captured <= horizon]
-        del recent[: older[-1] if older else 0]
+        del recent[: max(older[-1] if older else 0, len(recent) - self.fps)]
 
     def close(self) -> dict[str, bytes]:
         """Each camera's MP4 with one frame per row (none for a camera that delivered no

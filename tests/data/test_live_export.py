@@ -17,7 +17,7 @@ from twinrl_data.catalog import build_index, load_selected, query
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.live_export import LIVE_INFO, LiveRows, encoder_config, read_live
-from twinrl_data.live_video import VIDEO_OPTIONS
+from twinrl_data.live_video import VIDEO_OPTIONS, RowVideos
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.salvage import recover
 from twinrl_data.schema import STATE, EpisodeMeta, step_record
@@ -178,3 +178,14 @@ def test_a_catalog_selection_reads_live_episodes_as_rows_for_export(tmp_path: Pa
     assert isinstance(rows, LiveRows) and len(rows) == FPS
     (steps,) = load_selected(table)  # as episodes of steps everywhere else
     assert len(steps) == CONTROL_HZ
+
+
+def test_a_camera_keeps_a_second_of_frames_while_the_first_delivers_none() -> None:
+    videos = RowVideos(["front", "wrist"], FPS)
+    videos.frame("front", _frame(0), 0.0)
+    for k in range(3 * FPS):  # 3 s of the wrist camera, the front one silent
+        videos.frame("wrist", _frame(k), 0.01 + k / FPS)
+    assert len(videos._recent["wrist"]) <= FPS
+    videos.frame("front", _frame(8), 3.0)
+    mp4 = videos.close()
+    assert videos.rows == 3 * FPS + 1 and set(mp4) == {"front", "wrist"}
