@@ -55,6 +55,7 @@ from twinrl_data.mcap_log import (
     META_START,
     META_STREAMS,
     TOPICS,
+    _damaged,
     _decode,
     _iso_to_ns,
     _open_checked,
@@ -75,7 +76,6 @@ class LiveRows:
     control_fps: float  # the rate of its control steps
     reference: str  # the camera whose frames are the rows
     times: np.ndarray  # (rows,) s from the episode's start, host clock: each row's capture
-    steps: np.ndarray  # (rows,) the control step in force at each row
     frames: dict[str, list[bytes]]  # each camera's JPEG at each row
     videos: dict[str, bytes]  # each camera's MP4 of the rows, encoded while recording
 
@@ -91,11 +91,13 @@ def is_live(path: str | Path) -> bool:
     """Whether an episode file is a live episode with cameras (its metadata says so)."""
     from mcap.reader import make_reader
 
-    with open(path, "rb") as f:
-        for record in make_reader(f).iter_metadata():
-            if record.name == META_STREAMS:
-                return bool(_decode(record.metadata).get("cameras"))
-    return False
+    path = _open_checked(path)
+    try:
+        with open(path, "rb") as f:
+            streams = [m for m in make_reader(f).iter_metadata() if m.name == META_STREAMS]
+    except Exception as err:
+        raise _damaged(path, err) from None
+    return any(_decode(m.metadata).get("cameras") for m in streams)
 
 
 def read_for_export(path: str | Path) -> contract.Episode | LiveRows:
@@ -183,7 +185,6 @@ def read_live(path: str | Path) -> LiveRows:
         control_fps=episode.meta.fps,
         reference=reference,
         times=times,
-        steps=steps,
         frames=rows,
         videos=videos,
     )

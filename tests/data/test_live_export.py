@@ -189,3 +189,19 @@ def test_a_camera_keeps_a_second_of_frames_while_the_first_delivers_none() -> No
     videos.frame("front", _frame(8), 3.0)
     mp4 = videos.close()
     assert videos.rows == 3 * FPS + 1 and set(mp4) == {"front", "wrist"}
+
+
+def test_a_cut_short_episode_file_is_refused_in_one_line_and_nothing_is_written(
+    tmp_path: Path,
+) -> None:
+    record_live(tmp_path / "live.mcap")
+    data = (tmp_path / "live.mcap").read_bytes()
+    (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
+    run = subprocess.run(
+        [sys.executable, "-m", "twinrl_learn", "data", "export", str(tmp_path / "cut.mcap"),
+         "--to", str(tmp_path / "ds")],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert run.returncode != 0 and not (tmp_path / "ds").exists()
+    assert "truncated or damaged" in run.stderr and "twinrl data recover" in run.stderr
+    assert len(run.stderr.strip().splitlines()) == 1
