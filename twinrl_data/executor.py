@@ -7,7 +7,13 @@ its jobs to an :class:`Executor` instead of opening a pool of its own:
   no start-up cost, and a debugger sees everything);
 - :class:`ProcessExecutor` runs them in spawned worker processes on this machine
   (spawned, not forked, so MuJoCo's GL contexts, torch and threads start clean); the
-  workers live as long as the executor, so a worker's caches serve many jobs.
+  workers live as long as the executor, so a worker's caches serve many jobs;
+- :class:`~twinrl_data.ray_executor.RayExecutor` runs them as Ray tasks, on a cluster
+  (or on Ray embedded here), when the ``cluster`` setting asks for one.
+
+On one machine the process pool is the default: it starts in about a second where Ray
+takes several, and runs jobs as fast (``bench/bench_scale.py``), so Ray only pays where
+there are more machines.
 
 Results come back in job order whatever the number of workers, so a seeded computation
 gives the same results on one core or many. A job may send messages (log lines,
@@ -21,12 +27,17 @@ data), and a script that spawns workers needs an ``if __name__ == "__main__":`` 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import queue
+import re
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Protocol, TypeVar
 
-from twinrl_data.errors import TwinrlError
+from twinrl_data.errors import SettingError, TwinrlError
+
+LOCAL = "local"  # the cluster setting's value for Ray embedded on this machine
+ADDRESS = re.compile(r"(ray://)?[A-Za-z0-9.\-\[\]:]+:(\d+)")
 
 Job = TypeVar("Job")
 Result = TypeVar("Result")
@@ -48,6 +59,30 @@ class Executor(Protocol):
     ) -> list[Result]: ...
 
     def close(self) -> None: ...
+
+    def __enter__(self) -> Executor: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+def cluster_address(cluster: str) -> str | None:
+    """Where the ``cluster`` setting runs the jobs, as ``ray.init`` takes it: ``None``
+    for this machine's worker processes (the setting empty and ``RAY_ADDRESS`` unset),
+    :data:`LOCAL` for Ray embedded here, else the cluster's address."""
+    value = cluster.strip() or os.environ.get("RAY_ADDRESS", "").strip()
+    if value in ("", "none"):
+        return None
+    if value in (LOCAL, "auto"):
+        return value
+    match = ADDRESS.fullmatch(value)
+    if match is None or not 0 < int(match.group(2)) < 65536:
+        source = "" if cluster.strip() else " (from RAY_ADDRESS)"
+        raise SettingError(
+            "cluster",
+            f"must be none, local, auto, HOST:PORT or ray://HOST:PORT (a Ray cluster's "
+            f"head, e.g. ray://head:10001), got '{value}'{source}",
+        )
+    return value
 
 
 class InlineExecutor:
@@ -150,10 +185,23 @@ class ProcessExecutor:
 
 
 def make_executor(
-    workers: int, *, initializer: Callable[[], None] | None = None
-) -> InlineExecutor | ProcessExecutor:
-    """An executor with ``workers`` workers: in this process for one, processes beyond
-    (``initializer`` runs in each worker process, not in this one)."""
-    if workers < 1:
+    workers: int | None,
+    *,
+    initializer: Callable[[], None] | None = None,
+    cluster: str = "",
+) -> Executor:
+    """An executor with ``workers`` workers (``initializer`` runs in each worker process,
+    not in this one). On this machine (``cluster`` empty, ``RAY_ADDRESS`` unset): in this
+    process for one worker, processes beyond (``None``: one per core). Else Ray tasks
+    where ``cluster`` says (:func:`twinrl_data.ray_executor.cluster_address`; ``None``:
+    one per CPU of the cluster)."""
+    if workers is not None and workers < 1:
         raise TwinrlError(f"an executor needs at least one worker, got {workers}")
+    address = cluster_address(cluster)
+    if address is not None:
+        from twinrl_data.ray_executor import RayExecutor  # Ray loads only when it runs
+
+        embedded = address == LOCAL
+        return RayExecutor(workers, address=None if embedded else address, initializer=initializer)
+    workers = workers or os.cpu_count() or 1
     return InlineExecutor() if workers == 1 else ProcessExecutor(workers, initializer=initializer)

@@ -4,7 +4,8 @@ import os
 
 import pytest
 
-from twinrl_data.executor import InlineExecutor, ProcessExecutor, make_executor
+from twinrl_data.errors import SettingError
+from twinrl_data.executor import InlineExecutor, ProcessExecutor, cluster_address, make_executor
 
 
 def square(n):
@@ -40,3 +41,19 @@ def test_messages_arrive_and_the_first_failure_is_raised_as_it_was(workers):
             executor.run(chatty, [3, 4], heard.append)
     with pytest.raises(ValueError, match="at least one worker"):
         make_executor(0)
+
+
+def test_the_cluster_setting_names_where_jobs_run(monkeypatch):
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert cluster_address("") is None and cluster_address("none") is None
+    for value in ("local", "auto", "10.0.0.5:6379", "ray://head.lab:10001", "[::1]:6379"):
+        assert cluster_address(value) == value
+    monkeypatch.setenv("RAY_ADDRESS", "ray://head:10001")
+    assert cluster_address("") == "ray://head:10001"
+    assert cluster_address("none") is None  # the setting wins over the environment
+    monkeypatch.setenv("RAY_ADDRESS", "head")
+    with pytest.raises(SettingError, match=r"cluster must be .* got 'head' \(from RAY_ADDRESS\)"):
+        make_executor(2)
+    for bad in ("head", "http://head:8265", "ray://head:70000"):
+        with pytest.raises(SettingError, match=f"got '{bad}'$"):
+            cluster_address(bad)
