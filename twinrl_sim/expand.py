@@ -11,9 +11,9 @@ in a session and exports them as a LeRobotDataset::
       dataset/      LeRobotDataset v3                  (what SFT reads)
       expand.json   counts, yield per region, seconds
 
-Attempts run in worker processes; attempt ``k`` of a region always uses the same
-configuration and seed, so a run is reproducible for a given seed whatever the number
-of workers.
+Attempts run in worker processes, or as Ray tasks on a cluster (``cluster``); attempt
+``k`` of a region always uses the same configuration and seed, so a run is reproducible
+for a given seed whatever the number of workers or machines.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ import numpy as np
 
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
-from twinrl_data.executor import make_executor
+from twinrl_data.executor import cluster_address, make_executor
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import EpisodeFolder, Recorder
@@ -184,6 +184,7 @@ def expand(
     detours: float = 0.0,
     force: bool = False,
     on_demo: Callable[[str, bool], None] | None = None,
+    cluster: str = "",
 ) -> ExpandReport:
     """Synthesize ``id_count`` + ``ood_count`` successful demonstrations of ``task``.
 
@@ -195,7 +196,9 @@ def expand(
     share of planned demos whose arm first strays beside the object and does the task
     from there (off-path views and returns for an image policy; drawn per attempt, so the
     others stay as they are). ``on_demo(region, kept)`` is called after each attempt
-    (for progress bars).
+    (for progress bars). ``cluster`` runs the attempts on Ray
+    (:func:`twinrl_data.executor.cluster_address`; ``workers`` defaults to its CPUs) and
+    needs ``out`` on storage every node of the cluster sees.
     """
     make_task(task, scene)
     if method not in METHODS:
@@ -217,6 +220,7 @@ def expand(
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
         raise TwinError("ask for at least one demonstration (`id_count` and/or `ood_count`)")
     check_kinds(randomize)
+    on_cluster = cluster_address(cluster) is not None
     if randomize and not images:
         raise TwinError("`randomize` changes only what the cameras see; drop it or record images")
     out = Path(out)
@@ -238,9 +242,11 @@ def expand(
         "images": images,
         "detours": detours,
     }
-    workers = workers or min(2, os.cpu_count() or 1)
+    if not on_cluster:
+        workers = workers or min(2, os.cpu_count() or 1)
     start = time.perf_counter()
-    with make_executor(workers) as executor:
+    with make_executor(workers, cluster=cluster) as executor:
+        workers = executor.workers
         for region, count in (("ID", id_count), ("OOD", ood_count)):
             report.kept[region] = report.attempts[region] = report.detoured[region] = 0
             attempt = 0

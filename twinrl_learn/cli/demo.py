@@ -12,6 +12,7 @@ from twinrl_data.console import progress, quiet_encoders
 from twinrl_data.errors import UsageError
 from twinrl_data.settings_cli import parse_ints
 from twinrl_learn.cli.common import DeviceOption, console
+from twinrl_sim.cli.common import ClusterOption
 from twinrl_sim.tasks import TASKS, make_task
 
 if TYPE_CHECKING:
@@ -42,12 +43,17 @@ def demo_command(
         ),
     ] = None,
     workers: Annotated[
-        int, typer.Option(help="Real-RL runs side by side, one process each.", min=1)
+        int,
+        typer.Option(
+            help="Real-RL runs side by side (a process each, or a Ray task each on --cluster).",
+            min=1,
+        ),
     ] = 2,
     resume: Annotated[
         bool, typer.Option(help="Continue a stopped run in --out (finished stages are kept).")
     ] = False,
     device: DeviceOption = "auto",
+    cluster: ClusterOption = "",
 ) -> None:
     """The whole TwinRL pipeline in the plant, then its baselines; report.md and .json.
 
@@ -91,6 +97,7 @@ def demo_command(
             device=device,
             log=lambda text: bar.console.print(text),
             on_progress=on_progress,
+            cluster=cluster,
         )
     table = Table("method", "min to 95 % ID", "min to 95 % OOD", "final ID", "final OOD", "interv.")
     for name, m in report["methods"].items():

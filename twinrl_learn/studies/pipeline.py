@@ -31,7 +31,8 @@ and ``representative.rrd`` (a TwinRL episode with an intervention and its last o
 With ``resume`` a stopped pipeline continues: finished stages are skipped and an
 interrupted real-RL run resumes from its last checkpoint. The real-RL runs are
 independent (each has its own seed, folder and plant), so ``workers`` processes run
-them side by side; the results do not depend on how many.
+them side by side, or Ray tasks on a cluster (``cluster``, as Stage I's synthesis);
+the results do not depend on how many.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ import torch
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import quiet_encoders
 from twinrl_data.errors import SettingError
-from twinrl_data.executor import make_executor
+from twinrl_data.executor import cluster_address, make_executor
 from twinrl_learn.compute import check_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
@@ -88,15 +89,19 @@ def run_demo(
     device: str = "auto",
     log: Log = print,
     on_progress: Callable[[RunProgress], None] | None = None,
+    cluster: str = "",
 ) -> dict[str, Any]:
     """Run the pipeline and write the report; returns ``report.json``'s content.
     ``preset`` is a name of :data:`PRESETS` or a :class:`Preset` of one's own (e.g.
     ``replace(PRESETS["quick"], twin_id=30)``; its report calls it ``custom``).
     ``inputs`` overrides the preset's state-policy inputs (``absolute``/``relative``);
     ``on_progress`` hears from every real-RL run after each of its episodes; ``device``
-    is where every stage's networks run (:mod:`twinrl_learn.compute`)."""
+    is where every stage's networks run (:mod:`twinrl_learn.compute`); ``cluster`` where
+    the twin demos and the real-RL runs do (:func:`twinrl_data.executor.cluster_address`:
+    ``out`` on storage every node sees)."""
     make_task(task)
     check_device(device)
+    cluster_address(cluster)
     if workers < 1:
         raise SettingError("workers", f"must be at least 1, got {workers}")
     if isinstance(preset, Preset):
@@ -119,7 +124,7 @@ def run_demo(
         recorded["settings"] = json.loads(json.dumps(asdict(p)))
     _check_same_run(out / "run.json", recorded)
     out.mkdir(parents=True, exist_ok=True)
-    stage1 = _stage1(task, p, out / "stage1", log, device)
+    stage1 = _stage1(task, p, out / "stage1", log, device, cluster)
     stage2 = _stage2(task, p, out, stage1, log, device)
     targets = _mining(task, p, out, stage2, log, device)
     runs: dict[str, dict[int, Path]] = {}
@@ -129,7 +134,7 @@ def run_demo(
             folder = out / "real_rl" / method.slug / f"seed{seed}"
             runs.setdefault(method.name, {})[seed] = folder
             jobs.append(RealRLJob(task, p, method, seed, folder, stage1, stage2, targets, device))
-    _run_jobs(jobs, workers, log, on_progress)
+    _run_jobs(jobs, workers, log, on_progress, cluster)
     log("writing the report")
     return write_report(task, preset, p, out, stage1, runs, seeds)
 
@@ -180,7 +185,9 @@ def run_preset(out: Path) -> Preset:
     return replace(PRESETS[recorded["preset"]], inputs=recorded["inputs"])
 
 
-def _stage1(task: str, p: Preset, folder: Path, log: Log, device: str) -> dict[str, Path]:
+def _stage1(
+    task: str, p: Preset, folder: Path, log: Log, device: str, cluster: str
+) -> dict[str, Path]:
     paths = stage1_paths(folder, p.policy)
     if _done(folder):
         return paths
@@ -195,6 +202,7 @@ def _stage1(task: str, p: Preset, folder: Path, log: Log, device: str) -> dict[s
         out=folder / "twin",
         seed=1,
         images=p.policy == "vla",  # a state policy never reads them
+        cluster=cluster,
     )
     for name, datasets in (
         ("sft_real", [paths["real"]]),
@@ -306,9 +314,10 @@ def _run_jobs(
     workers: int,
     log: Log,
     on_progress: Callable[[RunProgress], None] | None,
+    cluster: str,
 ) -> None:
-    """Run the jobs, ``workers`` at a time (1: in this process), passing their log lines
-    and progress on to ``log`` and ``on_progress`` as they come."""
+    """Run the jobs, ``workers`` at a time (1: in this process) where ``cluster`` says,
+    passing their log lines and progress on to ``log`` and ``on_progress`` as they come."""
     pending = [job for job in jobs if not _done(job.folder)]
     if not pending:
         return
@@ -320,7 +329,8 @@ def _run_jobs(
         else:
             log(message)
 
-    with make_executor(min(workers, len(pending)), initializer=_start_worker) as executor:
+    workers = min(workers, len(pending))
+    with make_executor(workers, initializer=_start_worker, cluster=cluster) as executor:
         executor.run(_real_rl_job, pending, on_message=dispatch)
 
 

@@ -1,16 +1,29 @@
-"""What the twin's commands share: the console and the parsers of their options."""
+"""What the twin's commands share: the console, the --cluster option and the parsers of
+their options."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Annotated
 
+import typer
 from rich.console import Console
 
 from twinrl_data.errors import UsageError
 from twinrl_sim.tasks import TaskConfig
 
 console = Console(soft_wrap=True)  # paths and figures are never broken across lines
+
+ClusterOption = Annotated[
+    str,
+    typer.Option(
+        help="Where the work runs: none (this machine's worker processes; the default unless "
+        "RAY_ADDRESS is set), local (Ray embedded here, loopback only), auto (the Ray "
+        "cluster this machine joined), HOST:PORT or ray://HOST:PORT (a cluster's head); "
+        "see docs/guides/scale-out.md."
+    ),
+]
 
 
 def parse_config(text: str) -> TaskConfig:

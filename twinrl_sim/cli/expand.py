@@ -13,7 +13,7 @@ from twinrl_data.console import progress, quiet_encoders
 # Only what the options' help texts and defaults need loads here, so that `twinrl --help`
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.settings_cli import name_flags
-from twinrl_sim.cli.common import console
+from twinrl_sim.cli.common import ClusterOption, console
 from twinrl_sim.randomize import KINDS as RANDOMIZATIONS
 from twinrl_sim.tasks import TASKS, task_on_twin
 
@@ -54,7 +54,10 @@ def expand_command(
     seed: Annotated[
         int, typer.Option(help="Seed (attempt k always gets the same configuration).")
     ] = 0,
-    workers: Annotated[int, typer.Option(help="Worker processes (default: 2).", min=1)] = 2,
+    workers: Annotated[
+        int | None,
+        typer.Option(help="Workers (default: 2; on a cluster, one per CPU).", min=1),
+    ] = None,
     images: Annotated[
         bool,
         typer.Option(
@@ -73,6 +76,7 @@ def expand_command(
         ),
     ] = 0.0,
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
+    cluster: ClusterOption = "",
 ) -> None:
     """Synthesize twin demonstrations across ID and OOD (TwinRL's exploration-space expansion)."""
     from twinrl_sim.expand import expand
@@ -106,6 +110,7 @@ def expand_command(
             detours=detours,
             force=force,
             on_demo=advance,
+            cluster=cluster,
         )
     table = Table(
         "region", "requested", "kept", "attempts", "yield", title=f"{task}: {method} demonstrations"

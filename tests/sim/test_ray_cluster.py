@@ -1,0 +1,141 @@
+"""The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
+come back in order, the first failure is raised as it was, and `expand` keeps the same
+demonstrations as the process pool for the same seed."""
+
+import json
+import sys
+import time
+
+import numpy as np
+import psutil
+import pytest
+import ray
+from ray._private import ray_constants
+from ray.cluster_utils import Cluster
+from typer.testing import CliRunner
+
+from twinrl_data import ray_executor
+from twinrl_data.executor import make_executor
+from twinrl_data.mcap_log import read_episode
+from twinrl_data.ray_executor import RayExecutor
+from twinrl_data.session import Session
+from twinrl_learn.cli import app, main
+from twinrl_sim.expand import expand
+
+LOOPBACK = {"127.0.0.1", "::ffff:127.0.0.1", "::1"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_environment():
+    """Clusters on loopback, without token authentication (a cluster without it is what
+    warns), and no RAY_ADDRESS from outside."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("RAY_AUTH_MODE", "disabled")
+        patch.delenv("RAY_ADDRESS", raising=False)
+        # Ray turns a loopback address into the machine's reachable one, unless clusters
+        # are off (as on macOS); off, a driver finds the test's cluster on 127.0.0.1.
+        patch.setattr(ray_constants, "ENABLE_RAY_CLUSTER", False)
+        yield
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two nodes of one CPU each, on loopback, shared by the module's tests."""
+    nodes = Cluster(
+        initialize_head=True, head_node_args={"num_cpus": 1, "node_ip_address": "127.0.0.1"}
+    )
+    nodes.add_node(num_cpus=1, node_ip_address="127.0.0.1")
+    nodes.wait_for_nodes()
+    yield nodes
+    nodes.shutdown()
+
+
+def node_of(n):
+    time.sleep(0.3)  # long enough that two jobs overlap, so each node takes one
+    return n * n, ray.get_runtime_context().get_node_id()
+
+
+def chatty(n, send):
+    send(f"job {n} starts")
+    if n == 3:
+        raise ArithmeticError(f"job {n} cannot")
+    return n + 100
+
+
+def test_embedded_ray_listens_on_loopback_only_and_runs_no_dashboard():
+    with make_executor(2, cluster="local") as executor:
+        assert isinstance(executor, RayExecutor) and executor.workers == 2
+        assert [r for r, _ in executor.map(node_of, range(3))] == [0, 1, 4]
+        processes = [psutil.Process(), *psutil.Process().children(recursive=True)]
+        listening = [
+            (" ".join(p.cmdline()[:2]), c.laddr.ip)  # the program (or the script it runs)
+            for p in processes
+            for c in p.net_connections(kind="inet")
+            if c.status == psutil.CONN_LISTEN
+        ]
+        assert any("gcs_server" in program for program, _ in listening)
+        assert {ip for _, ip in listening} <= LOOPBACK, listening
+        # Its dashboard process serves no HTTP, hence no job API to submit code through.
+        assert not [ip for program, ip in listening if program.endswith("dashboard/dashboard.py")]
+    assert not ray.is_initialized()
+
+
+def test_jobs_spread_over_the_nodes_in_order_and_the_first_failure_is_raised_as_it_was(
+    cluster, monkeypatch
+):
+    monkeypatch.setattr(ray_executor, "_warned_unauthenticated", False)
+    with pytest.warns(UserWarning, match="without token authentication") as warned:
+        executor = make_executor(None, cluster=cluster.address)
+    with executor:
+        assert executor.workers == 2  # a CPU each on two nodes
+        results = executor.map(node_of, range(4))
+        heard = []
+        assert executor.run(chatty, [0, 1, 2], heard.append) == [100, 101, 102]
+        with pytest.raises(ArithmeticError, match="job 3 cannot") as failure:
+            executor.run(chatty, [3, 4], heard.append)
+    assert [r for r, _ in results] == [0, 1, 4, 9]
+    assert len({node for _, node in results}) == 2
+    assert sorted(heard)[:3] == [f"job {n} starts" for n in range(3)]
+    assert type(failure.value) is ArithmeticError
+    assert len(warned) == 1
+    with make_executor(1, cluster=cluster.address):  # warned once per process
+        pass
+    assert not ray.is_initialized()
+
+
+def test_expand_on_the_cluster_keeps_the_demos_of_the_process_pool(cluster, tmp_path):
+    pool = expand(
+        "pick_place", id_count=2, ood_count=1, seed=5, images=False, workers=2,
+        out=tmp_path / "pool", export=False,
+    )  # fmt: skip
+    args = ["expand", "pick_place", "--id", "2", "--ood", "1", "--seed", "5", "--no-images"]
+    result = CliRunner().invoke(
+        app, [*args, "--cluster", cluster.address, "--out", str(tmp_path / "ray")]
+    )
+    assert result.exit_code == 0, result.output
+    on_ray = json.loads((tmp_path / "ray" / "expand.json").read_text())
+    assert on_ray["kept"] == pool.kept and on_ray["attempts"] == pool.attempts
+
+    def episodes(out):
+        paths = Session(out / "session").episode_paths()
+        return sorted((read_episode(p) for p in paths), key=lambda e: json.dumps(e.meta.config))
+
+    for mine, theirs in zip(episodes(tmp_path / "ray"), episodes(tmp_path / "pool"), strict=True):
+        assert mine.meta.config == theirs.meta.config
+        np.testing.assert_array_equal(mine.data["action"], theirs.data["action"])
+        np.testing.assert_array_equal(
+            mine.data["observation.state"], theirs.data["observation.state"]
+        )
+
+
+@pytest.mark.parametrize("value", ["bogus", "ray:/head:10001", "head:0", "ray://head"])
+def test_a_bad_cluster_is_one_line_and_leaves_nothing(tmp_path, value, monkeypatch, capsys):
+    out = tmp_path / "out"
+    args = ["expand", "pick_place", "--id", "1", "--ood", "0", "--cluster", value]
+    monkeypatch.setattr(sys, "argv", ["twinrl", *args, "--out", str(out)])
+    with pytest.raises(SystemExit) as stopped:
+        main()
+    error = capsys.readouterr().err.strip()
+    assert stopped.value.code == 2 and len(error.splitlines()) == 1
+    assert "--cluster must be none, local, auto, HOST:PORT or ray://HOST:PORT" in error
+    assert error.endswith(f"got '{value}'") and not out.exists()
