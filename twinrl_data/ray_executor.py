@@ -72,7 +72,9 @@ def _start_embedded(workers: int) -> None:
             num_cpus=workers,
             include_dashboard=False,  # no dashboard, so no job API to submit code through
             _node_ip_address=LOOPBACK,
-            logging_level=logging.WARNING,  # the terminal shows what it shows without Ray
+            # Ray's notes at start-up (e.g. that it turned its token authentication on)
+            # are not the command's output: the terminal shows what it shows without Ray.
+            logging_level=logging.ERROR,
         )
     finally:
         ray_constants.ENABLE_RAY_CLUSTER = enabled

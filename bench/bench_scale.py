@@ -1,0 +1,100 @@
+"""Scale-out: twin demo synthesis (`twinrl expand`) on this machine's worker processes
+against Ray embedded on this machine, for 1 and 2 workers, side by side in one run.
+
+Each backend's start-up (the executor made, a trivial job on every worker, closed) is
+timed apart from its synthesis; the throughput is attempts per second of synthesis
+once started. Ray's
+overhead is its time over the processes' for the same workers and the same attempts
+(which must keep the same demonstrations: same seed, same results). From Ray's rate
+per worker it estimates a paper-scale synthesis on ``machines`` machines of ``cores``
+cores each, assuming jobs scale linearly (they share nothing but the output folder).
+Usage::
+
+    python bench/bench_scale.py --demos 40
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from twinrl_data.executor import make_executor
+from twinrl_sim.expand import ExpandReport, expand
+
+BACKENDS = {"processes": "", "Ray (embedded)": "local"}
+
+
+def started(workers: int, cluster: str) -> float:
+    """Seconds to start the executor, run a trivial job on each worker and stop it."""
+    start = time.perf_counter()
+    with make_executor(workers, cluster=cluster) as executor:
+        executor.map(abs, range(workers))
+    return time.perf_counter() - start
+
+
+def synthesized(task: str, demos: int, workers: int, cluster: str) -> ExpandReport:
+    out = Path(tempfile.mkdtemp(prefix="twinrl-scale-")) / "run"
+    try:
+        return expand(
+            task,
+            id_count=demos // 2,
+            ood_count=demos - demos // 2,
+            out=out,
+            seed=3,
+            workers=workers,
+            images=False,
+            export=False,
+            cluster=cluster,
+        )
+    finally:
+        shutil.rmtree(out.parent)
+
+
+def main(
+    task: Annotated[str, typer.Option(help="Task to synthesize.")] = "pick_place",
+    demos: Annotated[int, typer.Option(help="Demonstrations, half ID, half OOD.")] = 40,
+    paper_demos: Annotated[int, typer.Option(help="Demonstrations of the estimate.")] = 1000,
+    machines: Annotated[int, typer.Option(help="Machines of the estimate.")] = 4,
+    cores: Annotated[int, typer.Option(help="Cores per machine of the estimate.")] = 16,
+) -> None:
+    rows, reports = [], {}
+    for workers in (1, 2):
+        for name, cluster in BACKENDS.items():
+            start_s = started(workers, cluster)
+            report = synthesized(task, demos, workers, cluster)
+            attempts = sum(report.attempts.values())
+            run_s = max(report.seconds_synthesis - start_s, 1e-9)
+            rows.append((workers, name, start_s, report.seconds_synthesis, attempts / run_s))
+            reports[workers, name] = (report.kept, report.attempts)
+    kept, attempts = next(iter(reports.values()))
+    assert all(r == (kept, attempts) for r in reports.values()), f"other demos: {reports}"
+    print(f"{task}: {sum(kept.values())} demos, {sum(attempts.values())} attempts, no cameras\n")
+    print("| workers | backend | start-up (s) | synthesis (s) | attempts/s after start-up |")
+    print("|---|---|---|---|---|")
+    for workers, name, start_s, total_s, rate in rows:
+        print(f"| {workers} | {name} | {start_s:.1f} | {total_s:.1f} | {rate:.2f} |")
+    by = {(w, n): (s, t, r) for w, n, s, t, r in rows}
+    print()
+    for workers in (1, 2):
+        (ps, pt, pr), (rs, rt, rr) = by[workers, "processes"], by[workers, "Ray (embedded)"]
+        print(
+            f"{workers} worker(s): Ray/processes wall time {rt / pt:.2f}, start-up "
+            f"{rs - ps:+.1f} s, throughput after start-up {rr / pr:.2f}"
+        )
+    per_worker = by[2, "Ray (embedded)"][2] / 2
+    yield_rate = sum(kept.values()) / sum(attempts.values())
+    rate = per_worker * machines * cores
+    print(
+        f"\nestimate: {paper_demos} demos on {machines} machines x {cores} cores at "
+        f"{per_worker:.2f} attempts/s per worker and a {100 * yield_rate:.0f} % yield: "
+        f"{paper_demos / yield_rate / rate:.0f} s of synthesis (plus the cluster's start-up)"
+    )
+
+
+if __name__ == "__main__":
+    typer.run(main)
