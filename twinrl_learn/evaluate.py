@@ -22,8 +22,11 @@ import numpy as np
 import torch
 
 from twinrl_data.atomic import write_text_atomic
-from twinrl_data.recorder import Recorder
-from twinrl_data.session import Session
+from twinrl_data.errors import SettingError
+from twinrl_data.executor import cluster_address, make_executor
+from twinrl_data.recorder import EpisodeFolder, Recorder
+from twinrl_data.schema import EpisodeMeta
+from twinrl_data.session import EPISODES, Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.runners import Runner, RunnerSource
 from twinrl_robot.backends import open_robot
@@ -122,67 +125,152 @@ def evaluate(
     cell_file: str | Path | None = None,
     emulated: bool = False,
     twin: str | None = None,
+    workers: int | None = 1,
+    cluster: str = "",
 ) -> EvalReport:
     """Roll ``runner`` out ``episodes`` times per grid cell; write the outputs to ``out``.
 
     ``world`` ``real`` is the arm of ``cell_file``; success is judged from the task's
     ground truth, which only an ``emulated`` cell lends (a real cell refuses it). The task
     runs on ``twin`` (a built-in cell or a scene spec file; default: the cell file's twin,
-    else the task's own scene), whose kinematics and limits a cell's arm runs with."""
+    else the task's own scene), whose kinematics and limits a cell's arm runs with.
+    In the twin, ``workers`` worker processes (or Ray tasks where ``cluster`` says:
+    :func:`twinrl_data.executor.cluster_address`) share the episodes, with the same
+    results as one: every episode's configuration and seed are drawn before any runs."""
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} exists and is not empty; choose another output folder")
+    spread = cluster_address(cluster) is not None or workers != 1
+    if spread and world != "twin":
+        raise SettingError(
+            "workers",
+            "shares the episodes in the twin only (the plant's sensor noise runs on from "
+            "one episode to the next); evaluate the plant with one worker",
+        )
     if twin is None and cell_file is not None:
         twin = load_cell(cell_file).twin
     task = make_task(task_name, task_on_twin(task_name, twin) if twin is not None else None)
-    robot = open_robot(
-        world,
-        task,
-        effects=effects,
-        seed=seed,
-        cameras=runner.cameras,
-        cell=cell_file,
-        emulated=emulated,
-    )
     cells = grid_cells(task_name, grid)
-    recorder = Recorder(Session.create(out / "session"))
     rng = np.random.default_rng(seed)
-    # Runners re-seed torch for every episode; a caller that is training (real RL,
-    # mining between its episodes) gets its random stream back as it was.
-    torch_state = torch.get_rng_state()
-    try:
-        for cell in cells:
-            for _ in range(episodes):
-                config = _cell_config(task, cell, rng)
-                source = RunnerSource(runner, seed=int(rng.integers(2**31)))
-                meta = task.episode_meta(
-                    source="eval",
-                    world=world,
-                    names=robot.names,
-                    config=config,
-                    region=cell.region,
-                    policy=runner.name,
-                )
-                outcome = run_episode(
-                    robot,
-                    source,
-                    task,
-                    config,
-                    judge=privileged_success(robot),
-                    recorder=recorder,
-                    meta=meta,
-                )
-                cell.episodes += 1
-                cell.successes += outcome.success
-                if on_episode is not None:
-                    on_episode(cell, outcome.success)
-    finally:
-        robot.close()
-        torch.set_rng_state(torch_state)
+    # Every episode's configuration and seed, drawn in grid order before any runs.
+    draws = []
+    for i, cell in enumerate(cells):
+        for _ in range(episodes):
+            config = _cell_config(task, cell, rng)
+            seed_n = int(rng.integers(2**31))
+            draws.append(_Episode(len(draws), i, cell.region, config, seed_n))
+
+    def count(draw: _Episode, success: bool) -> None:
+        cells[draw.cell].episodes += 1
+        cells[draw.cell].successes += success
+        if on_episode is not None:
+            on_episode(cells[draw.cell], success)
+
+    if spread:
+        _evaluate_spread(runner, task_name, twin, draws, out / "session", workers, cluster, count)
+    else:
+        robot = open_robot(
+            world,
+            task,
+            effects=effects,
+            seed=seed,
+            cameras=runner.cameras,
+            cell=cell_file,
+            emulated=emulated,
+        )
+        recorder = Recorder(Session.create(out / "session"))
+        # Runners re-seed torch for every episode; a caller that is training (real RL,
+        # mining between its episodes) gets its random stream back as it was.
+        torch_state = torch.get_rng_state()
+        try:
+            for draw in draws:
+                count(draw, _run(robot, runner, task, world, draw, recorder).success)
+        finally:
+            robot.close()
+            torch.set_rng_state(torch_state)
     report = EvalReport(task=task_name, world=world, policy=runner.name, cells=cells)
     write_text_atomic(out / "eval.json", json.dumps(report.to_json(), indent=1))
     plot_heatmap(report, grid, out / "heatmap.png")
     return report
+
+
+@dataclass(frozen=True)
+class _Episode:
+    index: int  # in the evaluation's order
+    cell: int  # index of its grid cell
+    region: str
+    config: TaskConfig
+    seed: int  # the runner's
+
+
+def _run(robot, runner: Runner, task, world: str, draw: _Episode, recorder: Recorder):
+    meta = task.episode_meta(
+        source="eval",
+        world=world,
+        names=robot.names,
+        config=draw.config,
+        region=draw.region,
+        policy=runner.name,
+    )
+    source = RunnerSource(runner, seed=draw.seed)
+    judge = privileged_success(robot)
+    return run_episode(robot, source, task, draw.config, judge=judge, recorder=recorder, meta=meta)
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """Consecutive episodes of a twin evaluation: what a worker needs to run them."""
+
+    runner: Runner
+    task: str
+    twin: str | None
+    episodes: list[_Episode]
+    folder: str  # the session's episodes folder
+
+
+def _evaluate_spread(
+    runner: Runner,
+    task_name: str,
+    twin: str | None,
+    draws: list[_Episode],
+    folder: Path,
+    workers: int | None,
+    cluster: str,
+    count: Callable[[_Episode, bool], None],
+) -> None:
+    """The episodes in chunks on an executor, added to the session ``folder`` in order."""
+    with make_executor(workers, initializer=_one_thread, cluster=cluster) as executor:
+        session = Session.create(folder)
+        size = max(1, -(-len(draws) // (4 * executor.workers)))  # a few chunks per worker
+        episodes = str(session.path / EPISODES)
+        jobs = [
+            _Chunk(runner, task_name, twin, draws[i : i + size], episodes)
+            for i in range(0, len(draws), size)
+        ]
+        for results in executor.map(_run_chunk, jobs):
+            for draw, (path, meta, length, success) in results:
+                session.register(Path(path), EpisodeMeta.from_dict(meta), length)
+                count(draw, success)
+
+
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _run_chunk(chunk: _Chunk) -> list[tuple[_Episode, tuple[str, dict, int, bool]]]:
+    task = make_task(chunk.task, task_on_twin(chunk.task, chunk.twin) if chunk.twin else None)
+    robot = open_robot("twin", task, cameras=chunk.runner.cameras)
+    results = []
+    try:
+        for draw in chunk.episodes:
+            recorder = Recorder(EpisodeFolder(chunk.folder, prefix=f"{draw.index:05d}_"))
+            outcome = _run(robot, chunk.runner, task, "twin", draw, recorder)
+            assert recorder.saved is not None
+            saved = (str(outcome.path), recorder.saved.to_dict(), outcome.steps, outcome.success)
+            results.append((draw, saved))
+    finally:
+        robot.close()
+    return results
 
 
 def plot_heatmap(report: EvalReport, grid: tuple[int, int], path: Path) -> None:

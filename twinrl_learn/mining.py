@@ -173,10 +173,14 @@ def mine(
     seed: int = 0,
     catalog: str | Path | None = None,
     twin: str | None = None,
+    workers: int | None = 1,
+    cluster: str = "",
 ) -> dict[str, Any]:
     """Evaluate (or look up) ``runner`` in the twin and write the target list to ``out``
     (a ``.json`` file; the evaluation, when run, goes beside it). ``twin``: the cell's
-    twin to mine in (a built-in cell or a scene spec file; default: the task's scene)."""
+    twin to mine in (a built-in cell or a scene spec file; default: the task's scene).
+    ``workers`` and ``cluster`` spread the grid's episodes (:func:`evaluate`); the
+    targets are the same whatever they are."""
     out = Path(out)
     if out.suffix != ".json":
         raise SettingError("out", f"must be a .json file, got {out}")
@@ -196,6 +200,8 @@ def mine(
             seed=seed,
             out=evaluation,
             twin=twin,
+            workers=workers,
+            cluster=cluster,
         )
         outcomes = session_outcomes(Session(evaluation / "session"))
     cells, targets = select_targets(outcomes, task, grid, tau=tau, k=k)

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from tests.conftest import lerobot_train, record_demos
+from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -407,6 +408,12 @@ def test_evaluation_writes_json_heatmap_and_episodes(tmp_path):
         e.meta.world == "plant" for e in episodes
     )
     assert all(c.region in ("ID", "OOD") for c in grid_cells("pick_place", (8, 8)))
+
+
+def test_only_a_twin_evaluation_is_shared_between_workers(tmp_path):
+    with pytest.raises(SettingError, match="workers shares the episodes in the twin only"):
+        evaluate(ExpertRunner(), "pick_place", world="plant", workers=2, out=tmp_path / "eval")
+    assert not (tmp_path / "eval").exists()
 
 
 def test_runner_selection(state_checkpoint, tmp_path):

@@ -1,6 +1,7 @@
 """The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
-come back in order, the first failure is raised as it was, and `expand` keeps the same
-demonstrations as the process pool for the same seed."""
+come back in order, the first failure is raised as it was, `expand` keeps the same
+demonstrations as the process pool and mining finds what one process finds, for the
+same seed."""
 
 import json
 import sys
@@ -20,6 +21,8 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.ray_executor import RayExecutor
 from twinrl_data.session import Session
 from twinrl_learn.cli import app, main
+from twinrl_learn.mining import mine
+from twinrl_learn.runners import ExpertRunner
 from twinrl_sim.expand import expand
 
 LOOPBACK = {"127.0.0.1", "::ffff:127.0.0.1", "::1"}
@@ -103,6 +106,7 @@ def test_jobs_spread_over_the_nodes_in_order_and_the_first_failure_is_raised_as_
     assert not ray.is_initialized()
 
 
+@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
 def test_expand_on_the_cluster_keeps_the_demos_of_the_process_pool(cluster, tmp_path):
     pool = expand(
         "pick_place", id_count=2, ood_count=1, seed=5, images=False, workers=2,
@@ -120,12 +124,30 @@ def test_expand_on_the_cluster_keeps_the_demos_of_the_process_pool(cluster, tmp_
         paths = Session(out / "session").episode_paths()
         return sorted((read_episode(p) for p in paths), key=lambda e: json.dumps(e.meta.config))
 
-    for mine, theirs in zip(episodes(tmp_path / "ray"), episodes(tmp_path / "pool"), strict=True):
-        assert mine.meta.config == theirs.meta.config
-        np.testing.assert_array_equal(mine.data["action"], theirs.data["action"])
+    for ours, theirs in zip(episodes(tmp_path / "ray"), episodes(tmp_path / "pool"), strict=True):
+        assert ours.meta.config == theirs.meta.config
+        np.testing.assert_array_equal(ours.data["action"], theirs.data["action"])
         np.testing.assert_array_equal(
-            mine.data["observation.state"], theirs.data["observation.state"]
+            ours.data["observation.state"], theirs.data["observation.state"]
         )
+
+
+@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
+def test_mining_on_the_cluster_finds_what_one_process_finds(cluster, tmp_path):
+    settings = dict(grid=(3, 3), episodes=1, seed=2, tau=1.0)
+    alone = mine(ExpertRunner(), "pick_place", out=tmp_path / "alone.json", **settings)
+    spread = mine(
+        ExpertRunner(), "pick_place", out=tmp_path / "ray.json", workers=None,
+        cluster=cluster.address, **settings,
+    )  # fmt: skip
+    assert spread == alone and alone["episodes"] > 1
+
+    def episodes(name):
+        return [read_episode(p) for p in Session(tmp_path / name / "session").episode_paths()]
+
+    for ours, theirs in zip(episodes("ray"), episodes("alone"), strict=True):
+        assert ours.meta.config == theirs.meta.config
+        np.testing.assert_array_equal(ours.data["action"], theirs.data["action"])
 
 
 @pytest.mark.parametrize("value", ["bogus", "ray:/head:10001", "head:0", "ray://head"])

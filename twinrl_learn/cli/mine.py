@@ -10,6 +10,7 @@ from rich.table import Table
 
 from twinrl_data.settings_cli import parse_grid
 from twinrl_learn.cli.common import console
+from twinrl_sim.cli.common import ClusterOption
 from twinrl_sim.tasks import TASKS, make_task
 
 
@@ -35,6 +36,10 @@ def mine_command(
             "default: the task's own scene."
         ),
     ] = None,
+    workers: Annotated[
+        int, typer.Option(help="Workers sharing the twin episodes, on --cluster too.", min=1)
+    ] = 1,
+    cluster: ClusterOption = "",
 ) -> None:
     """Stage III support: where does the policy fail in the twin? Ranked reset targets."""
     from twinrl_learn.mining import mine
@@ -53,6 +58,8 @@ def mine_command(
         seed=seed,
         catalog=episodes_from,
         twin=twin,
+        workers=workers,
+        cluster=cluster,
     )
     table = Table("#", "region", "x", "y", "est. success", "score", title=f"targets (tau {tau})")
     for i, target in enumerate(result["targets"], 1):
