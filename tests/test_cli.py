@@ -33,7 +33,7 @@ def test_help_lists_every_command():
 
 
 # What a command loads only when it runs: the command list and every --help stay quick.
-HEAVY_MODULES = ("torch", "lerobot", "scipy", "rerun", "mujoco.sysid", "pycolmap", "open3d")
+HEAVY_MODULES = ("torch", "lerobot", "scipy", "rerun", "mujoco.sysid", "pycolmap", "open3d", "ray")
 
 
 def test_help_loads_no_heavy_module():
