@@ -68,6 +68,7 @@ def test_rows_that_repeat_the_row_before_exactly_are_dropped_and_said(tmp_path):
         row for i, row in enumerate(lines[1:]) for _ in range(1 + (i % 7 == 3))
     ]
     path.write_text("\n".join(repeated) + "\n")
-    with pytest.warns(DataWarning, match=r"dropped 57 of 457 rows that repeat the row before exactly and 0"):
+    said = r"dropped 57 of 457 rows that repeat the row before exactly and 0"
+    with pytest.warns(DataWarning, match=said):
         episode = import_csv(path)
     assert len(episode) == 400 and episode.meta.fps == 125.0
