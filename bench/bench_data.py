@@ -81,13 +81,14 @@ def record(path: Path, steps: list[dict], meta: EpisodeMeta) -> tuple[float, flo
 
 
 def lerobot_loop(episodes, root: Path) -> float:
-    """lerobot's own recording path on in-memory frames (what our export must match)."""
+    """lerobot's own recording path on in-memory frames (what our export must match), at
+    the episodes' rate."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     start = time.perf_counter()
     dataset = LeRobotDataset.create(
         "bench/own",
-        fps=10,
+        fps=round(episodes[0].meta.fps),
         features=features_for(episodes[0]),
         root=root,
         robot_type="ur5e",

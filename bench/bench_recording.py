@@ -31,13 +31,13 @@ from typing import Annotated
 import numpy as np
 import typer
 import yaml
+from bench_data import lerobot_loop  # the same loop the data benchmark measures against
 
 from twinrl_data.console import quiet_encoders
-from twinrl_data.lerobot_io import WRITE_OPTIONS, export_dataset, features_for
+from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.live_export import decode_jpeg, read_live
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import EpisodeFolder, Recorder
-from twinrl_data.schema import Episode
 from twinrl_data.streams import read_samples
 from twinrl_robot.backends import open_robot
 from twinrl_robot.live_view import LiveView
@@ -88,28 +88,6 @@ def write_cell(folder: Path) -> Path:
 def percentiles(periods: list[float]) -> str:
     ms = 1000 * np.asarray(periods)
     return f"{np.percentile(ms, 50):.1f} / {np.percentile(ms, 99):.1f} / {ms.max():.1f}"
-
-
-def lerobot_loop(episode: Episode, root: Path) -> float:
-    """lerobot's own recording path on the episode's frames held in memory."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    start = time.perf_counter()
-    dataset = LeRobotDataset.create(
-        "bench/own", fps=round(episode.meta.fps), features=features_for(episode), root=root,
-        robot_type="ur5e", **WRITE_OPTIONS,
-    )  # fmt: skip
-    for t in range(len(episode)):
-        frame = {"task": episode.meta.task}
-        for key, values in episode.data.items():
-            value = values[t]
-            frame[key] = value.astype(np.float32) if value.ndim else np.array([value], value.dtype)
-        for camera, frames in episode.images.items():
-            frame[f"observation.images.{camera}"] = frames[t]
-        dataset.add_frame(frame)
-    dataset.save_episode()
-    dataset.finalize()
-    return time.perf_counter() - start
 
 
 def main(
@@ -188,12 +166,12 @@ def main(
             gaps += int(np.sum(np.round(np.diff(clock) * SERVO_HZ) - 1))
         first = read_live(paths[0])  # the rows' frames in memory, for lerobot's own loop
         images = {c: np.stack([decode_jpeg(j) for j in f]) for c, f in first.frames.items()}
-        own_live = lerobot_loop(replace(first.episode, images=images), work / "own_live")
+        own_live = lerobot_loop([replace(first.episode, images=images)], work / "own_live")
         del first, images
         start = time.perf_counter()
         export_dataset([read_live(paths[0])], work / "ours_live")
         ours_live = time.perf_counter() - start
-        own_steps = lerobot_loop(read_episode(paths[0]), work / "own_steps")
+        own_steps = lerobot_loop([read_episode(paths[0])], work / "own_steps")
         start = time.perf_counter()
         export_dataset([read_episode(paths[0])], work / "ours_steps")
         ours_steps = time.perf_counter() - start

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.robot.test_ur_cell import write_cell
+from tests.robot.test_live_recording import live_cell
 from twinrl_data.live_export import read_live
 from twinrl_data.mcap_log import read_summary
 from twinrl_data.session import Session
@@ -36,12 +36,7 @@ def _recording(out: Path) -> bool:
 def test_a_killed_live_recording_loses_at_most_a_second_of_frames_and_samples(
     tmp_path: Path,
 ) -> None:
-    cell = write_cell(tmp_path)
-    host = cell.read_text().split("host: ")[1].split()[0]
-    camera = {"name": "front", "kind": "opencv", "source": f"http://{host}:8080/front",
-              "width": 160, "height": 120, "fps": 30}  # fmt: skip
-    cell = write_cell(tmp_path, cameras=[camera], arm={"model": "ur5e", "host": host,
-                      "control_hz": 10})  # fmt: skip
+    cell = live_cell(tmp_path)
     out = tmp_path / "session"
     with EmulatorProcess(cell, effects=None):
         recorder = subprocess.Popen(

@@ -22,15 +22,20 @@ from twinrl_robot.ur.sensor_streams import controller_names
 pytestmark = pytest.mark.realtime
 
 
-def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
-    tmp_path: Path,
-) -> None:
+def live_cell(tmp_path: Path) -> Path:
+    """An emulated UR cell file with one 160x120 camera at 30 fps and a 10 Hz loop."""
     cell = write_cell(tmp_path)
     host = cell.read_text().split("host: ")[1].split()[0]
     camera = {"name": "front", "kind": "opencv", "source": f"http://{host}:8080/front",
               "width": 160, "height": 120, "fps": 30}  # fmt: skip
-    cell = write_cell(tmp_path, cameras=[camera], arm={"model": "ur5e", "host": host,
+    return write_cell(tmp_path, cameras=[camera], arm={"model": "ur5e", "host": host,
                       "control_hz": 10})  # fmt: skip
+
+
+def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
+    tmp_path: Path,
+) -> None:
+    cell = live_cell(tmp_path)
     with EmulatorProcess(cell, effects=None):
         report = run_recording(
             RecordSettings(
