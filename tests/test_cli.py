@@ -179,6 +179,10 @@ def test_train_and_eval_commands(tmp_path):
             ["eval", "expert", "--task", "pick_place", "--no-grasp-hold", "--out", "x"],
             "--grasp-hold applies to a twinrl checkpoint",
         ),
+        (
+            ["eval", "expert", "--task", "pick_place", "--binary-gripper", "--out", "x"],
+            "--binary-gripper applies to a twinrl checkpoint",
+        ),
         (["expand", "pick_place", "--out", "x", "--randomize", "fog"], "unknown randomisation"),
         (["expand", "pick_place", "--out", "x", "--method", "augment"], "needs --from-demo"),
         (

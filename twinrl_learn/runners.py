@@ -142,17 +142,24 @@ def load_runner(
     *,
     open_loop: bool = False,
     grasp_hold: bool | None = None,
+    binary_gripper: bool | None = None,
     device: str = "cpu",
 ) -> Runner:
     """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder,
     its network on ``device`` (auto, cpu, cuda or cuda:N).
     ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
     its predictions for each step (``PolicyConfig.temporal_ensemble``); ``grasp_hold``
-    turns the arm's hold while the gripper closes on or off (``None``: as the
-    checkpoint says; ``PolicyConfig.grasp_hold``)."""
+    turns the arm's hold while the gripper closes on or off and ``binary_gripper`` the
+    gripper commanded open or closed rather than as predicted (``None``: as the
+    checkpoint says; ``PolicyConfig.grasp_hold``, ``PolicyConfig.binary_gripper``)."""
     device = str(resolve_device(device))  # a bad name is refused whatever the policy
     path = Path(spec)
-    for asked, setting in ((open_loop, "open_loop"), (grasp_hold is not None, "grasp_hold")):
+    asked_for = (
+        (open_loop, "open_loop"),
+        (grasp_hold is not None, "grasp_hold"),
+        (binary_gripper is not None, "binary_gripper"),
+    )
+    for asked, setting in asked_for:
         if asked and not is_checkpoint(path):
             raise SettingError(
                 setting,
@@ -171,6 +178,9 @@ def load_runner(
         if grasp_hold is not None and grasp_hold != config.grasp_hold:
             runner.name += ":hold" if grasp_hold else ":no-hold"
             config.grasp_hold = grasp_hold
+        if binary_gripper is not None and binary_gripper != config.binary_gripper:
+            runner.name += ":binary-gripper" if binary_gripper else ":as-predicted-gripper"
+            config.binary_gripper = binary_gripper
         return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()

@@ -1,7 +1,7 @@
 """Policy, SFT, evaluation and the lerobot adapter on a small recorded dataset."""
 
 import json
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -171,6 +171,26 @@ def test_the_arm_holds_while_the_gripper_closes():
     policy.config.grasp_hold = False
     policy.reset()
     assert np.array_equal(policy.act(observation, ""), move_close)
+
+
+def test_the_gripper_is_commanded_open_or_closed_as_the_demonstrations_command_it():
+    """binary_gripper (the default): a predicted gripper command between open and closed
+    is sent as the nearer of the two (at GRIPPER_CLOSED), never as a half-closed gripper;
+    off, as predicted. A checkpoint saved before the setting existed gets the default."""
+    config = PolicyConfig(kind="state", state_dim=4, env_dim=7, grasp_hold=False)
+    policy = Policy(config)
+    observation = {"observation.state": np.zeros(4), "observation.environment_state": np.zeros(7)}
+    for predicted, sent in ((0.3, 0.0), (0.49, 0.0), (0.5, 1.0), (0.8, 1.0)):
+        action = np.array([0.01, 0.0, -0.01, 0.0, 0.0, 0.0, predicted], np.float32)
+        policy.act_chunks = lambda *a, **k: action[None, None]  # noqa: B023
+        policy.reset()
+        acted = policy.act(observation, "")
+        assert acted[-1] == sent and np.array_equal(acted[:6], action[:6])
+    policy.config.binary_gripper = False
+    policy.reset()
+    assert policy.act(observation, "")[-1] == pytest.approx(0.8)
+    saved = {k: v for k, v in asdict(config).items() if k != "binary_gripper"}
+    assert PolicyConfig(**saved).binary_gripper
 
 
 def test_the_image_policy_learns_to_locate_the_objects(dataset, tmp_path):

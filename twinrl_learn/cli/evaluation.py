@@ -46,6 +46,13 @@ def eval_command(
             "the checkpoint says; checkpoints hold)."
         ),
     ] = None,
+    binary_gripper: Annotated[
+        bool | None,
+        typer.Option(
+            help="Command a twinrl policy's gripper open or closed, or as predicted (default: "
+            "as the checkpoint says; checkpoints command it open or closed)."
+        ),
+    ] = None,
     device: DeviceOption = "auto",
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
@@ -65,6 +72,7 @@ def eval_command(
         checkpoint,
         open_loop=open_loop,
         grasp_hold=grasp_hold,
+        binary_gripper=binary_gripper,
         device=device,
     )
     with progress("success") as bar:

@@ -27,7 +27,9 @@ ensembling of its predictions (a chunk run open-loop cannot correct itself, and 
 grasps it missed were off by a couple of centimetres or tens of degrees), and with
 ``grasp_hold`` the arm waits while the gripper closes, as a blocking grasp call does on
 a real gripper (the grasps a policy lost were lifted while the fingers were still
-3-6 cm apart).
+3-6 cm apart); with ``binary_gripper`` the gripper is commanded open or closed, as the
+demonstrations command it (an ensembled value in between half-closed the fingers on the
+way down).
 
 The package, one role per module: :mod:`.config` (``PolicyConfig``), :mod:`.networks`
 (the image encoder), :mod:`.inputs` (observations to normalised batches),

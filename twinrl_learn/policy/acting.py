@@ -3,8 +3,9 @@
 With ``chunk > 1`` and ``temporal_ensemble`` set, a chunk is predicted at every step
 and the executed action is the weighted average of every prediction made for this step
 (temporal ensembling, as ACT does); without it each chunk is executed in turn before
-looking again. With ``grasp_hold`` the arm holds while the gripper closes
-(:class:`~twinrl_robot.wrappers.HoldRule`).
+looking again. With ``binary_gripper`` the gripper is commanded open or closed (at
+:data:`~twinrl_sim.tasks.expert.GRIPPER_CLOSED`), with ``grasp_hold`` the arm holds
+while it closes (:class:`~twinrl_robot.wrappers.HoldRule`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from twinrl_learn.policy.config import PolicyConfig
 from twinrl_robot.wrappers import HoldRule
+from twinrl_sim.tasks.expert import GRIPPER_CLOSED
 
 
 class ChunkedActing:
@@ -36,6 +38,9 @@ class ChunkedActing:
         """The action for ``observation``; ``predict`` maps a batch of one observation to
         its chunk (chunk, A) in physical units."""
         action = self._next_action(observation, predict)
+        if self.config.binary_gripper:
+            action = np.array(action, copy=True)
+            action[-1] = 1.0 if action[-1] >= GRIPPER_CLOSED else 0.0
         if self.config.grasp_hold:
             action = self._hold(np.asarray(observation["observation.state"]), action)
         return action

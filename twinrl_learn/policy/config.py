@@ -49,6 +49,10 @@ class PolicyConfig:
     # Acting, hold the arm while the gripper closes (HoldRule).
     # State policies gained successes with it, none lost any (docs/results/defaults.md).
     grasp_hold: bool = True
+    # Acting, command the gripper open or closed, as the demonstrations do: an averaged
+    # or regressed value between the two half-closes a position-servoed gripper on the
+    # way down, and the fingers closed on the object's top (docs/results/defaults.md).
+    binary_gripper: bool = True
     # The pose estimator an image policy acts through (EstimatorConfig as a dict; its
     # head's weights are in the checkpoint under ``estimator.``): it reads the cameras
     # and proprio and says where the objects are relative to the tool, and the policy
