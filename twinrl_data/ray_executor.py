@@ -91,8 +91,8 @@ def _connect(address: str) -> None:
         ) from None
     except ConnectionError as err:
         raise TwinrlError(
-            f"no Ray cluster at {address}: start one (ray start --head), join this machine "
-            f"to one (ray start --address=HEAD:6379) or name its head in `cluster` ({err})"
+            f"no Ray cluster at {address}: start one with Ray's `ray start` (a head, then "
+            f"this machine joined to it) or name its head in `cluster` ({err})"
         ) from None
     warn_unauthenticated()
 

@@ -188,7 +188,7 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
                 assert probe.connect_ex((address, grpc)) != 0
     finally:
         server.send_signal(signal.SIGINT)
-        assert server.wait(timeout=30) is not None
+        assert server.wait(timeout=90) is not None  # a hang guard: a loaded host stops slowly
     with socket.socket() as probe:  # the viewer stopped with it
         assert probe.connect_ex(("127.0.0.1", grpc)) != 0
     refused = twinrl("view", "session#0", "--web", "--save", "x.rrd", cwd=tmp_path)
