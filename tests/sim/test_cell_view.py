@@ -163,6 +163,8 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
     import sys
     import urllib.request
 
+    import psutil
+
     record_demos(tmp_path, seed=3)
     web, grpc = _free_port(), _free_port()
     server = subprocess.Popen(
@@ -188,7 +190,13 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
                 assert probe.connect_ex((address, grpc)) != 0
     finally:
         server.send_signal(signal.SIGINT)
-        assert server.wait(timeout=90) is not None  # a hang guard: a loaded host stops slowly
+        try:
+            server.wait(timeout=90)  # a hang guard: a loaded host stops slowly
+        except subprocess.TimeoutExpired:
+            # Not left running to load the tests after it: the viewer and its children.
+            for process in [*psutil.Process(server.pid).children(recursive=True), server]:
+                process.kill()
+            raise
     with socket.socket() as probe:  # the viewer stopped with it
         assert probe.connect_ex(("127.0.0.1", grpc)) != 0
     refused = twinrl("view", "session#0", "--web", "--save", "x.rrd", cwd=tmp_path)
