@@ -15,6 +15,7 @@ from ray._private import ray_constants
 from ray.cluster_utils import Cluster
 from typer.testing import CliRunner
 
+from tests.data.test_executor import chatty  # the same chatty job on Ray as on processes
 from twinrl_data import ray_executor
 from twinrl_data.executor import make_executor
 from twinrl_data.mcap_log import read_episode
@@ -56,13 +57,6 @@ def cluster():
 def node_of(n):
     time.sleep(0.3)  # long enough that two jobs overlap, so each node takes one
     return n * n, ray.get_runtime_context().get_node_id()
-
-
-def chatty(n, send):
-    send(f"job {n} starts")
-    if n == 3:
-        raise ArithmeticError(f"job {n} cannot")
-    return n + 100
 
 
 def test_embedded_ray_listens_on_loopback_only_and_runs_no_dashboard():

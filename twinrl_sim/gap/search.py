@@ -190,8 +190,7 @@ def fit_candidate(
         scene, fit_on, noise, fixed=kept, free=[*refitting, name], start=start, pool=rollout
     )
     x, half_width, iterations = replay.fit()
-    refitted = sum(np.size(value) for n in refitting for value in fixed[n].values())
-    k = len(x) - refitted
+    k = len(x) - size({n: fixed[n] for n in refitting})  # the named effects' not again
     effects, error, aic, bic, passes = _judged(
         scene, held, noise, rollout, replay, x, replay.residuals(x), k, baseline
     )
