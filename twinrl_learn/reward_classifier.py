@@ -232,7 +232,8 @@ class ClassifierReport:
     seconds: float
 
 
-def _scores(predicted: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float]:
+def scores(predicted: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float]:
+    """(accuracy, balanced accuracy, precision, recall) of boolean judgements."""
     tp = float(np.sum(predicted & labels))
     tn = float(np.sum(~predicted & ~labels))
     fp = float(np.sum(predicted & ~labels))
@@ -301,9 +302,9 @@ def train_reward_classifier(
         if progress is not None and (step % 50 == 0 or step == settings.steps - 1):
             progress(step + 1, float(loss.detach()))
     net.eval()
-    probability = _predict(net, heldout.images, heldout.gripper)
+    probability = predict(net, heldout.images, heldout.gripper)
     predicted = probability > settings.threshold
-    accuracy, balanced, precision, recall = _scores(predicted, heldout.labels)
+    accuracy, balanced, precision, recall = scores(predicted, heldout.labels)
     report = ClassifierReport(
         accuracy=accuracy,
         balanced_accuracy=balanced,
@@ -337,9 +338,10 @@ def episodes_under(
     return episodes
 
 
-def _predict(
+def predict(
     net: SuccessNet | PretrainedSuccessNet, images: np.ndarray, gripper: np.ndarray
 ) -> np.ndarray:
+    """The success probability of each frame (stacked camera images, gripper opening)."""
     device = module_device(net)
     with torch.no_grad(), mixed_precision(device):
         logits = [
@@ -473,7 +475,7 @@ class RewardClassifier:
             axis=1,
         )
         gripper = np.asarray(observation[STATE], np.float32)[None, -1:]
-        return float(_predict(self.net, images, gripper[:, 0])[0])
+        return float(predict(self.net, images, gripper[:, 0])[0])
 
     def judge(self, observation: dict[str, np.ndarray]) -> bool:
         """Whether ``observation`` shows the task done (a :data:`twinrl_robot.loop.Judge`)."""

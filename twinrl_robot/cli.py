@@ -82,6 +82,16 @@ def expert(
             min=0,
         ),
     ] = 0,
+    near_misses: Annotated[
+        float,
+        typer.Option(
+            help="Share of the episodes in which the expert stops short near the goal and "
+            "holds (an object held over its goal, a peg above its hole, a board wiped in "
+            "part): the hard negatives a reward classifier learns from, e.g. 0.3.",
+            min=0.0,
+            max=1.0,
+        ),
+    ] = 0.0,
     as_json: Annotated[
         bool, typer.Option("--json", help="Print one JSON object per task and world.")
     ] = False,
@@ -127,6 +137,7 @@ def expert(
                     cell=cell if place == "real" else None,
                     emulated=emulated and place == "real",
                     settle=settle,
+                    near_misses=near_misses,
                 )
                 reports.append(report)
                 if as_json:

@@ -19,7 +19,10 @@ from twinrl_robot.errors import RobotError
 from twinrl_robot.loop import privileged_success, run_episode
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.tasks import REGION_NAMES, Task, TaskConfig, make_task
-from twinrl_sim.tasks.expert import ScriptedExpert
+from twinrl_sim.tasks.expert import ScriptedExpert, stopping_short
+
+# A near miss holds still for this many recorded steps before its episode ends.
+NEAR_MISS_HOLD = 5
 
 
 @dataclass(frozen=True)
@@ -28,6 +31,7 @@ class ExpertEpisode:
     config: dict[str, list[float]]
     success: bool
     steps: int
+    near_miss: bool = False  # the expert stopped short near the goal on purpose
 
 
 @dataclass(frozen=True)
@@ -68,14 +72,38 @@ class ExpertReport:
 class ExpertSource:
     """The task's scripted expert as an action source, with an operator's hand jitter
     of ``noise`` m per step (five times as much, in rad, on rotations), which the
-    expert then corrects like a person watching the arm."""
+    expert then corrects like a person watching the arm.
 
-    def __init__(self, rng: np.random.Generator, jitter: np.random.Generator, noise: float):
+    With ``stop_short`` it makes a near miss (:func:`~twinrl_sim.tasks.expert.
+    stopping_short`): it goes that fraction of the way through the phase the task's
+    ``near_miss`` names and holds still; :meth:`finished` says when it has held for
+    ``hold`` steps."""
+
+    def __init__(
+        self,
+        rng: np.random.Generator,
+        jitter: np.random.Generator,
+        noise: float,
+        stop_short: float | None = None,
+        hold: int = NEAR_MISS_HOLD,
+    ):
         self.rng, self.jitter, self.noise = rng, jitter, noise
+        self.stop_short, self.hold = stop_short, hold
         self.expert: ScriptedExpert | None = None
+        self._held = 0
 
     def reset(self, task: Task, config: TaskConfig) -> None:
         self.expert = task.expert(config, self.rng)
+        if self.stop_short is not None:
+            self.expert = stopping_short(self.expert, task.near_miss[0], self.stop_short)
+        self._held = 0
+
+    def finished(self) -> bool:
+        """Whether a near miss has held still long enough to end its episode."""
+        if self.stop_short is None or self.expert is None or not self.expert.done:
+            return False
+        self._held += 1
+        return self._held > self.hold
 
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         assert self.expert is not None, "reset the source first"
@@ -106,6 +134,7 @@ def run_scripted_expert(
     cell: CellFile | str | Path | None = None,
     emulated: bool = False,
     settle: int = 0,
+    near_misses: float = 0.0,
 ) -> ExpertReport:
     """Run ``episodes`` expert episodes per region in ``world`` (deterministic per seed).
 
@@ -119,10 +148,15 @@ def run_scripted_expert(
     the arm of ``cell`` (a cell file); the expert reads object poses, which only an
     ``emulated`` cell lends (a real cell refuses it: a person demonstrates there).
     ``settle`` steps are recorded after each success with the arm held (see
-    :func:`~twinrl_robot.loop.run_episode`).
+    :func:`~twinrl_robot.loop.run_episode`). A share ``near_misses`` of the episodes
+    (drawn per episode) are near misses: the expert stops short near the goal and holds
+    (:class:`ExpertSource`), recorded with the policy ``scripted_expert:near_miss``; they
+    are the hard negatives a reward classifier learns from.
     """
     if episodes < 1:
         raise RobotError(f"episodes must be at least 1, got {episodes}")
+    if not 0.0 <= near_misses <= 1.0:
+        raise RobotError(f"near_misses is a share of the episodes in [0, 1], got {near_misses}")
     recording = session is not None
     # The expert stands in for a person teleoperating the (stand-in) real cell, whose
     # controller reports joint torques as a UR's does (the gap workflow uses them).
@@ -147,10 +181,13 @@ def run_scripted_expert(
         for r, region in enumerate(regions):
             for i in range(episodes):
                 config = spec_task.sample_config(rng, region)
+                draw = np.random.default_rng([seed, r, i, 2])
+                near_miss = bool(draw.random() < near_misses)
                 source = ExpertSource(
                     np.random.default_rng([seed, r, i]),
                     np.random.default_rng([seed, r, i, 1]),
                     action_noise,
+                    stop_short=float(draw.uniform(*spec_task.near_miss[1:])) if near_miss else None,
                 )
                 meta = None
                 if recorder is not None:
@@ -160,7 +197,7 @@ def run_scripted_expert(
                         names=robot.names,
                         config=config,
                         region=region,
-                        policy="scripted_expert",
+                        policy="scripted_expert:near_miss" if near_miss else "scripted_expert",
                         operator=None if world == "twin" else "scripted_expert",
                     )
                 outcome = run_episode(
@@ -172,8 +209,11 @@ def run_scripted_expert(
                     recorder=recorder,
                     meta=meta,
                     settle=settle,
+                    until=source.finished,
                 )
-                episode = ExpertEpisode(region, config.to_dict(), outcome.success, outcome.steps)
+                episode = ExpertEpisode(
+                    region, config.to_dict(), outcome.success, outcome.steps, near_miss
+                )
                 results.append(episode)
                 if on_episode is not None:
                     on_episode(episode)

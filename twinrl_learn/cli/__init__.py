@@ -1,7 +1,7 @@
 """The ``twinrl`` command: the root app, assembled from each package's commands.
 
 One module per command group: :mod:`.train` (SFT, twin RL, real RL, their options
-derived from the settings records), :mod:`.evaluation` (``eval``, ``locate``),
+derived from the settings records), :mod:`.evaluation` (``eval``, ``locate``, ``judge``),
 :mod:`.mine`, :mod:`.demo` and :mod:`.bench`; the data, twin and robot commands come
 from their own packages. Only what the options' help texts and defaults need loads
 here, so that ``twinrl --help`` is quick; each command loads the rest (torch, the
@@ -47,6 +47,7 @@ app.command("expand")(sim_cli.expand_command)
 app.add_typer(train.app, name="train")
 app.command("eval")(evaluation.eval_command)
 app.command("locate")(evaluation.locate_command)
+app.command("judge")(evaluation.judge_command)
 app.command("demo")(demo.demo_command)
 app.command("mine")(mine.mine_command)
 app.add_typer(bench.app, name="bench")

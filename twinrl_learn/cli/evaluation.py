@@ -174,3 +174,46 @@ def locate_command(
                 table.add_row(label, region, name, f"{errors['first_frame_cm']:.1f}", *cells)
     console.print(table)
     console.print(f"{out / 'locating.json'}, {out / 'locating.png'}")
+
+
+def judge_command(
+    classifier: Annotated[
+        Path, typer.Argument(help="Reward classifier folder (`twinrl train reward-classifier`).")
+    ],
+    paths: Annotated[
+        list[Path],
+        typer.Argument(
+            help="Episodes it never saw: session folders, .mcap files or LeRobot datasets; "
+            "only its task's are judged."
+        ),
+    ],
+    out: Annotated[
+        Path | None, typer.Option(help="JSON file to write the scores to (must not exist).")
+    ] = None,
+) -> None:
+    """How a reward classifier judges logged episodes: frame scores, and per episode the
+    false successes (a failed episode real RL would have rewarded) and missed successes."""
+    if out is not None and out.exists():
+        raise UsageError(f"--out {out} exists; choose another file")
+    from twinrl_learn.reward_check import check_reward_classifier, save_check
+    from twinrl_learn.reward_classifier import RewardClassifier, episodes_under
+
+    judge = RewardClassifier.load(classifier)
+    episodes = episodes_under(paths, judge.settings.cameras, judge.task)
+    check = check_reward_classifier(judge, episodes)
+    table = Table("frames (successes)", "accuracy", "balanced", "precision", "recall",
+                  title=f"{classifier.name}: {check.task}")  # fmt: skip
+    table.add_row(
+        f"{check.frames} ({check.positives})",
+        *[f"{100 * v:.1f} %" for v in (check.accuracy, check.balanced_accuracy,
+                                       check.precision, check.recall)],
+    )  # fmt: skip
+    console.print(table)
+    near = f", {check.near_miss_false_successes} of {check.near_miss_episodes} near misses"
+    console.print(
+        f"false successes: {check.false_successes} of {check.failed_episodes} failed episodes"
+        f"{near if check.near_miss_episodes else ''}; missed successes: "
+        f"{check.missed_successes} of {check.successful_episodes}"
+    )
+    if out is not None:
+        console.print(f"{save_check(check, out)}")

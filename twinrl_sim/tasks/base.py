@@ -126,6 +126,10 @@ class Task(ABC):
     grasp_period: ClassVar[float] = math.pi
     grasp_yaw_offset: ClassVar[float] = 0.0
     regions: ClassVar[dict[str, Region]] = DEFAULT_REGIONS
+    # A near miss (expert.stopping_short): the expert's phase it stops short in, and the
+    # range of the fraction of that phase it goes. Pick and place: lowering the object
+    # onto its goal, stopped 4-35 mm above it with the object still held.
+    near_miss: ClassVar[tuple[str, float, float]] = ("lower", 0.5, 0.95)
     tracker_class: ClassVar[type[Tracker]] = Tracker
 
     def __init__(self, scene: SceneSpec | None = None) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -215,6 +215,27 @@ class ScriptedExpert:
 
 
 # ---------------------------------------------------------------- building blocks
+def stopping_short(expert: ScriptedExpert, phase: str, fraction: float) -> ScriptedExpert:
+    """A near miss of ``expert``: it goes ``fraction`` of the way from where it enters
+    the phase named ``phase`` to that phase's goal, then holds still with the gripper as
+    that phase has it. What a reward classifier must not take for a success: an object
+    held over its goal, a peg above its hole, a board wiped in part."""
+    names = [p.name for p in expert.phases]
+    if phase not in names:
+        raise ValueError(f"the expert has no phase '{phase}'; its phases: {', '.join(names)}")
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f"a near miss stops a fraction in [0, 1) of the way, got {fraction}")
+    k = names.index(phase)
+    whole = expert.phases[k].goal
+
+    def short_of_goal(view: ObsView, memory: dict) -> tuple[np.ndarray, float]:
+        pos, yaw = whole(view, memory)
+        return view.tcp_pos + fraction * (pos - view.tcp_pos), yaw
+
+    last = replace(expert.phases[k], goal=short_of_goal, on_exit=None)
+    return replace(expert, phases=[*expert.phases[:k], last])
+
+
 def grasp_yaw(object_yaw: float, period: float, offset: float, reference: float) -> float:
     """Tool yaw for a grasp ``offset`` from the object's heading, nearest to ``reference``
     among the object's symmetric equivalents (``period``)."""

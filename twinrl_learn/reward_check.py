@@ -1,0 +1,100 @@
+"""A reward classifier judged on episodes it never saw, the way real RL would use it.
+
+Real RL ends an episode at the first frame the classifier calls a success, so besides the
+frame scores (labelled as in :func:`~twinrl_learn.reward_classifier.labelled_frames`)
+what matters is per episode: a failed episode with any frame judged a success is a
+*false success* (rewarded and ended early), a successful one with none of its success
+frames judged so is a *missed success*. Episodes recorded as near misses (the scripted
+expert stopping short near the goal: ``twinrl sim expert --near-misses``) are the hard
+negatives and are counted apart.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from twinrl_data.atomic import write_text_atomic
+from twinrl_data.schema import Episode
+from twinrl_learn.errors import LearnError
+from twinrl_learn.reward_classifier import RewardClassifier, labelled_frames, predict, scores
+
+NEAR_MISS_POLICY = "scripted_expert:near_miss"  # the policy a near miss is recorded with
+
+
+@dataclass
+class ClassifierCheck:
+    """Frame scores and episode outcomes of one classifier on one set of episodes."""
+
+    task: str
+    frames: int
+    positives: int
+    accuracy: float
+    balanced_accuracy: float
+    precision: float
+    recall: float
+    successful_episodes: int
+    failed_episodes: int
+    near_miss_episodes: int  # failed episodes recorded as near misses
+    false_successes: int  # failed episodes with a frame judged a success
+    near_miss_false_successes: int  # of which near misses
+    missed_successes: int  # successful episodes with no success frame judged so
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def check_reward_classifier(
+    classifier: RewardClassifier, episodes: Sequence[Episode]
+) -> ClassifierCheck:
+    """Judge every labelled frame of ``episodes`` (of the classifier's task) with
+    ``classifier`` (see the module docstring)."""
+    other = sorted({e.meta.task for e in episodes} - {classifier.task})
+    if other:
+        raise LearnError(
+            f"the classifier judges {classifier.task}, and some episodes are of {other[0]}; "
+            "check it on its own task's episodes"
+        )
+    frames = labelled_frames(episodes, classifier.settings)
+    judged = predict(classifier.net, frames.images, frames.gripper) > classifier.threshold
+    accuracy, balanced, precision, recall = scores(judged, frames.labels)
+    counts = dict.fromkeys(("ok", "failed", "near", "false", "near_false", "missed"), 0)
+    for index in np.unique(frames.episode):
+        rows = frames.episode == index
+        near = episodes[index].meta.policy == NEAR_MISS_POLICY
+        if episodes[index].meta.success:
+            counts["ok"] += 1
+            shown = rows & frames.labels
+            counts["missed"] += bool(shown.any() and not judged[shown].any())
+        else:
+            counts["failed"] += 1
+            counts["near"] += near
+            wrong = bool(judged[rows].any())
+            counts["false"] += wrong
+            counts["near_false"] += wrong and near
+    return ClassifierCheck(
+        task=classifier.task,
+        frames=len(frames.labels),
+        positives=int(frames.labels.sum()),
+        accuracy=accuracy,
+        balanced_accuracy=balanced,
+        precision=precision,
+        recall=recall,
+        successful_episodes=counts["ok"],
+        failed_episodes=counts["failed"],
+        near_miss_episodes=counts["near"],
+        false_successes=counts["false"],
+        near_miss_false_successes=counts["near_false"],
+        missed_successes=counts["missed"],
+    )
+
+
+def save_check(check: ClassifierCheck, path: str | Path) -> Path:
+    """Write ``check`` as JSON to ``path``."""
+    path = Path(path)
+    write_text_atomic(path, json.dumps(check.to_dict(), indent=1))
+    return path
