@@ -9,6 +9,7 @@ import yaml
 from rerun.experimental import RrdReader
 
 from tests.conftest import record_demos
+from tests.data.test_web_view import free_port
 from tests.sim.test_gap_diagnose import FOUR_JOINT_ARM
 from tests.test_cli import twinrl
 from twinrl_data import schema
@@ -148,14 +149,6 @@ def test_a_cell_of_ones_own_is_drawn_from_its_scene_file(tmp_path):
     assert len(moves) > 10 and np.ptp(moves, axis=0).max() > 0.01  # the shoulder turns
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
     import signal
     import socket
@@ -166,11 +159,13 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
     import psutil
 
     record_demos(tmp_path, seed=3)
-    web, grpc = _free_port(), _free_port()
+    web, grpc = free_port(), free_port()
     server = subprocess.Popen(
         [sys.executable, "-m", "twinrl_learn", "view", "session#0", "--web",
          "--web-port", str(web), "--grpc-port", str(grpc)],
         cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # As a script's `twinrl view --web &` starts it; Ctrl-C must stop it all the same.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
     )  # fmt: skip
     try:
         line = server.stdout.readline()
@@ -191,7 +186,7 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
     finally:
         server.send_signal(signal.SIGINT)
         try:
-            server.wait(timeout=90)  # a hang guard: a loaded host stops slowly
+            server.wait(timeout=30)  # a hang guard: a loaded host stops slowly
         except subprocess.TimeoutExpired:
             # Not left running to load the tests after it: the viewer and its children.
             for process in [*psutil.Process(server.pid).children(recursive=True), server]:

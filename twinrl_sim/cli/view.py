@@ -110,12 +110,11 @@ def view(
     if web:
         from twinrl_data.web_view import serve_web
 
-        viewer = serve_web(episodes, cell=cell, bind=bind, web_port=web_port, grpc_port=grpc_port)
-        console.print(f"open {viewer.url} in a browser; Ctrl-C stops serving")
-        try:
+        with serve_web(
+            episodes, cell=cell, bind=bind, web_port=web_port, grpc_port=grpc_port
+        ) as viewer:
+            console.print(f"open {viewer.url} in a browser; Ctrl-C stops serving")
             viewer.wait()
-        except KeyboardInterrupt:
-            viewer.close()
     elif save is not None:
         save_rrd(episodes, save, cell=cell, force=force)
         console.print(f"{save}: {len(episodes)} episode(s), open it with `rerun {save}`")
