@@ -6,6 +6,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 SYSTEM_PACKAGES := libusb-1.0-0 libegl1 libgl1 libosmesa6
+# The web viewer's tests drive a real headless browser: installed where root can, else
+# those tests skip and say why.
+BROWSER_PACKAGES := chromium chromium-driver
 # Python 3.12: on PATH, or through pyenv (.python-version pins it).
 PYTHON ?= $(shell command -v python3.12 >/dev/null 2>&1 && python3.12 -c 'import sys' 2>/dev/null && echo python3.12 || echo "env PYENV_VERSION=3.12.1 python3.12")
 export MUJOCO_GL ?= egl
@@ -35,6 +38,15 @@ system-libs:
 	else \
 		echo "missing system libraries:$$missing"; \
 		echo "install them with: sudo apt-get install -y$$missing"; exit 1; \
+	fi
+	@command -v dpkg >/dev/null 2>&1 || exit 0; \
+	missing=""; for pkg in $(BROWSER_PACKAGES); do dpkg -s $$pkg >/dev/null 2>&1 || missing="$$missing $$pkg"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" = 0 ]; then \
+		echo "installing the browser tests' browser:$$missing"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq$$missing >/dev/null; \
+	else \
+		echo "note: the web viewer's browser tests will skip; install their browser with: sudo apt-get install -y$$missing"; \
 	fi
 
 $(STAMP): pyproject.toml

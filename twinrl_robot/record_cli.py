@@ -37,6 +37,7 @@ def _record(settings: dict[str, Any]) -> None:
             on_status=lambda status: live.update(
                 Text.from_markup(_status_line(status)), refresh=True
             ),
+            on_web=lambda url: console.print(f"live view: open {url} in a browser"),
         )
     out = config.out
     table = Table("episode", "outcome", "steps", "note", title=f"recorded into {out}")

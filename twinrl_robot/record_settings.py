@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from twinrl_data.errors import SettingError
 from twinrl_sim.tasks import task_class
@@ -40,6 +40,15 @@ class RecordSettings:
     """Send the live view to a running Rerun viewer at this URL."""
     save_view: str | None = None
     """Save the live view to this .rrd file."""
+    web: bool = False
+    """Serve the live view to browsers with Rerun's web viewer (a machine without a
+    screen): its page's address is printed."""
+    bind: str = "127.0.0.1"
+    """Address the web viewer listens on (default: this machine only)."""
+    web_port: int = 9090
+    """Port of the web viewer's page."""
+    grpc_port: int = 9876
+    """Port the web viewer's page reads the live view from."""
     keys: bool = True
     """Read the marks' keys from the terminal (when it is one)."""
     effects: str | None = None
@@ -74,13 +83,20 @@ class RecordSettings:
             value = getattr(self, name)
             if value is not None and value < least:
                 raise SettingError(name, f"must be at least {least}, got {value}")
-        given = [name for name in ("viewer", "connect", "save_view") if getattr(self, name)]
+        given = [n for n in ("viewer", "connect", "save_view", "web") if getattr(self, n)]
         if len(given) > 1:
             raise SettingError(
                 given[1], f"goes with `{given[0]}`; the live view goes to one of them"
             )
         if self.save_view is not None and not self.save_view.endswith(".rrd"):
             raise SettingError("save_view", f"must name a .rrd file, got {self.save_view}")
+        defaults = {f.name: f.default for f in fields(self)}
+        for name in ("bind", "web_port", "grpc_port"):
+            if not self.web and getattr(self, name) != defaults[name]:
+                raise SettingError(name, "goes with `web`: it is where the web viewer listens")
+        for name in ("web_port", "grpc_port"):
+            if not 0 < getattr(self, name) < 65536:
+                raise SettingError(name, f"must be a port, 1 to 65535, got {getattr(self, name)}")
 
     @property
     def view(self) -> str | None:

@@ -31,6 +31,7 @@ from twinrl_data.recorder import Recorder
 from twinrl_data.repair import repair_session
 from twinrl_data.schema import ENVIRONMENT_STATE, STATE
 from twinrl_data.session import Session
+from twinrl_data.web_view import start_web_viewer
 from twinrl_robot.errors import RobotError
 from twinrl_robot.live_view import LiveView
 from twinrl_robot.loop import run_episode, sensor_counts
@@ -340,13 +341,16 @@ def _dropped(robot: Robot) -> int:
 
 
 def run_recording(
-    settings: RecordSettings, on_status: Callable[[RecordStatus], None] | None = None
+    settings: RecordSettings,
+    on_status: Callable[[RecordStatus], None] | None = None,
+    on_web: Callable[[str], None] | None = None,
 ) -> RecordReport:
     """``twinrl record``: open the cell (the plant, or the UR arm of the settings' cell
     file, on the emulator when ``emulated``), the session folder (continued when it
     exists), the terminal's keys (when standard input is a terminal and ``keys``), the
-    teleop device and the live view, and record (see :func:`record_session`);
-    ``on_status`` gets the status line's contents as they change."""
+    teleop device and the live view (served to browsers when ``web``), and record (see
+    :func:`record_session`); ``on_status`` gets the status line's contents as they
+    change, ``on_web`` the web viewer's page once it is served."""
     from twinrl_robot.backends import ROBOTS, open_robot, recorded_cameras
     from twinrl_robot.cell_file import CellFile, load_cell
     from twinrl_robot.teleop import open_teleop
@@ -365,6 +369,15 @@ def run_recording(
     terminal = TerminalKeys() if settings.keys and sys.stdin.isatty() else None
     opened: list[Any] = [terminal] if terminal is not None else []
     try:
+        view = settings.view
+        if settings.web:  # first: a port in use stops it before the arm moves
+            web = start_web_viewer(
+                bind=settings.bind, web_port=settings.web_port, grpc_port=settings.grpc_port
+            )
+            opened.append(web)
+            view = web.grpc_url
+            if on_web is not None:
+                on_web(web.url)
         arm = open_robot(
             world,
             task,
@@ -388,9 +401,9 @@ def run_recording(
         )
         opened.append(device)
         live = None
-        if settings.view is not None:
+        if view is not None:
             live = LiveView(
-                settings.view,
+                view,
                 task,
                 cameras,
                 arm.names.get(STATE, []),

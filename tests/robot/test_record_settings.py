@@ -35,6 +35,9 @@ def test_the_live_view_goes_where_one_setting_says() -> None:
         ({"max_steps": 0}, "max_steps must be at least 1, got 0"),
         ({"viewer": True, "save_view": "a.rrd"}, "save_view goes with `viewer`"),
         ({"save_view": "live.txt"}, "save_view must name a .rrd file, got live.txt"),
+        ({"viewer": True, "web": True}, "web goes with `viewer`"),
+        ({"bind": "0.0.0.0"}, "bind goes with `web`: it is where the web viewer listens"),
+        ({"web": True, "grpc_port": 0}, "grpc_port must be a port, 1 to 65535, got 0"),
     ],
 )
 def test_a_bad_setting_is_refused_by_name(changes: dict, message: str) -> None:

@@ -196,3 +196,5 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
         assert probe.connect_ex(("127.0.0.1", grpc)) != 0
     refused = twinrl("view", "session#0", "--web", "--save", "x.rrd", cwd=tmp_path)
     assert refused.returncode == 2 and "choose one" in refused.stderr
+    refused = twinrl("view", "session#0", "--bind", "0.0.0.0", cwd=tmp_path)
+    assert refused.returncode == 2 and "add --web" in refused.stderr

@@ -100,6 +100,8 @@ def view(
         raise UsageError(f"--save {save} already exists; choose another path or add --force")
     if web and save is not None:
         raise UsageError("--web serves the episodes and --save writes them; choose one")
+    if not web and (bind, web_port, grpc_port) != ("127.0.0.1", 9090, 9876):
+        raise UsageError("--bind, --web-port and --grpc-port say where --web listens; add --web")
     if twin is not None and not twin.is_file():
         raise UsageError(f"--twin {twin} does not exist; give a scene or cell file (.yaml)")
     scene = None if twin is None else twin_scene(str(twin))
