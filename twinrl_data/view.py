@@ -12,8 +12,12 @@
   cell mounts is a pinhole frustum at its pose with its images inside
   (``world/<label>/cell/<body>/<camera>``: the wrist camera rides the flange), which
   the camera views show too, so no image is logged twice;
-- right: time series of joint positions against joint targets, executed against
-  policy-proposed actions, reward and success, with intervention spans in red.
+- right: time series of joint positions against joint targets, the grasp (and the
+  TCP's force where it is logged), executed against policy-proposed actions, reward and
+  success, with intervention spans in red.
+
+The grasp, drawn from what the episode logs, is :mod:`twinrl_data.grasp_view`'s: the
+held object marked ``in hand`` in 3D, the force at the TCP as an arrow.
 
 With two or more episodes (e.g. measured vs twin replay of one configuration) every
 series is logged once per episode label under the same plot, so they overlay; every
@@ -35,6 +39,7 @@ import rerun.blueprint as rrb
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
+from twinrl_data.grasp_view import has_grasp, log_grasp
 from twinrl_data.mcap_log import pose_groups
 
 Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
@@ -107,6 +112,7 @@ def log_episodes(
             log_cell_geometry(cell, f"world/{label}/cell", recording, opacity)
             _log_frusta(episode, label, mounts, recording)
         _log_one(episode, label, color, recording, cell, mounts)
+        log_grasp(episode, label, color, recording)
         if i > 0:
             _log_apart(episodes[0], episode, label, color, recording)
     recording.send_blueprint(_blueprint(episodes, labels, mounts))
@@ -367,9 +373,16 @@ def _blueprint(
         if len(episodes) > 1
         else []
     )
+    grasp, force = [], []
+    if any(has_grasp(e) for e in episodes):
+        grasp = [rrb.TimeSeriesView(origin="signals/grasp", name="grasp: opening cm, in hand")]
+    if any(contract.WRENCH in e.data for e in episodes):
+        force = [rrb.TimeSeriesView(origin="signals/force", name="TCP force (N)")]
     plots = rrb.Vertical(
         rrb.TimeSeriesView(origin="signals/joints", name="joint positions and targets (rad)"),
         *apart,
+        *grasp,
+        *force,
         rrb.TimeSeriesView(origin="signals/actions", name="actions: executed vs policy"),
         rrb.TimeSeriesView(origin="signals/outcome", name="reward and success"),
         rrb.TimeSeriesView(origin="signals/intervention", name="interventions"),

@@ -1,0 +1,128 @@
+"""The grasp in the Rerun view, from what an episode logs and nothing else.
+
+An episode logs the gripper's opening (``gripper.opening``, m, in the state), its command
+(the action's last entry, closed at or above :data:`GRIPPER_CLOSED`), the objects' poses
+where the world knows them (twin, plant, an emulated cell) and, where a cell measures
+it, the force at the TCP (``observation.wrench``, base frame). No world logs contacts,
+so none are drawn. From these:
+
+- **in hand**: an object is held at a step when the fingers, commanded closed since the
+  step before, have stopped (:data:`STILL`) short of both closed (:data:`EMPTY`: they
+  closed on nothing) and open, and it is the object nearest the TCP, within
+  :data:`REACH` of it. In 3D the held object carries a gold ``in hand`` marker; the plot
+  ``signals/grasp`` has the opening (cm), the command and, for each object ever held,
+  1 while it is.
+- **the TCP's force**: an arrow from the TCP (:data:`ARROW_M_PER_N`), labelled with its
+  size, and the force's components plotted under ``signals/force``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+
+from twinrl_data import schema as contract
+from twinrl_data.mcap_log import pose_groups
+
+GRIPPER_CLOSED = 0.5  # a gripper command at or above this closes the fingers
+STILL = 0.001  # m the opening may change in a step with the fingers stopped
+EMPTY = 0.002  # m; at or below it the fingers closed on nothing
+REACH = 0.04  # m from the TCP within which the nearest object is between the fingers
+ARROW_M_PER_N = 0.005  # the force arrow's length per newton
+OPENING = "gripper.opening"
+HELD_COLOR = [255, 200, 0]
+FORCE_COLOR = [230, 60, 60]
+AXIS_COLORS = ([220, 60, 60], [60, 180, 60], [60, 90, 220])  # x, y, z
+
+
+def _state(episode: contract.Episode) -> tuple[list[str], np.ndarray]:
+    return episode.meta.names.get(contract.STATE, []), episode.data[contract.STATE]
+
+
+def held_objects(episode: contract.Episode) -> dict[str, np.ndarray]:
+    """Each object whose pose ``episode`` logs: whether it is in hand at each step (see
+    the module docstring); empty where the episode logs no opening, TCP or objects."""
+    names, state = _state(episode)
+    tcp = pose_groups(names).get("tcp")
+    environment = episode.data.get(contract.ENVIRONMENT_STATE)
+    frames = pose_groups(episode.meta.names.get(contract.ENVIRONMENT_STATE, []))
+    if tcp is None or OPENING not in names or environment is None or not frames:
+        return {}
+    opening = state[:, names.index(OPENING)]
+    commanded = episode.data[contract.ACTION][:, -1] >= GRIPPER_CLOSED
+    gripping = np.zeros(len(episode), bool)
+    gripping[1:] = (
+        commanded[:-1]
+        & (np.abs(np.diff(opening)) < STILL)
+        & (opening[1:] > EMPTY)
+        & (opening[1:] < opening.max() - EMPTY)
+    )
+    positions = np.stack([environment[:, idx[:3]] for idx in frames.values()])
+    distance = np.linalg.norm(positions - state[None, :, tcp[:3]], axis=2)
+    near = gripping & (distance.min(axis=0) < REACH)
+    nearest = distance.argmin(axis=0)
+    return {frame: near & (nearest == i) for i, frame in enumerate(frames)}
+
+
+def has_grasp(episode: contract.Episode) -> bool:
+    """Whether ``episode`` logs the gripper's opening (so the grasp plot has a line)."""
+    return OPENING in _state(episode)[0]
+
+
+def log_grasp(
+    episode: contract.Episode, label: str, color: list[int], recording: rr.RecordingStream
+) -> None:
+    """Log ``episode``'s grasp and TCP force (see the module docstring) under ``label``,
+    one column per signal on the timelines ``step`` and ``time``."""
+    steps = np.arange(len(episode))
+    times = [rr.TimeColumn("step", sequence=steps),
+             rr.TimeColumn("time", duration=steps / episode.meta.fps)]  # fmt: skip
+    names, state = _state(episode)
+    if OPENING in names:
+        opening = state[:, names.index(OPENING)].astype(float) * 100
+        command = episode.data[contract.ACTION][:, -1].astype(float)
+        _plot(f"signals/grasp/opening/{label}", f"opening (cm) {label}", opening, color,
+              times, recording)  # fmt: skip
+        _plot(f"signals/grasp/command/{label}", f"command {label}", command, color,
+              times, recording)  # fmt: skip
+    for frame, held in held_objects(episode).items():
+        if not held.any():  # never in hand: no line, no marker
+            continue
+        _plot(f"signals/grasp/{frame}/{label}", f"{frame} in hand {label}", held * 1.0,
+              HELD_COLOR, times, recording)  # fmt: skip
+        count = int(held.sum())
+        marker = rr.Points3D.columns(
+            positions=np.zeros((count, 3)), radii=[0.02] * count,
+            colors=[HELD_COLOR] * count, labels=["in hand"] * count,
+        ).partition(held.astype(int))  # fmt: skip
+        rr.send_columns(f"world/{label}/objects/{frame}/in_hand", indexes=times,
+                        columns=marker, recording=recording)  # fmt: skip
+    wrench = episode.data.get(contract.WRENCH)
+    if wrench is None:
+        return
+    force = wrench[:, :3].astype(float)
+    for axis, values, line in zip("xyz", force.T, AXIS_COLORS, strict=True):
+        _plot(f"signals/force/{axis}/{label}", f"force {axis} (N) {label}", values, line,
+              times, recording)  # fmt: skip
+    tcp = pose_groups(names).get("tcp")
+    if tcp is not None:
+        arrows = rr.Arrows3D.columns(
+            origins=state[:, tcp[:3]], vectors=force * ARROW_M_PER_N,
+            colors=[FORCE_COLOR] * len(force),
+            labels=[f"{f:.0f} N" for f in np.linalg.norm(force, axis=1)],
+        )  # fmt: skip
+        rr.send_columns(f"world/{label}/tcp_force", indexes=times, columns=arrows,
+                        recording=recording)  # fmt: skip
+
+
+def _plot(
+    path: str,
+    name: str,
+    values: np.ndarray,
+    color: list[int],
+    times: list[rr.TimeColumn],
+    recording: rr.RecordingStream,
+) -> None:
+    rr.log(path, rr.SeriesLines(colors=[color], names=name), static=True, recording=recording)
+    rr.send_columns(path, indexes=times, columns=rr.Scalars.columns(scalars=values),
+                    recording=recording)  # fmt: skip
