@@ -76,6 +76,7 @@ class WalkthroughSettings:
     static: bool = False  # the camera does not move (a bad clip, for tests)
     plain_table: bool = False  # the table top keeps its spec colour, with no texture
     clutter: int = 0  # textured boxes standing behind the table, and a carpet under them
+    shiny_table: bool = False  # a glossy plain top (highlights, reflections), lit for shadows
     traits: CameraTraits = field(
         default_factory=CameraTraits
     )  # the phone's lens, exposure, noise, JPEG
@@ -94,6 +95,22 @@ REALISTIC_WALK = WalkthroughSettings(
 )
 """93 frames at 640x480 of the cell a real user films: see the module's docstring."""
 
+LOW_WALK = WalkthroughSettings(
+    seconds=9.3,
+    sweep_deg=50.0,
+    distance=0.9,
+    elevation_deg=-22.0,
+    jitter=0.02,
+    motion_blur=3,
+    plain_table=True,
+    clutter=8,
+    shiny_table=True,
+    traits=REALISTIC_TRAITS,
+)
+"""The realistic walk filmed low (the phone about 0.34 m over the table), over a glossy
+top that shows highlights, reflections and shadows: what stands on the table is seen
+mostly against the clutter beyond its far edge."""
+
 OFFICE_SCENE = SceneSpec(
     name="office",
     table=TableSpec(size=(0.8, 1.4), center=(0.5, 0.0), rgba=(0.93, 0.93, 0.91, 1)),
@@ -111,6 +128,40 @@ OFFICE_SCENE = SceneSpec(
 """What a new user films first: a white office table, a clear drinking bottle (7.5 cm
 across, 25 cm tall) and :data:`OFFICE_TAG`, a 14 cm tag, lying beside it."""
 OFFICE_TAG = (TagPlacement(tag_id=12, xy=(0.5, 0.0), yaw=0.0, size=0.14),)
+
+CLUTTERED_SCENE = SceneSpec(
+    name="cluttered_office",
+    table=TableSpec(size=(0.8, 1.4), center=(0.5, 0.0), rgba=(0.93, 0.93, 0.91, 1)),
+    objects=[
+        ObjectSpec(
+            name="bottle",
+            role="manipulated",
+            mass=0.4,
+            pos=(0.33, 0.14, 0.115),
+            geoms=[
+                GeomSpec(type="cylinder", size=[0.035, 0.115], rgba=(0.12, 0.1, 0.08, 0.85)),
+                GeomSpec(
+                    type="cylinder",
+                    size=[0.0355, 0.04],
+                    pos=(0.0, 0.0, -0.035),
+                    rgba=(0.9, 0.75, 0.3, 1),
+                ),
+            ],
+        ),
+        ObjectSpec(
+            name="box",
+            role="manipulated",
+            mass=0.5,
+            pos=(0.42, -0.2, 0.17),
+            yaw=0.4,
+            rgba=(0.55, 0.2, 0.6, 1),
+            geoms=[GeomSpec(type="box", size=[0.05, 0.035, 0.17])],
+        ),
+    ],
+)
+"""The cases a real clip failed on, filmed with :data:`LOW_WALK` and :data:`OFFICE_TAG`:
+a dark glass bottle (23 cm) wrapped in a printed label, near the table's far edge, and
+a box (34 cm) taller than the phone is held over the table for much of the walk."""
 
 
 @dataclass(frozen=True)
@@ -159,11 +210,13 @@ def walkthrough_model(
     *,
     plain_table: bool = False,
     clutter: int = 0,
+    shiny_table: bool = False,
 ) -> tuple[mujoco.MjModel, dict[int, np.ndarray]]:
     """The cell with the tags, able to render ``image_size`` (width, height) images, and
     each tag's pose (x y z qw qx qy qz) by id. Opaque objects (and the table unless
     ``plain_table``) get noise textures; a translucent object (alpha below 1) stays
-    clear and glossy, as a drinking bottle is. ``clutter`` boxes stand behind the table."""
+    clear and glossy, as a drinking bottle is. ``clutter`` boxes stand behind the table;
+    a ``shiny_table`` has highlights and reflections, and the lights cast shadows."""
     rng = np.random.default_rng(seed)
     spec, _ = build_mjspec(scene, apply_spec_effects=False)
     width, height = image_size
@@ -175,6 +228,12 @@ def walkthrough_model(
             spec, "walk_table", _noise_texture(rng, 1024, 0.35, 1.0), scene.table.rgba
         )
         table.rgba = [0.5, 0.5, 0.5, 1]  # the default: the material's colour applies
+    elif shiny_table:
+        gloss = spec.add_material(name="walk_gloss", specular=0.8, shininess=0.7)
+        gloss.reflectance = 0.15
+        spec.geom("table_top").material = gloss.name
+        for light in spec.lights:
+            light.castshadow = True
     own_bodies = {"world", "table", *scene.object_names}
     for index, geom in enumerate(spec.geoms):
         body = geom.parent.name or "world"
@@ -278,7 +337,13 @@ def render_walkthrough(
     rng = np.random.default_rng(seed)
     size = (settings.width, settings.height)
     model, tag_poses = walkthrough_model(
-        scene, tags, seed, size, plain_table=settings.plain_table, clutter=settings.clutter
+        scene,
+        tags,
+        seed,
+        size,
+        plain_table=settings.plain_table,
+        clutter=settings.clutter,
+        shiny_table=settings.shiny_table,
     )
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
