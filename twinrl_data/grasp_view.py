@@ -10,8 +10,8 @@ so none are drawn. From these:
   step before, have stopped (:data:`STILL`) short of both closed (:data:`EMPTY`: they
   closed on nothing) and open, and it is the object nearest the TCP, within
   :data:`REACH` of it. In 3D the held object carries a gold ``in hand`` marker; the plot
-  ``signals/grasp`` has the opening (cm), the command and, for each object ever held,
-  1 while it is.
+  ``signals/grasp`` has the opening (cm), the command (darker) and, for each object
+  ever held, 1 while it is.
 - **the TCP's force**: an arrow from the TCP (:data:`ARROW_M_PER_N`), labelled with its
   size, and the force's components plotted under ``signals/force``.
 """
@@ -83,8 +83,8 @@ def log_grasp(
         command = episode.data[contract.ACTION][:, -1].astype(float)
         _plot(f"signals/grasp/opening/{label}", f"opening (cm) {label}", opening, color,
               times, recording)  # fmt: skip
-        _plot(f"signals/grasp/command/{label}", f"command {label}", command, color,
-              times, recording)  # fmt: skip
+        _plot(f"signals/grasp/command/{label}", f"command {label}", command,
+              [c // 2 for c in color], times, recording)  # fmt: skip
     for frame, held in held_objects(episode).items():
         if not held.any():  # never in hand: no line, no marker
             continue

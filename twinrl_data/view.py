@@ -74,6 +74,7 @@ class CellModel(Protocol):
 
 
 GHOST_ALPHA = 90  # opacity (of 255) of every cell after the first
+EYE_OFFSET = np.array([1.1, -0.8, 0.6])  # m from the TCP's mean position to the 3D eye
 
 COLORS = ([230, 120, 40], [40, 140, 230], [90, 190, 90], [200, 80, 200])
 INTERVENTION_COLOR = [220, 30, 30]
@@ -359,10 +360,16 @@ def log_cell_geometry(
 def _blueprint(
     episodes: Sequence[contract.Episode], labels: list[str], mounts: dict[str, CameraMount]
 ) -> rrb.Blueprint:
-    cameras = [
-        rrb.Spatial2DView(origin=_image_path(label, camera, mounts), name=f"{camera} ({label})")
+    cameras = [  # the whole image: Rerun's own bounds for a pinhole's view are a crop of it
+        rrb.Spatial2DView(
+            origin=_image_path(label, camera, mounts),
+            name=f"{camera} ({label})",
+            visual_bounds=rrb.VisualBounds2D(
+                x_range=[0, frames.shape[2]], y_range=[0, frames.shape[1]]
+            ),
+        )
         for label, episode in zip(labels, episodes, strict=True)
-        for camera in episode.images
+        for camera, frames in episode.images.items()
     ]
     apart = (
         [
@@ -387,10 +394,28 @@ def _blueprint(
         rrb.TimeSeriesView(origin="signals/outcome", name="reward and success"),
         rrb.TimeSeriesView(origin="signals/intervention", name="interventions"),
     )
-    columns = [rrb.Spatial3DView(origin="world", name="scene"), plots]
+    scene = rrb.Spatial3DView(origin="world", name="scene", eye_controls=_eye(episodes[0]))
+    columns = [scene, plots]
     if cameras:
         columns.insert(0, rrb.Vertical(*cameras))
-    return rrb.Blueprint(rrb.Horizontal(*columns), rrb.TimePanel(expanded=False))
+    return rrb.Blueprint(
+        rrb.Horizontal(*columns),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(expanded=False),
+    )
+
+
+def _eye(episode: contract.Episode) -> rrb.EyeControls3D | None:
+    """The 3D view's eye: in front of the arm, to its right and above, on where the TCP
+    went (Rerun's own pick from the whole scene looks along the table's edge)."""
+    tcp = pose_groups(_names(episode, contract.STATE)).get("tcp")
+    if tcp is None or not len(episode):
+        return None
+    target = episode.data[contract.STATE][:, tcp[:3]].mean(axis=0)
+    return rrb.EyeControls3D(
+        position=target + EYE_OFFSET, look_target=target, eye_up=[0.0, 0.0, 1.0]
+    )
 
 
 def save_rrd(
