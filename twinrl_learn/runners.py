@@ -143,21 +143,25 @@ def load_runner(
     open_loop: bool = False,
     grasp_hold: bool | None = None,
     binary_gripper: bool | None = None,
+    close_as_demonstrated: bool | None = None,
     device: str = "cpu",
 ) -> Runner:
     """``expert``, a twinrl checkpoint folder, or a lerobot ``pretrained_model`` folder,
     its network on ``device`` (auto, cpu, cuda or cuda:N).
     ``open_loop`` runs a twinrl policy's action chunks open-loop instead of averaging
     its predictions for each step (``PolicyConfig.temporal_ensemble``); ``grasp_hold``
-    turns the arm's hold while the gripper closes on or off and ``binary_gripper`` the
-    gripper commanded open or closed rather than as predicted (``None``: as the
-    checkpoint says; ``PolicyConfig.grasp_hold``, ``PolicyConfig.binary_gripper``)."""
+    turns the arm's hold while the gripper closes on or off, ``binary_gripper`` the
+    gripper commanded open or closed rather than as predicted, and
+    ``close_as_demonstrated`` a close held until the tool is as low as the
+    demonstrations close (``None``: as the checkpoint says; the ``PolicyConfig`` fields
+    of those names)."""
     device = str(resolve_device(device))  # a bad name is refused whatever the policy
     path = Path(spec)
     asked_for = (
         (open_loop, "open_loop"),
         (grasp_hold is not None, "grasp_hold"),
         (binary_gripper is not None, "binary_gripper"),
+        (close_as_demonstrated is not None, "close_as_demonstrated"),
     )
     for asked, setting in asked_for:
         if asked and not is_checkpoint(path):
@@ -181,6 +185,11 @@ def load_runner(
         if binary_gripper is not None and binary_gripper != config.binary_gripper:
             runner.name += ":binary-gripper" if binary_gripper else ":as-predicted-gripper"
             config.binary_gripper = binary_gripper
+        if close_as_demonstrated is not None and (
+            close_as_demonstrated != config.close_as_demonstrated
+        ):
+            runner.name += ":close-low" if close_as_demonstrated else ":close-as-predicted"
+            config.close_as_demonstrated = close_as_demonstrated
         return runner
     if (path / "config.json").is_file() and "type" in json.loads(
         (path / "config.json").read_text()

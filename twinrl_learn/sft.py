@@ -36,6 +36,7 @@ from twinrl_learn.compute import mixed_precision, resolve_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy, PolicyConfig
+from twinrl_learn.policy.close_height import demonstrated_close_height
 from twinrl_learn.settings import STEM_STRIDES, SFTConfig
 from twinrl_learn.training_state import load_state, save_state
 
@@ -190,6 +191,8 @@ def train_sft(
         # Computed once per frame (the backbone is frozen and an image pass is most of
         # the estimator's cost): what the policy trains on, as it will act on them.
         estimates = torch.from_numpy(estimator.estimate_rows(frames.images, frames.state))
+    policy.config.close_height = _close_height(policy, frames, estimates)
+    policy.reset()
     for instruction in sorted(set(frames.instruction)):
         policy.instructions(instruction)
     optimizer = torch.optim.AdamW(policy.parameters(), lr=config.lr, weight_decay=1e-4)
@@ -234,6 +237,25 @@ def train_sft(
         seconds=time.perf_counter() - start,
         locating=policy.locates,
     )
+
+
+def _close_height(
+    policy: Policy, frames: FrameTable, estimates: torch.Tensor | None
+) -> float | None:
+    """How high over the object under it the demonstrations close the gripper, as the
+    policy perceives the objects (:func:`demonstrated_close_height`); None for a policy
+    that perceives none."""
+    if not policy.perceives_objects:
+        return None
+    if estimates is not None:
+        count = len(policy.estimator.config.objects)
+    else:
+        count = len(policy.config.object_indices)
+        estimates = policy.relative_poses(
+            torch.from_numpy(frames.state), torch.from_numpy(frames.environment_state)
+        )
+    offsets = estimates[:, : 3 * count].numpy().reshape(len(frames), count, 3) / 10.0
+    return demonstrated_close_height(frames.action, frames.episode_end, offsets)
 
 
 def learning_rate(config: SFTConfig, step: int) -> float:

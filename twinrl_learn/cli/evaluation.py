@@ -53,6 +53,14 @@ def eval_command(
             "as the checkpoint says; checkpoints command it open or closed)."
         ),
     ] = None,
+    close_as_demonstrated: Annotated[
+        bool | None,
+        typer.Option(
+            help="Hold a twinrl policy's close until the tool is as low over the object as "
+            "the demonstrations close, or close when it says (default: as the checkpoint "
+            "says; checkpoints hold)."
+        ),
+    ] = None,
     device: DeviceOption = "auto",
 ) -> None:
     """Roll a policy out over a grid covering ID and OOD; success per region and a heatmap."""
@@ -73,6 +81,7 @@ def eval_command(
         open_loop=open_loop,
         grasp_hold=grasp_hold,
         binary_gripper=binary_gripper,
+        close_as_demonstrated=close_as_demonstrated,
         device=device,
     )
     with progress("success") as bar:

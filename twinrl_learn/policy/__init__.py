@@ -29,14 +29,16 @@ grasps it missed were off by a couple of centimetres or tens of degrees), and wi
 a real gripper (the grasps a policy lost were lifted while the fingers were still
 3-6 cm apart); with ``binary_gripper`` the gripper is commanded open or closed, as the
 demonstrations command it (an ensembled value in between half-closed the fingers on the
-way down).
+way down); with ``close_as_demonstrated`` a close waits until the tool is as low over the
+object it perceives as the demonstrations close (:mod:`.close_height`: the image policy's
+failed grasps closed a centimetre high).
 
 The package, one role per module: :mod:`.config` (``PolicyConfig``), :mod:`.networks`
 (the image encoder), :mod:`.inputs` (observations to normalised batches),
-:mod:`.normalization`, :mod:`.augmentation`, :mod:`.acting`, :mod:`.checkpoint` (the
-folder a policy is saved to, which runs no code when loaded) and :mod:`.model`
-(``Policy``: networks, action distribution and losses, and the interface learners
-and runners use).
+:mod:`.normalization`, :mod:`.augmentation`, :mod:`.acting`, :mod:`.close_height`,
+:mod:`.checkpoint` (the folder a policy is saved to, which runs no code when loaded) and
+:mod:`.model` (``Policy``: networks, action distribution and losses, and the interface
+learners and runners use).
 """
 
 from twinrl_learn.policy.checkpoint import is_checkpoint as is_checkpoint

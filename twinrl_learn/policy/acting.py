@@ -5,7 +5,9 @@ and the executed action is the weighted average of every prediction made for thi
 (temporal ensembling, as ACT does); without it each chunk is executed in turn before
 looking again. With ``binary_gripper`` the gripper is commanded open or closed (at
 :data:`~twinrl_sim.tasks.expert.GRIPPER_CLOSED`), with ``grasp_hold`` the arm holds
-while it closes (:class:`~twinrl_robot.wrappers.HoldRule`).
+while it closes (:class:`~twinrl_robot.wrappers.HoldRule`), and with
+``close_as_demonstrated`` a close waits until the tool is as low over the object as the
+demonstrations close (:class:`~twinrl_learn.policy.close_height.CloseHeightRule`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_learn.policy.close_height import CloseHeightRule
 from twinrl_learn.policy.config import PolicyConfig
 from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.tasks.expert import GRIPPER_CLOSED
@@ -31,16 +34,25 @@ class ChunkedActing:
     def reset(self) -> None:
         self._predictions: list[np.ndarray] = []
         self._hold = HoldRule()
+        height = self.config.close_height
+        self._close = None if height is None else CloseHeightRule(height)
 
     def act(
-        self, observation: dict[str, Any], predict: Callable[[dict[str, Any]], np.ndarray]
+        self,
+        observation: dict[str, Any],
+        predict: Callable[[dict[str, Any]], np.ndarray],
+        offsets: Callable[[dict[str, Any]], np.ndarray] | None = None,
     ) -> np.ndarray:
         """The action for ``observation``; ``predict`` maps a batch of one observation to
-        its chunk (chunk, A) in physical units."""
+        its chunk (chunk, A) in physical units, ``offsets`` one observation to the
+        objects' (objects, 3) positions relative to the TCP as the policy perceives them
+        (needed for ``close_as_demonstrated``)."""
         action = self._next_action(observation, predict)
         if self.config.binary_gripper:
             action = np.array(action, copy=True)
             action[-1] = 1.0 if action[-1] >= GRIPPER_CLOSED else 0.0
+        if self._close is not None and self.config.close_as_demonstrated and offsets:
+            action = self._close(action, lambda: offsets(observation))
         if self.config.grasp_hold:
             action = self._hold(np.asarray(observation["observation.state"]), action)
         return action

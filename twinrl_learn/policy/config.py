@@ -53,6 +53,12 @@ class PolicyConfig:
     # or regressed value between the two half-closes a position-servoed gripper on the
     # way down, and the fingers closed on the object's top (docs/results/defaults.md).
     binary_gripper: bool = True
+    # Acting, hold a close until the tool is as low above the object under it as the
+    # demonstrations close (close_height.CloseHeightRule), at ``close_height`` (m, read
+    # from the demonstrations by SFT; None: the policy perceives no objects, or no
+    # demonstrated close had one under the tool).
+    close_as_demonstrated: bool = True
+    close_height: float | None = None
     # The pose estimator an image policy acts through (EstimatorConfig as a dict; its
     # head's weights are in the checkpoint under ``estimator.``): it reads the cameras
     # and proprio and says where the objects are relative to the tool, and the policy

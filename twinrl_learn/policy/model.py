@@ -343,8 +343,36 @@ class Policy(nn.Module):
         from the chunks predicted so far (see :mod:`twinrl_learn.policy.acting`);
         :meth:`reset` starts afresh."""
         return self.acting.act(
-            observation, lambda batch: self.act_chunks(batch, [instruction], deterministic)[0]
+            observation,
+            lambda batch: self.act_chunks(batch, [instruction], deterministic)[0],
+            self.object_offsets if self.perceives_objects else None,
         )
+
+    @property
+    def perceives_objects(self) -> bool:
+        """Whether the policy knows where the objects are relative to the tool when it
+        acts: the state policy (privileged poses) and an image policy acting through a
+        pose estimator."""
+        return self.perceives or (self.config.kind == "state" and self.config.tcp_index >= 0)
+
+    @torch.no_grad()
+    def object_offsets(self, observation: dict[str, Any]) -> np.ndarray:
+        """Each object's position minus the TCP's (objects, 3; m, base axes) in one
+        contract observation, as the policy perceives it: the pose estimator's estimate
+        for an image policy, the logged poses for the state policy."""
+        state = np.asarray(observation["observation.state"], np.float32)[None]
+        if self.perceives:
+            images = {
+                c: np.asarray(observation[f"observation.images.{c}"])[None]
+                for c in self.estimator.config.cameras
+            }
+            relative = self.estimator.estimate(images, state)
+            count = len(self.estimator.config.objects)
+        else:
+            env = np.asarray(observation["observation.environment_state"], np.float32)[None]
+            relative = self.relative_poses(torch.from_numpy(state), torch.from_numpy(env))
+            count = len(self.config.object_indices)
+        return relative[0, : 3 * count].cpu().numpy().reshape(count, 3) / 10.0
 
     def reset(self) -> None:
         """Forget the predictions made so far and the gripper's state (call at each
