@@ -30,6 +30,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 from urllib.parse import quote
 
 import rerun as rr
@@ -67,7 +68,7 @@ class WebViewer:
     def wait(self) -> None:
         """Serve until the server ends or this process gets SIGINT (Ctrl-C) or SIGTERM,
         then stop it; call from the main thread."""
-        previous = {}
+        previous: dict[signal.Signals, Any] = {}
         try:
             for number in (signal.SIGINT, signal.SIGTERM):
                 previous[number] = signal.signal(number, signal.default_int_handler)

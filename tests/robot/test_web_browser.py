@@ -15,7 +15,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from tests.data.test_web_view import free_port
+from tests.data.test_web_view import free_ports
 from tests.web_browser import Traffic, chromium, needs_chromium
 from twinrl_data.session import Session
 
@@ -70,7 +70,7 @@ def test_the_page_loads_connects_and_receives_the_episode(tmp_path: Path) -> Non
                            cwd=tmp_path, capture_output=True, timeout=120)  # fmt: skip
     assert saved.returncode == 0, saved.stderr
     size = (tmp_path / "episode.rrd").stat().st_size
-    web, grpc = free_port(), free_port()
+    web, grpc = free_ports()
     command = [*TWINRL, "view", "session#0", "--web", "--web-port", str(web),
                "--grpc-port", str(grpc)]  # fmt: skip
     with _running(command, tmp_path) as server, chromium() as browser:
@@ -95,7 +95,7 @@ def test_the_page_loads_connects_and_receives_the_episode(tmp_path: Path) -> Non
 @pytest.mark.slow  # about 30 s
 @pytest.mark.realtime  # the scripted person drives at the control rate
 def test_the_page_follows_a_recording_session_live(tmp_path: Path) -> None:
-    web, grpc = free_port(), free_port()
+    web, grpc = free_ports()
     command = [*TWINRL, "record", "--out", "session", "--teleop", "scripted", "--no-keys",
                "--episodes", "3", "--web", "--web-port", str(web),
                "--grpc-port", str(grpc)]  # fmt: skip

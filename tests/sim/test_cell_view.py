@@ -9,7 +9,7 @@ import yaml
 from rerun.experimental import RrdReader
 
 from tests.conftest import record_demos
-from tests.data.test_web_view import free_port
+from tests.data.test_web_view import free_ports
 from tests.sim.test_gap_diagnose import FOUR_JOINT_ARM
 from tests.test_cli import twinrl
 from twinrl_data import schema
@@ -159,7 +159,7 @@ def test_view_web_serves_the_viewer_on_loopback_only(tmp_path):
     import psutil
 
     record_demos(tmp_path, seed=3)
-    web, grpc = free_port(), free_port()
+    web, grpc = free_ports()
     server = subprocess.Popen(
         [sys.executable, "-m", "twinrl_learn", "view", "session#0", "--web",
          "--web-port", str(web), "--grpc-port", str(grpc)],
