@@ -5,12 +5,12 @@ from the twin, and the objects' outlines where they should go drawn over the liv
 camera of the same name, when the twin has that camera), then every step's camera
 images, the cell in 3D (the twin's arm, gripper, table and objects posed by the live
 joints, gripper opening and, where the cell measures them, object poses) with the TCP's
-path, joint positions and targets, the action and who chose it. One blueprint lays it
-out: cameras and guidance, the scene, the plots. Each step is logged by a thread of the
-view's own, the newest step when it lags (the episode records every one), and the live
-cameras go as JPEG previews at most :data:`PREVIEW_WIDTH` wide: logging two full
-640x480 images, the plots and the cell's poses in the control loop's thread cost it
-milliseconds a step.
+path, joint positions and targets, the gripper's opening, the action and who chose it.
+One blueprint lays it out: cameras and guidance, the scene, the plots. Each step is
+logged by a thread of the view's own, the newest step when it lags (the episode records
+every one), and the live cameras go as JPEG previews at most :data:`PREVIEW_WIDTH` wide:
+logging two full 640x480 images, the plots and the cell's poses in the control loop's
+thread cost it milliseconds a step.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from twinrl_data.grasp_view import OPENING
 from twinrl_data.schema import ENVIRONMENT_STATE, STATE, image_field
 from twinrl_data.view import log_cell_geometry, log_cell_poses
 from twinrl_robot.robot import Sent
@@ -123,6 +124,7 @@ class LiveView:
         self.cameras = cameras
         self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]
         self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
+        self._opening = state_names.index(OPENING) if OPENING in state_names else None
         blueprint = self._blueprint()
         if target == "spawn":
             self.stream.spawn(default_blueprint=blueprint)
@@ -150,6 +152,7 @@ class LiveView:
         ]
         plots = rrb.Vertical(
             rrb.TimeSeriesView(origin="signals/joints", name="joints and targets (rad)"),
+            rrb.TimeSeriesView(origin="signals/grasp", name="gripper opening (cm)"),
             rrb.TimeSeriesView(origin="signals/actions", name="action"),
             rrb.TimeSeriesView(origin="signals/intervention", name="person in control"),
         )
@@ -232,6 +235,8 @@ class LiveView:
         for j, value in enumerate(sent.action):
             log(f"signals/actions/{j}", rr.Scalars(float(value)))
         log("signals/intervention", rr.Scalars(float(sent.intervention)))
+        if self._opening is not None:
+            log("signals/grasp/opening", rr.Scalars(100.0 * float(state[self._opening])))
         if len(self._tcp) == 3:
             self._path.append([float(state[i]) for i in self._tcp])
             log("world/tcp_path", rr.LineStrips3D([self._path]))

@@ -70,6 +70,7 @@ def test_a_scripted_person_records_in_the_plant_with_every_mark(tmp_path: Path) 
 
     entities = {c.entity_path: c for c in RrdReader(view).store().stream().to_chunks()}
     assert "/world/cell/link3/0" in entities and "/world/cell/banana/0" in entities
+    assert "/signals/grasp/opening" in entities  # the fingers, as they open and close
     moved = [c for path, c in entities.items() if path == "/world/cell/link3"]
     assert moved and not moved[0].is_static
     result = export_dataset(episodes, tmp_path / "dataset", repo_id="tests/day1")
