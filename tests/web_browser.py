@@ -6,6 +6,7 @@ when a test fails."""
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -25,10 +26,12 @@ PAGE_TIMEOUT = 60  # s for a page and its scripts to load
 
 def needs_chromium() -> pytest.MarkDecorator:
     missing = [p for p in CHROMIUM if shutil.which(p) is None]
+    if importlib.util.find_spec("selenium") is None:
+        missing.append("selenium (the dev extra)")
     return pytest.mark.skipif(
         bool(missing),
-        reason=f"no {' or '.join(missing)} on PATH: a headless browser needs Debian's "
-        "chromium and chromium-driver (`make test` installs them as root)",
+        reason=f"no {' or '.join(missing)}: a headless browser needs Debian's chromium "
+        "and chromium-driver and selenium (`make test` installs them, the first two as root)",
     )
 
 
