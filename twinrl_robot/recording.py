@@ -365,12 +365,10 @@ def run_recording(
         task = make_task(settings.task)
     reset_plan = ResetPlan(task, settings.plan, seed=settings.seed)
     cameras = recorded_cameras(world, cell_file)
-    session = Session.create(settings.out, exist_ok=True)
-    terminal = TerminalKeys() if settings.keys and sys.stdin.isatty() else None
-    opened: list[Any] = [terminal] if terminal is not None else []
+    opened: list[Any] = []
     try:
         view = settings.view
-        if settings.web:  # first: a port in use stops it before the arm moves
+        if settings.web:  # first: a port in use stops it before a session or the arm
             web = start_web_viewer(
                 bind=settings.bind, web_port=settings.web_port, grpc_port=settings.grpc_port
             )
@@ -378,6 +376,10 @@ def run_recording(
             view = web.grpc_url
             if on_web is not None:
                 on_web(web.url)
+        session = Session.create(settings.out, exist_ok=True)
+        terminal = TerminalKeys() if settings.keys and sys.stdin.isatty() else None
+        if terminal is not None:
+            opened.append(terminal)
         arm = open_robot(
             world,
             task,

@@ -80,3 +80,22 @@ def test_the_command_line_refuses_a_bad_value_in_one_line_and_writes_nothing(
         lines = result.stderr.strip().splitlines()
         assert result.returncode == 2 and len(lines) == 1 and message in lines[0], result.stderr
     assert not out.exists()
+
+
+def test_a_web_port_in_use_is_one_line_before_anything_is_written(tmp_path: Path) -> None:
+    import socket
+
+    out = tmp_path / "session"
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = subprocess.run(
+            [sys.executable, "-m", "twinrl_learn", "record", "--out", str(out), "--web",
+             "--web-port", str(port), "--teleop", "scripted", "--no-keys"],
+            stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert f"port {port} on 127.0.0.1 is in use; choose another --web-port" in lines[0]
+    assert not out.exists()
