@@ -13,9 +13,9 @@ import pytest
 
 from twinrl_sim.reconstruct.calibration import Calibration, write_calibration
 from twinrl_sim.reconstruct.camera_traits import CameraTraits, TraitApplier, camera_matrix
-from twinrl_sim.reconstruct.evidence import ObjectEvidence, _arc_deg
+from twinrl_sim.reconstruct.evidence import ObjectEvidence
 from twinrl_sim.reconstruct.pipeline import build_twin
-from twinrl_sim.reconstruct.segment import planar_axes
+from twinrl_sim.reconstruct.segment import arc_deg, planar_axes
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import run_sfm
 from twinrl_sim.reconstruct.synthetic import (
@@ -112,21 +112,18 @@ def test_the_plain_table_is_found_where_the_tag_lies(built):
 
 
 def test_a_clear_bottle_is_built_where_it_stands_and_its_doubts_are_said(built):
-    # Its points are two streaks up its sides, where it bends what is behind it: joined
-    # into one bottle (13 mm from where it stands and 85 mm across in a run here; two
-    # objects 24 and 35 mm off before they were joined).
+    # Its points are streaks up its sides, where it bends what is behind it: one bottle
+    # (two objects 24 and 35 mm off before they were joined), as tall as it is.
     (bottle,) = built.objects
     assert np.linalg.norm(bottle.position - BOTTLE_XY) < 0.03
-    assert abs(bottle.cluster.size[2] - BOTTLE_HEIGHT) < 0.25 * BOTTLE_HEIGHT
-    assert bottle.cluster.outline == 2
+    assert abs(bottle.cluster.size[2] - BOTTLE_HEIGHT) < 0.1 * BOTTLE_HEIGHT
     assert bottle.cluster.size[0] == bottle.cluster.size[1] == pytest.approx(0.075, rel=0.25)
     evidence = bottle.evidence
     assert evidence.views >= 80 and 40 < evidence.arc_deg < 80
-    assert evidence.confidence == "low" and not evidence.carved
+    assert evidence.confidence != "high" and not evidence.carved
     assert any("one side" in doubt for doubt in evidence.doubts)
-    assert any("outline" in doubt for doubt in evidence.doubts)
     report = (built.scene_path.parent / "report.md").read_text()
-    assert "Where the evidence is thin" in report and "| low |" in report
+    assert "Where the evidence is thin" in report and "seen from one side only" in report
 
 
 def test_a_plain_table_and_clear_bottle_still_look_like_the_frames(built):
@@ -181,8 +178,8 @@ def test_the_tables_turn_and_sides_come_from_its_seen_edges():
 
 
 def test_evidence_weighs_views_arc_and_points():
-    assert _arc_deg(np.radians([170, -170, 175])) == pytest.approx(20.0)
-    assert _arc_deg(np.radians(np.arange(0, 360, 10))) == pytest.approx(350.0)
+    assert arc_deg(np.radians([170, -170, 175])) == pytest.approx(20.0)
+    assert arc_deg(np.radians(np.arange(0, 360, 10))) == pytest.approx(350.0)
     clear = ObjectEvidence(90, 300.0, 400, True, ())
     assert clear.confidence == "high"
     assert ObjectEvidence(90, 50.0, 400, True, ("one side",)).confidence == "medium"

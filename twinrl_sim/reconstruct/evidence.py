@@ -4,7 +4,8 @@ A clear, glossy or plain object gives structure from motion few points; one film
 one side has a depth (along the view) nobody saw. The build still makes such an object,
 and says so: each object carries the frames that saw it, the arc of directions they saw
 it from, its points and whether its silhouette was carved, a confidence and, in words,
-what is thin.
+what is thin. A candidate without evidence a person would accept is no object: it is
+dropped, and the report says which and why (:func:`judge_candidates`).
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from twinrl_sim.reconstruct.align import Similarity
-from twinrl_sim.reconstruct.segment import ObjectCluster
+from twinrl_sim.reconstruct.segment import ObjectCluster, arc_deg
 from twinrl_sim.reconstruct.sfm import SparseModel, project
+from twinrl_sim.reconstruct.silhouette import Hull
 
 MIN_VIEWS = 10  # frames an object needs before its place is more than a glimpse
 ALL_ROUND_DEG = 90.0  # arc of view directions from which an object's depth is seen
@@ -45,6 +47,47 @@ class ObjectEvidence:
         return f"{self.views} views, {self.arc_deg:.0f} deg, {self.points} pts, {carved}"
 
 
+@dataclass(frozen=True)
+class DroppedCandidate:
+    """Points that stood above the table but were not made an object, and why."""
+
+    center: np.ndarray  # (2,) xy of its footprint, levelled base frame
+    size: np.ndarray  # (3,) long, short, height (m)
+    points: int
+    reason: str
+
+
+def judge_candidates(
+    clusters: list[ObjectCluster], hulls: list[Hull | None]
+) -> tuple[list[int], list[DroppedCandidate]]:
+    """Which candidates are objects (indices into ``clusters``) and the dropped rest.
+
+    An object needs its silhouette in the views: a candidate whose colour stands apart
+    from the table's but which no silhouette holds is stray matches (a reflection, a
+    highlight, texture seen through a clear object). One the table's colour cannot be
+    carved: it is kept when its points outline a clear object or are enough to shape
+    it (:data:`MIN_POINTS`), dropped otherwise (a mark, a shadow, the tag's sheet)."""
+    kept, dropped = [], []
+    for index, (cluster, hull) in enumerate(zip(clusters, hulls, strict=True)):
+        count = len(cluster.points)
+        if hull is not None and hull.footprint is None:
+            reason = (
+                f"no silhouette: the frames do not show its colour where its {count} "
+                "points are (stray matches: a reflection, a highlight, or texture seen "
+                "through a clear object)"
+            )
+        elif hull is None and not cluster.outline and count < MIN_POINTS:
+            reason = (
+                f"only {count} points and no silhouette (the table's colour: a mark, a "
+                "shadow, texture on the table or the tag's sheet)"
+            )
+        else:
+            kept.append(index)
+            continue
+        dropped.append(DroppedCandidate(cluster.center[:2], cluster.size, count, reason))
+    return kept, dropped
+
+
 def weigh_evidence(
     cluster: ObjectCluster, model: SparseModel, to_cell: Similarity
 ) -> ObjectEvidence:
@@ -60,7 +103,7 @@ def weigh_evidence(
     if directions:
         seen_from = to_cell.apply(np.array(directions)) - centre
         azimuths = np.arctan2(seen_from[:, 1], seen_from[:, 0])
-        arc = _arc_deg(azimuths)
+        arc = arc_deg(azimuths)
     else:
         arc = 0.0
     carved = cluster.carved is not None
@@ -77,16 +120,15 @@ def weigh_evidence(
             f"built from its outline ({cluster.outline} streaks of points, as a clear or "
             "glossy object gives): its depth is taken as its width"
         )
+    if not cluster.top_seen:
+        doubts.append(
+            "its top was not seen apart from what stands behind it or above the frames: "
+            f"its height, {1000 * cluster.size[2]:.0f} mm, is a lower bound; film it whole, "
+            "from farther or higher"
+        )
     if not carved and len(cluster.points) < MIN_POINTS:
         doubts.append(
             f"only {len(cluster.points)} points and no silhouette (a clear, glossy or plain "
             "surface, or one the colour of the table): its size is rough"
         )
     return ObjectEvidence(len(directions), arc, len(cluster.points), carved, tuple(doubts))
-
-
-def _arc_deg(azimuths: np.ndarray) -> float:
-    """The smallest arc (deg) holding every azimuth: 360 minus the widest gap."""
-    ordered = np.sort(np.mod(azimuths, 2 * np.pi))
-    gaps = np.diff(np.r_[ordered, ordered[0] + 2 * np.pi])
-    return float(np.degrees(2 * np.pi - gaps.max()))

@@ -109,7 +109,8 @@ def reconstruct_shape(
     cluster: ObjectCluster, yaw: float, table_height: float, seed: int = 0
 ) -> ObjectShape:
     """The closed surface of a cluster (alpha shape of its points, its carved footprint
-    and their drop onto the table).
+    and their drop onto the table; lifted to its top too where the silhouettes measured
+    it above the points).
 
     An object built from its outline's streaks has no seen back, and is as deep as it is
     wide (see :func:`~twinrl_sim.reconstruct.segment.describe_cluster`): its surface is
@@ -119,6 +120,8 @@ def reconstruct_shape(
     points' convex hull."""
     points = _to_object_frame(cluster.body_points, cluster.center[:2], yaw, table_height)
     points = points[points[:, 2] <= cluster.size[2]]
+    if cluster.top_from == "silhouettes":  # the hull's top, above the points: lift them
+        points = np.vstack([points, points * [1.0, 1.0, 0.0] + [0.0, 0.0, cluster.size[2]]])
     if cluster.outline:
         angle = np.linspace(0, 2 * np.pi, OUTLINE_RIM, endpoint=False)
         rim = cluster.size[0] / 2 * np.c_[np.cos(angle), np.sin(angle)]

@@ -30,7 +30,7 @@ from twinrl_sim.reconstruct.align import (
     check_reference_points,
 )
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
-from twinrl_sim.reconstruct.evidence import ObjectEvidence, weigh_evidence
+from twinrl_sim.reconstruct.evidence import ObjectEvidence, judge_candidates, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell, split_views
 from twinrl_sim.reconstruct.look_score import score_look, twin_lighting
@@ -47,6 +47,7 @@ from twinrl_sim.reconstruct.report import plot_build, write_build_report, write_
 from twinrl_sim.reconstruct.result import TwinBuild
 from twinrl_sim.reconstruct.segment import (
     PLANE_TOLERANCE,
+    ObjectCluster,
     TablePlane,
     TagPlane,
     describe_cluster,
@@ -55,7 +56,7 @@ from twinrl_sim.reconstruct.segment import (
 )
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.sfm import MATCHINGS, SparseModel, run_sfm
-from twinrl_sim.reconstruct.silhouette import carve_footprints
+from twinrl_sim.reconstruct.silhouette import Hull, carve_hulls, join_parts
 from twinrl_sim.reconstruct.table_extent import measure_table
 from twinrl_sim.reconstruct.tag import FAMILIES
 from twinrl_sim.spec import (
@@ -255,20 +256,12 @@ def build_twin(
         camera_path = (path - pivot) @ levelling.T + pivot
         stage("objects")
         clusters = find_objects(levelled, colours, table)
-        hulls = carve_footprints(
-            clusters,
-            table,
-            model,
-            work / "frames",
-            to_cell.invert,
-            settings.seed,
+        hulls = carve_hulls(
+            clusters, table, model, work / "frames", to_cell.invert, to_cell.apply, settings.seed
         )
-        clusters = [
-            cluster
-            if hull is None
-            else describe_cluster(cluster.points, cluster.color, table, hull, cluster.outline)
-            for cluster, hull in zip(clusters, hulls, strict=True)
-        ]
+        clusters, hulls = join_parts(clusters, hulls, table)
+        chosen, dropped = judge_candidates(clusters, hulls)
+        clusters = [_with_hull(clusters[k], hulls[k], table) for k in chosen]
         evidence = [weigh_evidence(cluster, model, to_cell) for cluster in clusters]
         objects, ratio = _objects(clusters, evidence, table, task_scene, meshes, settings)
         stage("cameras")
@@ -305,6 +298,7 @@ def build_twin(
             seconds=seconds,
             size_ratio=ratio,
             look=look,
+            dropped=dropped,
         )
         compiled = compile_scene(built.scene)  # a SpecError here names what does not compile
         stage("report")
@@ -324,6 +318,29 @@ def build_twin(
     if not settings.keep_work:
         shutil.rmtree(work, ignore_errors=True)
     return built
+
+
+def _with_hull(cluster: ObjectCluster, hull: Hull | None, table: TablePlane) -> ObjectCluster:
+    """``cluster`` described again with what its silhouettes say: without its points
+    outside a hull told by chroma (strays), with the hull's footprint where it outlines
+    the object, and its top where that can be trusted."""
+    if hull is None:
+        return cluster
+    inside = hull.holds(cluster.points[:, :2])
+    if not hull.chromatic or inside.mean() < 0.5:  # a hull that misses its points says little
+        inside[:] = True
+    colours = cluster.point_colors
+    return describe_cluster(
+        cluster.points[inside],
+        cluster.color,
+        table,
+        hull.footprint if hull.outlines else None,
+        cluster.outline,
+        point_colors=None if colours is None else colours[inside],
+        hull_top=hull.trusted_top,
+        # A top seen only from above (not trusted) was still seen; no end at all was not.
+        top_seen=hull.top_seen if hull.trusted_top is not None else hull.top is not None,
+    )
 
 
 def _inside(
@@ -407,7 +424,8 @@ def _objects(
         else:
             yaw = heading(cluster)
             shape = reconstruct_shape(cluster, yaw, table.height, settings.seed)
-            source = "points + silhouettes" if cluster.carved is not None else "points"
+            hulled = cluster.carved is not None or cluster.top_from == "silhouettes"
+            source = "points + silhouettes" if hulled else "points"
             position, fit_rms = cluster.center[:2], None
         density = settings.densities.get(name, DEFAULT_DENSITY)
         objects.append(

@@ -142,6 +142,20 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
     if doubtful:
         lines += ["", "Where the evidence is thin:", ""]
         lines += [f"- {obj.name}: {'; '.join(obj.evidence.doubts)}." for obj in doubtful]
+    if built.dropped:
+        lines += [
+            "",
+            "Not made objects (points above the table that the frames do not bear out):",
+            "",
+            "| x (m) | y (m) | size L x W x H (mm) | points | why |",
+            "|---|---|---|---|---|",
+        ]
+        for candidate in built.dropped:
+            size = " x ".join(f"{1000 * v:.0f}" for v in candidate.size)
+            lines.append(
+                f"| {candidate.center[0]:.3f} | {candidate.center[1]:.3f} | {size} | "
+                f"{candidate.points} | {candidate.reason} |"
+            )
     if built.cameras:
         lines += [
             "",

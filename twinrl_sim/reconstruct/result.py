@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from twinrl_sim.reconstruct.align import Alignment
+from twinrl_sim.reconstruct.evidence import DroppedCandidate
 from twinrl_sim.reconstruct.frames import FrameSelection
 from twinrl_sim.reconstruct.look import CellLook
 from twinrl_sim.reconstruct.look_score import LookScore
@@ -35,3 +36,4 @@ class TwinBuild:
     size_ratio: float | None = None  # reconstructed / task object size (median)
     look: CellLook | None = None  # the pictures the twin is dressed in
     look_score: LookScore | None = None  # how much it looks like held-out frames
+    dropped: list[DroppedCandidate] = field(default_factory=list)  # made no object, and why

@@ -4,12 +4,17 @@
   the tags lie on the table; the cloud is then turned so that
   the plane's normal is the base frame's z (gravity), about the tag's centre so that the
   tag keeps its measured position; the table's extent is that of the plane's inliers.
-- **Objects**: points above the table (and below ``max_height``) clustered with DBSCAN
-  (open3d ``cluster_dbscan``); each large enough cluster is one object, described by its
-  oriented footprint (its points seen from above, or its visual hull's where one was
-  carved, see ``silhouette``), height, mean colour. A clear or glossy object gives
-  points only along its outline, where it bends or mirrors what is behind it: tall thin
-  streaks of one height a width apart, which are joined into one object (``outline``).
+- **Objects**: points above the table (and below ``max_height``). A clear or glossy
+  object gives points only along its outline, where it bends or mirrors what is behind
+  it: tall thin streaks of one height a width apart among the points' DBSCAN clusters
+  (open3d ``cluster_dbscan``), which are joined into one object (``outline``). The
+  other points are clustered by their footprints (DBSCAN on the points dropped onto the
+  table): an object stands on the table, so points one above the other are one object
+  however far apart in height (a label's points and a cap's, with plain glass between).
+  Each large enough cluster is one object, described by its oriented footprint (its
+  points seen from above, or its visual hull's where one was carved, see
+  ``silhouette``), height (its points' top, or the hull's where that is trusted and
+  higher), mean colour.
 """
 
 from __future__ import annotations
@@ -29,7 +34,8 @@ NEAR_TAGS = 0.03  # m from the tags' plane within which the table top is sought
 MIN_TABLE_POINTS = 20  # points near the tags' plane needed to fit the table
 MAX_TILT_FROM_TAGS = 3.0  # deg between the table's plane and the tags' that is accepted
 ABOVE_TABLE = 0.004  # m: points higher than this over the plane may belong to objects
-CLUSTER_EPS = 0.02  # m: DBSCAN neighbourhood
+CLUSTER_EPS = 0.02  # m: DBSCAN neighbourhood of the points (a clear object's streaks)
+FOOTPRINT_EPS = 0.03  # m: DBSCAN neighbourhood of footprints (objects closer are one)
 MIN_CLUSTER_POINTS = 25
 TOP_CELL = 0.01  # m: footprint grid of the top estimate
 TOP_CELL_POINTS = 3  # points a cell needs for its median height to count
@@ -83,6 +89,9 @@ class ObjectCluster:
     points: np.ndarray  # (N, 3) the SfM points
     carved: np.ndarray | None = None  # (M, 2) footprint carved from silhouettes, if any
     outline: int = 0  # streaks of points it was joined from (its outline's), 0: one cluster
+    point_colors: np.ndarray | None = None  # (N, 3) RGB in [0, 1] of ``points``
+    top_seen: bool = True  # False: no view saw above its top, its height is a lower bound
+    top_from: str = "points"  # or "silhouettes": what its height was measured from
 
     @property
     def body_points(self) -> np.ndarray:
@@ -100,9 +109,19 @@ def describe_cluster(
     table: TablePlane,
     carved: np.ndarray | None = None,
     outline: int = 0,
+    *,
+    point_colors: np.ndarray | None = None,
+    hull_top: float | None = None,
+    top_seen: bool = True,
 ) -> ObjectCluster:
     """An object from its points, and its carved footprint where it has one: footprint,
     heading, height.
+
+    ``hull_top`` (m above the table) is the silhouettes' top where it can be trusted:
+    the object is as tall as it, where that is above its points' top (their top then
+    says where the texture ended, not the object). ``top_seen`` says whether a view saw
+    above the top; without ``hull_top`` it is the points' top's (False: their top is a
+    lower bound, as the silhouettes did not end).
 
     A carved footprint is taken whole (it is dense and has no strays); the points' is
     the 1st-99th percentile box, as a few stray matches fringe every object. A round
@@ -119,7 +138,15 @@ def describe_cluster(
     axes = planar_axes(yaw)
     low, high = np.percentile(footprint @ axes.T, [trim, 100 - trim], axis=0)
     centre_xy = ((low + high) / 2) @ axes
-    height = (streak_top(points) if outline else top_height(points)) - table.height
+    # A slender object (taller than its footprint is long) has its points up its sides,
+    # no top surface whose cells could say where it ends: its top is where they end.
+    slender = streak_top(points) - table.height > (high - low).max()
+    height = (streak_top(points) if outline or slender else top_height(points)) - table.height
+    top_from = "points"
+    if hull_top is not None and hull_top > height:
+        height, top_from = hull_top, "silhouettes"
+    elif hull_top is not None:
+        top_seen = True  # the hull ends at or below the points' top: there it is
     extent = high - low
     if extent.max() < ROUND_ASPECT * extent.min() or (outline and carved is None):
         extent = np.full(2, extent.max())
@@ -131,6 +158,9 @@ def describe_cluster(
         points=points,
         carved=carved,
         outline=outline,
+        point_colors=point_colors,
+        top_seen=top_seen,
+        top_from=top_from,
     )
 
 
@@ -249,9 +279,10 @@ def streak_top(points: np.ndarray) -> float:
 
 
 def find_objects(
-    points: np.ndarray, colors: np.ndarray, table: TablePlane, *, max_height: float = 0.3
+    points: np.ndarray, colors: np.ndarray, table: TablePlane, *, max_height: float = 1.0
 ) -> list[ObjectCluster]:
-    """Clusters of points standing on the table, largest first."""
+    """Clusters of points standing on the table, largest first: the outlines of clear
+    objects (see :func:`join_outlines`), then the rest by their footprints."""
     rise = points[:, 2] - table.height
     along_table = (points[:, :2] - table.center) @ planar_axes(table.yaw).T
     on_table = np.all(np.abs(along_table) <= table.size / 2 + 0.02, axis=1)
@@ -259,20 +290,36 @@ def find_objects(
     chosen, chosen_colors = points[above], colors[above]
     if len(chosen) < MIN_CLUSTER_POINTS:
         return []
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen))
-    labels = np.asarray(cloud.cluster_dbscan(CLUSTER_EPS, 8))
-    parts = [np.flatnonzero(labels == label) for label in range(labels.max() + 1)]
+    parts = _dbscan(chosen, CLUSTER_EPS)
+    groups = [g for g in join_outlines([chosen[p] for p in parts], table.height) if len(g) > 1]
+    found = [(np.concatenate([parts[i] for i in group]), len(group)) for group in groups]
+    rest = np.ones(len(chosen), bool)
+    for members, _ in found:  # a clear object's column is its own, whatever stands in it
+        centre = chosen[members, :2].mean(axis=0)
+        rest &= np.linalg.norm(chosen[:, :2] - centre, axis=1) > _span(chosen[members, :2]) / 2
+    rest = np.flatnonzero(rest)
+    flat = np.c_[chosen[rest, :2], np.zeros(len(rest))]
+    found += [(rest[column], 0) for column in _dbscan(flat, FOOTPRINT_EPS)]
     objects = []
-    for group in join_outlines([chosen[part] for part in parts], table.height):
-        members = np.concatenate([parts[i] for i in group])
+    for members, streaks in found:
         if len(members) < MIN_CLUSTER_POINTS:
             continue
-        streaks = len(group) if len(group) > 1 else 0
         cluster = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(chosen[members]))
         _, keep = cluster.remove_statistical_outlier(nb_neighbors=8, std_ratio=2.0)
-        color = chosen_colors[members][keep].mean(0) / 255.0
-        objects.append(describe_cluster(chosen[members][keep], color, table, outline=streaks))
+        rgb = chosen_colors[members][keep] / 255.0
+        objects.append(
+            describe_cluster(
+                chosen[members][keep], rgb.mean(0), table, outline=streaks, point_colors=rgb
+            )
+        )
     return sorted(objects, key=lambda o: -len(o.points))
+
+
+def _dbscan(points: np.ndarray, eps: float) -> list[np.ndarray]:
+    """Indices of each DBSCAN cluster of ``points`` (open3d, 8 neighbours)."""
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    labels = np.asarray(cloud.cluster_dbscan(eps, 8))
+    return [np.flatnonzero(labels == label) for label in range(labels.max() + 1)]
 
 
 def join_outlines(clouds: list[np.ndarray], table_height: float) -> list[list[int]]:
@@ -310,3 +357,10 @@ def _span(xy: np.ndarray) -> float:
     """The longest extent of a footprint's points (m), about its own long axis."""
     local = xy @ planar_axes(footprint_yaw(xy)).T
     return float(np.ptp(local, axis=0).max())
+
+
+def arc_deg(azimuths: np.ndarray) -> float:
+    """The smallest arc (deg) holding every azimuth (rad): 360 minus the widest gap."""
+    ordered = np.sort(np.mod(azimuths, 2 * np.pi))
+    gaps = np.diff(np.r_[ordered, ordered[0] + 2 * np.pi])
+    return float(np.degrees(2 * np.pi - gaps.max()))
