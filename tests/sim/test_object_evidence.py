@@ -10,6 +10,7 @@ import pytest
 
 from twinrl_sim.reconstruct.evidence import judge_candidates
 from twinrl_sim.reconstruct.pipeline import build_twin
+from twinrl_sim.reconstruct.report import dropped_lines
 from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane, find_objects
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.silhouette import Hull, _carving, _lab, object_colours
@@ -104,6 +105,9 @@ def test_candidates_without_silhouettes_are_dropped_with_the_reason():
     assert kept == [1, 3]
     assert [d.points for d in dropped] == [48, 48]
     assert "no silhouette" in dropped[0].reason and "table's colour" in dropped[1].reason
+    table = "\n".join(dropped_lines(dropped))
+    assert "| 0.000 | 0.000 | 66 x 22 x 38 | 48 | no silhouette" in table
+    assert dropped_lines([]) == []
 
 
 @pytest.mark.slow

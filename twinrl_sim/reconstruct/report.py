@@ -18,6 +18,7 @@ from twinrl_sim.reconstruct.segment import TablePlane, planar_axes
 from twinrl_sim.reconstruct.table_extent import SIDES
 
 if TYPE_CHECKING:
+    from twinrl_sim.reconstruct.evidence import DroppedCandidate
     from twinrl_sim.reconstruct.result import TwinBuild
     from twinrl_sim.reconstruct.sfm import SparseModel
 
@@ -92,6 +93,26 @@ def plot_build(built: TwinBuild, out: Path) -> list[Path]:
     return [cloud, residual_plot]
 
 
+def dropped_lines(dropped: list[DroppedCandidate]) -> list[str]:
+    """The report's table of the candidates not made objects, and why (none: no lines)."""
+    if not dropped:
+        return []
+    lines = [
+        "",
+        "Not made objects (points above the table that the frames do not bear out):",
+        "",
+        "| x (m) | y (m) | size L x W x H (mm) | points | why |",
+        "|---|---|---|---|---|",
+    ]
+    for candidate in dropped:
+        size = " x ".join(f"{1000 * v:.0f}" for v in candidate.size)
+        lines.append(
+            f"| {candidate.center[0]:.3f} | {candidate.center[1]:.3f} | {size} | "
+            f"{candidate.points} | {candidate.reason} |"
+        )
+    return lines
+
+
 def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
     """``report.md``: what was kept, how well it aligned, what the scene holds, how long."""
     selection, model, alignment, table = built.selection, built.model, built.alignment, built.table
@@ -142,20 +163,7 @@ def write_build_report(built: TwinBuild, out: Path, plots: list[Path]) -> Path:
     if doubtful:
         lines += ["", "Where the evidence is thin:", ""]
         lines += [f"- {obj.name}: {'; '.join(obj.evidence.doubts)}." for obj in doubtful]
-    if built.dropped:
-        lines += [
-            "",
-            "Not made objects (points above the table that the frames do not bear out):",
-            "",
-            "| x (m) | y (m) | size L x W x H (mm) | points | why |",
-            "|---|---|---|---|---|",
-        ]
-        for candidate in built.dropped:
-            size = " x ".join(f"{1000 * v:.0f}" for v in candidate.size)
-            lines.append(
-                f"| {candidate.center[0]:.3f} | {candidate.center[1]:.3f} | {size} | "
-                f"{candidate.points} | {candidate.reason} |"
-            )
+    lines += dropped_lines(built.dropped)
     if built.cameras:
         lines += [
             "",
