@@ -17,7 +17,7 @@ sweep, motion blur, and a phone's lens, auto exposure, noise and JPEG stills
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import av
@@ -95,18 +95,7 @@ REALISTIC_WALK = WalkthroughSettings(
 )
 """93 frames at 640x480 of the cell a real user films: see the module's docstring."""
 
-LOW_WALK = WalkthroughSettings(
-    seconds=9.3,
-    sweep_deg=50.0,
-    distance=0.9,
-    elevation_deg=-22.0,
-    jitter=0.02,
-    motion_blur=3,
-    plain_table=True,
-    clutter=8,
-    shiny_table=True,
-    traits=REALISTIC_TRAITS,
-)
+LOW_WALK = replace(REALISTIC_WALK, elevation_deg=-22.0, shiny_table=True)
 """The realistic walk filmed low (the phone about 0.34 m over the table), over a glossy
 top that shows highlights, reflections and shadows: what stands on the table is seen
 mostly against the clutter beyond its far edge."""
