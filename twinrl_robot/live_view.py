@@ -26,8 +26,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from twinrl_data.grasp_view import OPENING
-from twinrl_data.schema import ENVIRONMENT_STATE, STATE, image_field
+from twinrl_data.grasp_view import ARROW_M_PER_N, FORCE_COLOR, OPENING
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE, WRENCH, image_field
 from twinrl_data.view import log_cell_geometry, log_cell_poses
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
@@ -152,7 +152,8 @@ class LiveView:
         ]
         plots = rrb.Vertical(
             rrb.TimeSeriesView(origin="signals/joints", name="joints and targets (rad)"),
-            rrb.TimeSeriesView(origin="signals/grasp", name="gripper opening (cm)"),
+            rrb.TimeSeriesView(origin="signals/grasp", name="gripper opening (cm), command"),
+            rrb.TimeSeriesView(origin="signals/force", name="force at the tool (N)"),
             rrb.TimeSeriesView(origin="signals/actions", name="action"),
             rrb.TimeSeriesView(origin="signals/intervention", name="person in control"),
         )
@@ -237,9 +238,22 @@ class LiveView:
         log("signals/intervention", rr.Scalars(float(sent.intervention)))
         if self._opening is not None:
             log("signals/grasp/opening", rr.Scalars(100.0 * float(state[self._opening])))
-        if len(self._tcp) == 3:
-            self._path.append([float(state[i]) for i in self._tcp])
+            log("signals/grasp/command", rr.Scalars(float(sent.action[-1])))
+        tcp = [float(state[i]) for i in self._tcp]
+        if len(tcp) == 3:
+            self._path.append(tcp)
             log("world/tcp_path", rr.LineStrips3D([self._path]))
+        wrench = observation.get(WRENCH)
+        if wrench is not None:  # a cell that measures it: the force at the tool
+            force = np.asarray(wrench[:3], float)
+            for axis, value in zip("xyz", force, strict=True):
+                log(f"signals/force/{axis}", rr.Scalars(float(value)))
+            if len(tcp) == 3:
+                arrow = rr.Arrows3D(
+                    origins=[tcp], vectors=[force * ARROW_M_PER_N], colors=[FORCE_COLOR],
+                    labels=[f"{np.linalg.norm(force):.0f} N"],
+                )  # fmt: skip
+                log("world/tcp_force", arrow)
         if self.cell is not None:
             environment = observation.get(ENVIRONMENT_STATE)
             log_cell_poses(self.cell, "world/cell", state, environment, self.stream)

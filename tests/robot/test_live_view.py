@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from twinrl_data.schema import STATE
+from twinrl_data.schema import STATE, WRENCH
 from twinrl_robot.live_view import PREVIEW_WIDTH, LiveView, preview, preview_stride
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
@@ -37,12 +37,15 @@ def test_the_steps_handed_to_the_view_are_logged_by_its_thread(tmp_path: Path) -
     names = Cell(compile_scene(task.scene)).contract_names()[STATE]
     view = LiveView(str(tmp_path / "live.rrd"), task, ("front",), names)
     observation = {STATE: np.zeros(len(names), np.float32),
-                   "observation.images.front": np.zeros((480, 640, 3), np.uint8)}  # fmt: skip
+                   "observation.images.front": np.zeros((480, 640, 3), np.uint8),
+                   WRENCH: np.array([0.0, 0.0, -12.0, 0.1, 0.0, 0.0], np.float32)}  # fmt: skip
     sent = Sent(action=np.zeros(7, np.float32), joint_target=np.zeros(6, np.float32))
     for _ in range(3):
         view.step(observation, sent)
     view.close()  # logs what it was handed last before it returns
-    entities = {
-        c.entity_path for c in RrdReader(tmp_path / "live.rrd").store().stream().to_chunks()
-    }
+    chunks = list(RrdReader(tmp_path / "live.rrd").store().stream().to_chunks())
+    entities = {c.entity_path for c in chunks}
     assert {"/cameras/front", "/signals/actions/0", "/world/cell/link3"} <= entities
+    # the grasp and the force at the tool, where the cell measures it
+    assert {"/signals/grasp/opening", "/signals/grasp/command", "/signals/force/z",
+            "/world/tcp_force"} <= entities  # fmt: skip
