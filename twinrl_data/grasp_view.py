@@ -23,13 +23,12 @@ import rerun as rr
 
 from twinrl_data import schema as contract
 from twinrl_data.mcap_log import pose_groups
+from twinrl_data.schema import GRIPPER_CLOSED, GRIPPER_OPENING
 
-GRIPPER_CLOSED = 0.5  # a gripper command at or above this closes the fingers
 STILL = 0.001  # m the opening may change in a step with the fingers stopped
 EMPTY = 0.002  # m; at or below it the fingers closed on nothing
 REACH = 0.04  # m from the TCP within which the nearest object is between the fingers
 ARROW_M_PER_N = 0.005  # the force arrow's length per newton
-OPENING = "gripper.opening"
 HELD_COLOR = [255, 200, 0]
 FORCE_COLOR = [230, 60, 60]
 AXIS_COLORS = ([220, 60, 60], [60, 180, 60], [60, 90, 220])  # x, y, z
@@ -46,9 +45,9 @@ def held_objects(episode: contract.Episode) -> dict[str, np.ndarray]:
     tcp = pose_groups(names).get("tcp")
     environment = episode.data.get(contract.ENVIRONMENT_STATE)
     frames = pose_groups(episode.meta.names.get(contract.ENVIRONMENT_STATE, []))
-    if tcp is None or OPENING not in names or environment is None or not frames:
+    if tcp is None or GRIPPER_OPENING not in names or environment is None or not frames:
         return {}
-    opening = state[:, names.index(OPENING)]
+    opening = state[:, names.index(GRIPPER_OPENING)]
     commanded = episode.data[contract.ACTION][:, -1] >= GRIPPER_CLOSED
     gripping = np.zeros(len(episode), bool)
     gripping[1:] = (
@@ -66,7 +65,7 @@ def held_objects(episode: contract.Episode) -> dict[str, np.ndarray]:
 
 def has_grasp(episode: contract.Episode) -> bool:
     """Whether ``episode`` logs the gripper's opening (so the grasp plot has a line)."""
-    return OPENING in _state(episode)[0]
+    return GRIPPER_OPENING in _state(episode)[0]
 
 
 def log_grasp(
@@ -78,8 +77,8 @@ def log_grasp(
     times = [rr.TimeColumn("step", sequence=steps),
              rr.TimeColumn("time", duration=steps / episode.meta.fps)]  # fmt: skip
     names, state = _state(episode)
-    if OPENING in names:
-        opening = state[:, names.index(OPENING)].astype(float) * 100
+    if GRIPPER_OPENING in names:
+        opening = state[:, names.index(GRIPPER_OPENING)].astype(float) * 100
         command = episode.data[contract.ACTION][:, -1].astype(float)
         _plot(f"signals/grasp/opening/{label}", f"opening (cm) {label}", opening, color,
               times, recording)  # fmt: skip

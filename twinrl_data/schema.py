@@ -62,6 +62,9 @@ VECTOR_FIELDS = (
     JOINT_TARGET,
 )
 WRENCH_NAMES = ["force.x", "force.y", "force.z", "torque.x", "torque.y", "torque.z"]
+# The action's last entry commands the gripper in [0, 1]: at or above this it closes.
+GRIPPER_CLOSED = 0.5
+GRIPPER_OPENING = "gripper.opening"  # the state entry of the fingers' opening (m)
 """Names of ``observation.wrench``'s entries."""
 CONTROLLER_TIME_NAMES = ["controller.t"]
 """Names of ``observation.controller_time``'s entry: seconds since the episode's start,

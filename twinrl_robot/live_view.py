@@ -26,8 +26,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from twinrl_data.grasp_view import ARROW_M_PER_N, FORCE_COLOR, OPENING
-from twinrl_data.schema import ENVIRONMENT_STATE, STATE, WRENCH, image_field
+from twinrl_data.grasp_view import ARROW_M_PER_N, FORCE_COLOR
+from twinrl_data.schema import ENVIRONMENT_STATE, GRIPPER_OPENING, STATE, WRENCH, image_field
 from twinrl_data.view import log_cell_geometry, log_cell_poses
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
@@ -124,7 +124,8 @@ class LiveView:
         self.cameras = cameras
         self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]
         self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
-        self._opening = state_names.index(OPENING) if OPENING in state_names else None
+        opening = GRIPPER_OPENING
+        self._opening = state_names.index(opening) if opening in state_names else None
         blueprint = self._blueprint()
         if target == "spawn":
             self.stream.spawn(default_blueprint=blueprint)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from twinrl_data.schema import GRIPPER_CLOSED as GRIPPER_CLOSED  # the contract's
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.control import TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec, rotvec_to_quat
 from twinrl_sim.planar import wrap_angle, yaw_of
@@ -28,7 +29,6 @@ CORRECTION_CLEARANCE = 0.02
 # arm turns slower while it travels far; a policy sees only the measured pose, so demos
 # whose command ran ahead would teach it to stop turning while the tool is still far off.
 TURN_LEAD = 0.1
-GRIPPER_CLOSED = 0.5  # a gripper command at or above this closes the fingers
 FINGERS_STILL = 5e-4  # m per control step: fingers moving less than this have stopped
 
 
