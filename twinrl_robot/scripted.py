@@ -100,10 +100,7 @@ class ExpertSource:
 
     def finished(self) -> bool:
         """Whether a near miss has held still long enough to end its episode."""
-        if self.stop_short is None or self.expert is None or not self.expert.done:
-            return False
-        self._held += 1
-        return self._held > self.hold
+        return self.stop_short is not None and self._held > self.hold
 
     def act(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         assert self.expert is not None, "reset the source first"
@@ -113,6 +110,7 @@ class ExpertSource:
             action = action.copy()
             action[:6] += shake
             self.expert.perturb(shake[:3], shake[3:])
+        self._held += self.expert.done  # the steps it has held still, its phases done
         return action
 
     def interrupted(self) -> None:
