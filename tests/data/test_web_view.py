@@ -34,12 +34,13 @@ def _listens(port: int) -> bool:
         return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
-def _when(condition, timeout: float) -> bool:
+def wait_until(condition, timeout: float, poll: float = 0.05) -> bool:
+    """Whether ``condition()`` holds within ``timeout`` s, asked every ``poll`` s."""
     deadline = time.monotonic() + timeout
     while not condition():
         if time.monotonic() > deadline:
             return False
-        time.sleep(0.05)
+        time.sleep(poll)
     return True
 
 
@@ -52,10 +53,11 @@ def test_wait_stops_the_server_on_sigint_even_if_started_ignoring_it():
         sent: list[float] = []
 
         def press_ctrl_c() -> None:  # once wait() handles it; else the guard below ends it
-            if _when(lambda: signal.getsignal(signal.SIGTERM) is signal.default_int_handler, 20):
+            handled = lambda: signal.getsignal(signal.SIGTERM) is signal.default_int_handler  # noqa: E731
+            if wait_until(handled, 20):
                 sent.append(time.monotonic())
                 os.kill(os.getpid(), signal.SIGINT)
-            if not _when(lambda: viewer.process.poll() is not None, 20):
+            if not wait_until(lambda: viewer.process.poll() is not None, 20):
                 viewer.process.kill()
 
         threading.Thread(target=press_ctrl_c, daemon=True).start()
@@ -85,7 +87,7 @@ def test_the_server_dies_with_the_process_that_started_it():
         server = psutil.Process(int(parent.stdout.readline()))
         parent.kill()  # no chance to clean up
         parent.wait(timeout=10)
-        assert _when(lambda: not server.is_running() or server.status() == "zombie", 10)
+        assert wait_until(lambda: not server.is_running() or server.status() == "zombie", 10)
         assert not _listens(web) and not _listens(grpc)
     finally:
         parent.kill()

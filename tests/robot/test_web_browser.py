@@ -8,14 +8,13 @@ import contextlib
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
 import pytest
 
-from tests.data.test_web_view import free_ports
+from tests.data.test_web_view import free_ports, wait_until
 from tests.web_browser import Traffic, chromium, needs_chromium
 from twinrl_data.session import Session
 
@@ -52,15 +51,6 @@ def _page(process: subprocess.Popen, says: str) -> str:
     raise AssertionError(f"no '{says}' line: {process.stderr.read()}")
 
 
-def _until(condition, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.5)
-    return True
-
-
 def test_the_page_loads_connects_and_receives_the_episode(tmp_path: Path) -> None:
     from twinrl_robot.scripted import run_scripted_expert
 
@@ -82,7 +72,7 @@ def test_the_page_loads_connects_and_receives_the_episode(tmp_path: Path) -> Non
             traffic.read(browser)
             return traffic.received > 0.8 * size
 
-        got = _until(received, 90)
+        got = wait_until(received, 90, poll=0.5)
         assert any("ReadMessages" in url for url in traffic.requests.values()), traffic
         # The whole episode, as the recording's own file holds it, reached the page.
         assert got, f"the page received {traffic.received} of the episode's {size} bytes"
@@ -112,7 +102,7 @@ def test_the_page_follows_a_recording_session_live(tmp_path: Path) -> None:
                 seen.append(traffic.received)
             return len(seen) > 1 and seen[-1] > seen[0] + 100_000
 
-        assert _until(growing, 120)
+        assert wait_until(growing, 120, poll=0.5)
         assert len(seen) > 1 and seen[-1] > seen[0] + 100_000, ("not seen growing", seen)
         assert recorder.wait(timeout=120) == 0, recorder.stderr.read()
     assert len(Session(tmp_path / "session").episode_paths()) == 3
