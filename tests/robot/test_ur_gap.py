@@ -17,7 +17,8 @@ from twinrl_data.session import Session
 from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.ur.emulator.harness import EmulatorProcess
 from twinrl_sim.gap.diagnose import diagnose
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.identify import WindowReplay
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.tasks import make_task
 
 pytestmark = [

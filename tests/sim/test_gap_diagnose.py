@@ -18,7 +18,8 @@ from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene
 from twinrl_sim.gap.diagnose import diagnose
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.identify import WindowReplay
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.gap.windows import cut_windows
 from twinrl_sim.spec import load_spec
 from twinrl_sim.tasks import make_task

@@ -13,7 +13,8 @@ from twinrl_robot.excitation import ExcitationSettings, run_excitation
 from twinrl_sim.build import build_mjspec, compile_scene
 from twinrl_sim.gap.diagnose import candidate_pool, diagnose
 from twinrl_sim.gap.gravity import separable_parts
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.identify import WindowReplay
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.gap.windows import cut_windows
 from twinrl_sim.tasks import make_task
 

@@ -8,7 +8,8 @@ from tests.sim.test_gap_diagnose import SCENE, _record
 from twinrl_sim.build import compile_scene
 from twinrl_sim.gap import search
 from twinrl_sim.gap.diagnose import diagnose, split_windows
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay, likelihood_term
+from twinrl_sim.gap.identify import WindowReplay, likelihood_term
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.gap.report import write_markdown
 from twinrl_sim.gap.windows import cut_windows
 

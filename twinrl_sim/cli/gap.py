@@ -148,8 +148,8 @@ def diagnose_command(
     significant, and write the fitted twin with a report of the gap before and after."""
     from twinrl_data.sources import discover_episodes
     from twinrl_sim.gap.diagnose import diagnose
-    from twinrl_sim.gap.identify import NoiseFloor
     from twinrl_sim.gap.localize import localize
+    from twinrl_sim.gap.noise import NoiseFloor
     from twinrl_sim.gap.report import command_lag_line, format_params, write_report
     from twinrl_sim.gap.shooting import replay_windows
 

@@ -50,8 +50,9 @@ from twinrl_sim.gap.camera import CameraFit, colours, logged_cameras, sample_fra
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.gap.command_lag import command_lag
 from twinrl_sim.gap.gravity import GRAVITY_EFFECTS, separable_parts
-from twinrl_sim.gap.identify import NoiseFloor, WindowReplay
+from twinrl_sim.gap.identify import WindowReplay
 from twinrl_sim.gap.inverse import inverse_dynamics_gap
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.gap.search import (
     BIC_MARGIN,
     SCREEN_KEEP,
@@ -286,7 +287,7 @@ def diagnose(
         )
     layout = compile_scene(scene).layout
     objects = [o.name for o in scene.objects]
-    windows = cut_windows(episodes, layout, objects, window=window)
+    windows = cut_windows(episodes, layout, objects, window=window, noise=noise)
     split = split_windows(episodes, windows, heldout, seed)
     train, held = split.train, split.held
     train_episodes = [episodes[i] for i in split.train_episodes]

@@ -14,11 +14,20 @@ modifier applies the effect to a copy of the twin's ``MjSpec``;
 
 Residuals are divided by each signal's sensor noise (:class:`NoiseFloor`), so that a
 joint angle (rad), a torque (N m) and a position (m) weigh alike; the fit minimises
-their sum of squares. The diagnosis scores a fit by a likelihood whose variance is
-fitted per signal (:func:`likelihood_term`), which can rise while the squares fall (a
-large drop in one signal traded for a rise in another); a fit that ends with that
-likelihood worse than at its start says so (:attr:`WindowReplay.ended_worse`) and the
-diagnosis reports it as failed rather than as an insignificant candidate.
+their sum of squares. The diagnosis scores a fit by a Gaussian likelihood whose
+variance is fitted per signal (:func:`likelihood_term`), which the squares' minimum can
+leave worse than the start: a large drop in one signal traded for a rise in another that
+fitted well (a payload fitted to torques that a load cannot explain). Such a fit is
+done again on that likelihood's bound at the start: each signal's squares weighed by
+the inverse of its mean square there (:func:`signal_weights`). The logarithm is
+concave, so the weighed sum bounds the likelihood from above and touches it at the
+start: every step that lowers the sum lowers the likelihood, and the refit cannot end
+worse than it started (:attr:`WindowReplay.refit_by_likelihood` says it was needed).
+Every fit is not done so, because weights kept from a start whose torques were far off
+leave those torques under-weighed once they fit (a hidden object mass of 4x fitted as
+3.2x, the squares' fit 3.8x). A fit that still ends worse (a component reset to "no
+effect") says so (:attr:`WindowReplay.ended_worse`) and the diagnosis reports it as
+failed.
 """
 
 from __future__ import annotations
@@ -27,7 +36,6 @@ import io
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
 
 import mujoco
 import numpy as np
@@ -36,11 +44,11 @@ from absl import logging as absl_logging
 from mujoco import minimize, sysid
 from mujoco.rollout import Rollout
 
-from twinrl_data.errors import SettingError
 from twinrl_sim.build import build_mjspec
 from twinrl_sim.effects import apply_effects
 from twinrl_sim.gap.candidates import CANDIDATES, Candidate, Fitted
 from twinrl_sim.gap.gravity import GRAVITY_EFFECTS, separable_parts
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.gap.windows import DELAY_HISTORY, Windows, measured_starts, replay_signals
 from twinrl_sim.spec import SceneSpec
 from twinrl_sim.windowed import WindowedReplay
@@ -49,44 +57,6 @@ FD_STEP = 1e-3  # finite-difference step in optimiser units (see Candidate.scale
 MAX_ITERS = 12  # Levenberg-Marquardt iterations per fit; these fits converge in 3-8
 XTOL = 1e-4  # relative step below which a fit has converged (far below any interval)
 BIC_STEP = 0.5  # a fit whose last step changed its BIC by less than this has converged
-
-
-@dataclass(frozen=True)
-class NoiseFloor:
-    """Standard deviation of each measured signal family: the residuals' unit.
-
-    The defaults are those of a UR e-series arm's joint encoders, velocity estimate,
-    TCP pose and joint torque estimate, of a tracked object's position, and of a
-    camera image compared in standardised grey levels and in colour.
-    """
-
-    q: float = 2e-4  # rad
-    qd: float = 2e-3  # rad/s
-    tcp: float = 3e-4  # m
-    tau: float = 0.05  # N m
-    object: float = 1e-3  # m
-    image: float = 0.05  # standardised grey level of a compared image (see gap.camera)
-    colour: float = 0.02  # colour level (0-1) of a box-averaged image (see gap.appearance)
-
-    @classmethod
-    def parse(cls, text: str) -> NoiseFloor:
-        """``q=2e-4,tau=0.1`` -> a NoiseFloor with those entries changed."""
-        known = {f.name for f in fields(cls)}
-        values = {}
-        for item in filter(None, (p.strip() for p in text.split(","))):
-            key, _, value = item.partition("=")
-            if key not in known:
-                raise SettingError(
-                    "noise",
-                    f"names an unknown signal family '{key}'; use {', '.join(sorted(known))}",
-                )
-            try:
-                values[key] = float(value)
-            except ValueError:
-                raise SettingError("noise", f"'{item}' needs a number, e.g. {key}=1e-3") from None
-            if not values[key] > 0:
-                raise SettingError("noise", f"{key} must be positive, got {value}")
-        return cls(**values)
 
 
 def least_squares(
@@ -179,6 +149,14 @@ def likelihood_term(residuals: np.ndarray) -> float:
     return float(np.sum(rows * np.log(rss / rows)))
 
 
+def signal_weights(residuals: np.ndarray) -> np.ndarray:
+    """Per-signal weights (n_signals,) of residuals (n, W, n_signals) under which their
+    weighed sum of squares is the bound of :func:`likelihood_term` that touches it here:
+    one over each signal's root mean square."""
+    mean_square = np.mean(residuals**2, axis=(0, 1))
+    return 1.0 / np.sqrt(np.maximum(mean_square, 1e-12))
+
+
 class WindowReplay:
     """The twin of ``scene`` (plus ``fixed`` effects) replaying ``windows``, with the
     effects of ``free`` adjustable: a ``mujoco.sysid`` residual over all windows."""
@@ -200,6 +178,8 @@ class WindowReplay:
         self.spec, self.layout = build_mjspec(scene)
         self.scale = np.array([getattr(noise, f) for f in windows.families])
         self.ended_worse = False  # the last fit ended with a worse likelihood than it started
+        # the last fit's squares ended worse by the likelihood, so it minimised the bound
+        self.refit_by_likelihood = False
         self.gravity = (
             separable_parts(self.spec, self.spec.compile(), self.layout)
             if any(c.effect in GRAVITY_EFFECTS for c in self.free)
@@ -412,15 +392,26 @@ class WindowReplay:
         optimiser units (see :meth:`physical`)."""
         if not self.free:
             return np.zeros(0), np.zeros(0), 0
-        before = likelihood_term(self.residuals(self.params.as_vector()))
+        start = self.params.as_vector()
+        before = likelihood_term(self.residuals(start))
+        objective = self.residual_fn
         params, result, iterations = least_squares(
-            self.params, self.residual_fn, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
+            self.params.copy(), objective, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
         )
+        self.refit_by_likelihood = likelihood_term(self.residuals(params.as_vector())) > before
+        if self.refit_by_likelihood:
+            # The squares' minimum is worse by the likelihood than the start: minimise the
+            # likelihood's bound at the start instead, which cannot end worse.
+            objective = self._weighed(signal_weights(self.residuals(start)))
+            params, result, more = least_squares(
+                self.params.copy(), objective, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
+            )
+            iterations += more
         x = params.as_vector()
         if not np.any(result.jac):  # the data say nothing about these parameters
             half_width = np.full(len(x), np.inf)
         else:
-            res, _, _ = self.residual_fn(x, params.copy())
+            res, _, _ = objective(x, params.copy())
             _, half_width = sysid.calculate_intervals(res, result.jac)
         # A component the data cannot pin down (e.g. the offset of a wrist turning about
         # the TCP axis) wanders freely; report it at "no effect", interval unbounded.
@@ -453,6 +444,20 @@ class WindowReplay:
         scores = [likelihood_term(residuals[:, i].reshape(shape)) for i in range(3)]
         best = int(np.argmin(scores))
         return points[:, best], residuals[:, best].reshape(shape)
+
+    def _weighed(self, weights: np.ndarray):
+        """:attr:`residual_fn` with each signal's residuals times its weight."""
+        signals = len(weights)
+
+        def residual(x, params, **kwargs):
+            residuals, *rest = self.residual_fn(x, params, **kwargs)
+            weighed = []
+            for r in residuals:
+                w = np.tile(weights, len(r) // signals)
+                weighed.append(r * (w[:, None] if r.ndim == 2 else w))
+            return (weighed, *rest)
+
+        return residual
 
     def _null_vector(self) -> np.ndarray:
         """The free parameters' "no effect" values, in optimiser units."""

@@ -5,7 +5,13 @@ first row is where the twin restarts (arm joints and velocities, gripper opening
 object poses; a resting object's position is the mean over its rest, since a
 tracker's millimetre of noise would otherwise start it inside the table or the
 fingers), the logged joint targets and gripper commands are re-sent, and the
-measurement at every later row is compared. Localisation and identification replay
+measurement at every later row is compared.
+
+In a log faster than the servos settle (a controller's 125 or 500 Hz), the arm's start
+is estimated from the rows around it (:func:`smoothed_start`) rather than read from one
+row: a stiff servo turns an encoder's noise at the start into a torque transient (a UR's
+16,000 N m/rad shoulder loop makes 0.2 mrad of noise 3 N m, sixty times a torque
+estimate's noise) that no effect explains. Localisation and identification replay
 the same windows through the one engine (:mod:`twinrl_sim.windowed`), so both measure
 the same residual.
 """
@@ -22,6 +28,7 @@ import numpy as np
 from twinrl_data import schema as contract
 from twinrl_sim.effects import torque_offset
 from twinrl_sim.errors import TwinError
+from twinrl_sim.gap.noise import NoiseFloor
 from twinrl_sim.layout import CellLayout
 from twinrl_sim.robots import gripper as gripper_lib
 from twinrl_sim.servo import servo_lead, tracking_setpoints
@@ -30,6 +37,8 @@ from twinrl_sim.windowed import INPUTS, STATE, Starts, WindowedReplay, control_s
 DELAY_HISTORY = 0.3  # s: the longest actuator delay a fit can reach
 HELD_TOLERANCE = 1e-4  # rad: targets this close to the first are a log's start at rest
 WINDOW_SECONDS = 2.0  # a shooting window's default length: 20 steps at 10 Hz, 250 at 125 Hz
+START_SPAN = 0.1  # s either side of a window's start whose rows estimate the arm's state there
+START_DEGREE = 3  # degree of the polynomial in time fitted to those rows
 
 
 @dataclass
@@ -102,6 +111,7 @@ def cut_windows(
     *,
     window: int | None = None,
     cover_tail: bool = False,
+    noise: NoiseFloor | None = None,
 ) -> Windows:
     """Cut every episode into consecutive windows of ``window`` compared rows (default:
     :data:`WINDOW_SECONDS` of the log), at the episodes' own control rate (one rate for
@@ -113,8 +123,10 @@ def cut_windows(
     more window that ends at the episode's last row (its first rows repeat the previous
     window's). Signals are those every episode has: joint angles and velocities and the
     TCP position always; joint torques when all episodes log ``observation.effort``;
-    object positions when all log them.
+    object positions when all log them. ``noise`` weighs joint angles against velocities
+    in the start estimate (:func:`smoothed_start`).
     """
+    noise = noise or NoiseFloor()
     arm = layout.arm_joints
     for episode in episodes:
         _check_episode(episode, arm)
@@ -171,15 +183,17 @@ def cut_windows(
             start_poses = np.zeros((len(state), 0, 7))
         measured = np.hstack(signals)
         targets = episode.data[contract.JOINT_TARGET].astype(float)
-        # Before the first row the servos held where the arm stood.
-        padded = np.vstack([np.repeat(_held_before(q, targets)[None], history_steps, 0), targets])
         starts = list(range(0, len(state) - window, window))
         if cover_tail and len(state) > window and (len(state) - 1) % window:
             starts.append(len(state) - 1 - window)
-        for start in starts:
+        q_start, qd_start = smoothed_start(q, qd, starts, control_hz, noise)
+        # Before the first row the servos held where the arm stood.
+        held = _held_before(q_start[0] if starts and starts[0] == 0 else q[0], targets)
+        padded = np.vstack([np.repeat(held[None], history_steps, 0), targets])
+        for k, start in enumerate(starts):
             parts["measured"].append(measured[start + 1 : start + window + 1])
-            parts["q0"].append(q[start])
-            parts["qd0"].append(qd[start])
+            parts["q0"].append(q_start[k])
+            parts["qd0"].append(qd_start[k])
             parts["opening0"].append(opening[start])
             parts["objects0"].append(start_poses[start])
             parts["targets"].append(targets[start : start + window])
@@ -197,14 +211,45 @@ def cut_windows(
     return Windows(names, families, objects_logged, **arrays, fps=control_hz)
 
 
-def _held_before(q: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Where the servos held the arm before an episode's first row. A log that starts at
-    rest (its second target within :data:`HELD_TOLERANCE` of the first) held its first
-    target; one that starts moving, where the arm stood. (A measured position there
-    would bring its sensor noise: over a 2 ms period, a spurious speed that a tracking
-    servo's lead turns into tens of N m in a 500 Hz log's first rows.)"""
+def smoothed_start(
+    q: np.ndarray, qd: np.ndarray, rows: Sequence[int], fps: float, noise: NoiseFloor
+) -> tuple[np.ndarray, np.ndarray]:
+    """The arm's joint angles and velocities at ``rows`` of one episode, (len(rows),
+    n_arm) each, estimated from the rows within :data:`START_SPAN` of each.
+
+    A polynomial in time of degree :data:`START_DEGREE` is fitted per joint, by least
+    squares, to the angles and to the velocities (its derivative) of those rows, each
+    weighed by its noise; its value and slope at the row are the estimate. In a 125 Hz
+    log this cuts a start's angle noise several-fold, where one row's noise would start
+    a stiff servo with a torque transient. A log too slow for that (fewer than two rows
+    either side within the span, as at 10 Hz) keeps each row's measurement."""
+    rows = np.asarray(rows, int)
+    span = round(START_SPAN * fps)
+    if span < 2 or not len(rows):
+        return q[rows].copy(), qd[rows].copy()
+    powers = np.arange(START_DEGREE + 1)
+    q_start, qd_start = np.empty((len(rows), q.shape[1])), np.empty((len(rows), q.shape[1]))
+    for k, row in enumerate(rows):
+        lo, hi = max(0, row - span), min(len(q), row + span + 1)
+        t = (np.arange(lo, hi) - row) / fps
+        value = t[:, None] ** powers
+        slope = powers * t[:, None] ** np.maximum(powers - 1, 0)
+        design = np.vstack([value / noise.q, slope / noise.qd])
+        observed = np.vstack([q[lo:hi] / noise.q, qd[lo:hi] / noise.qd])
+        coefficients = np.linalg.lstsq(design, observed, rcond=None)[0]
+        q_start[k], qd_start[k] = coefficients[0], coefficients[1]
+    return q_start, qd_start
+
+
+def _held_before(q0: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Where the servos held the arm before an episode's first row, whose estimated
+    joint angles are ``q0``. A log that starts at rest (its second target within
+    :data:`HELD_TOLERANCE` of the first) held its first target; one that starts moving,
+    where the arm stood. (One row's measurement there would bring its sensor noise: over
+    a 2 ms period, a spurious speed that a tracking servo's lead turns into tens of N m
+    in a 500 Hz log's first rows; a delay holds it for the delay's length.)"""
     at_rest = len(targets) < 2 or np.abs(targets[1] - targets[0]).max() <= HELD_TOLERANCE
-    return targets[0] if at_rest else q[0]
+    return targets[0] if at_rest else q0
 
 
 REST_SPREAD = 5.0  # robust deviations (per axis) within which a row counts as at rest
