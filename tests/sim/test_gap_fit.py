@@ -4,6 +4,7 @@ still does is reported as failed, never named."""
 
 import numpy as np
 import pytest
+from mujoco.rollout import Rollout
 
 from tests.sim.test_gap_diagnose import SCENE, _record
 from twinrl_data.mcap_log import read_episode
@@ -14,7 +15,8 @@ from twinrl_sim.gap import identify
 from twinrl_sim.gap.diagnose import diagnose
 from twinrl_sim.gap.identify import WindowReplay, likelihood_term, signal_weights
 from twinrl_sim.gap.noise import NoiseFloor
-from twinrl_sim.gap.report import write_markdown
+from twinrl_sim.gap.report import _verdict, write_markdown
+from twinrl_sim.gap.search import fit_candidate, score
 from twinrl_sim.gap.windows import cut_windows
 
 
@@ -87,6 +89,12 @@ def test_a_fit_by_the_likelihoods_bound_improves_where_plain_squares_end_worse(t
     x, _, _ = weighed.fit()
     assert likelihood_term(weighed.residuals(x)) < start and not weighed.ended_worse
     assert weighed.refit_by_likelihood
+    # The diagnosis's record of the candidate and its report say how it was fitted.
+    with Rollout(nthread=2) as pool:
+        baseline = score(scene, windows, windows, NoiseFloor(), {}, pool)
+        result = fit_candidate(scene, windows, windows, NoiseFloor(), {}, "payload", baseline, pool)
+    assert result.by_likelihood and not result.fit_failed
+    assert "likelihood's bound" in _verdict(result)
 
 
 def test_signal_weights_make_the_weighed_squares_one_per_residual():

@@ -495,9 +495,13 @@ def write_report(
 
 
 def _verdict(result) -> str:
-    """A candidate's significance column; a fit that ended worse than it started says so."""
+    """A candidate's significance column; a fit that ended worse than it started, or was
+    refit on the likelihood's bound because its squares' fit did, says so."""
     if result.fit_failed:
         return "no: its fit ended worse than it started"
     if result.screened:
         return "no: screened (one step; others explained more)"
-    return "yes" if result.significant else "no"
+    verdict = "yes" if result.significant else "no"
+    if result.by_likelihood:
+        verdict += " (fitted on the likelihood's bound: its squares' fit ended worse)"
+    return verdict

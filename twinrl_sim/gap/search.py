@@ -51,6 +51,9 @@ class CandidateResult:
     seconds: float
     compared: str = "motion"  # the residuals it was judged on: motion, or images:<camera>
     fit_failed: bool = False  # its fit ended worse than it started: never named
+    # Its squares' fit ended worse by the likelihood than it started, so it was fitted on
+    # the likelihood's bound (:meth:`~twinrl_sim.gap.identify.WindowReplay.fit`).
+    by_likelihood: bool = False
     # Judged at its first Gauss-Newton step, not fitted: others' steps explained more
     # (module docstring); its intervals are not computed (inf).
     screened: bool = False
@@ -208,6 +211,7 @@ def fit_candidate(
         iterations=iterations,
         seconds=time.perf_counter() - started,
         fit_failed=replay.ended_worse,
+        by_likelihood=replay.refit_by_likelihood,
     )
 
 
