@@ -3,8 +3,8 @@
 An episode logs the gripper's opening (``gripper.opening``, m, in the state), its command
 (the action's last entry, closed at or above :data:`GRIPPER_CLOSED`), the objects' poses
 where the world knows them (twin, plant, an emulated cell) and, where a cell measures
-it, the force at the TCP (``observation.wrench``, base frame). No world logs contacts,
-so none are drawn. From these:
+it, the force at the TCP (``observation.wrench``, base frame). No world logs contacts;
+the view draws the twin's (:mod:`twinrl_data.contact_view`). From these:
 
 - **in hand**: an object is held at a step when the fingers, commanded closed since the
   step before, have stopped (:data:`STILL`) short of both closed (:data:`EMPTY`: they

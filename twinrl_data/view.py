@@ -17,7 +17,10 @@
   success, with intervention spans in red.
 
 The grasp, drawn from what the episode logs, is :mod:`twinrl_data.grasp_view`'s: the
-held object marked ``in hand`` in 3D, the force at the TCP as an arrow.
+held object marked ``in hand`` in 3D, the force at the TCP as an arrow. With a cell,
+what the robot touches at each step, as the cell's model sees the logged configuration,
+is :mod:`twinrl_data.contact_view`'s: points in 3D labelled with the two bodies, and a
+plot per pair.
 
 With two or more episodes (e.g. measured vs twin replay of one configuration) every
 series is logged once per episode label under the same plot, so they overlay; every
@@ -38,11 +41,22 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from twinrl_data import schema as contract
+from twinrl_data.contact_view import log_contacts
 from twinrl_data.errors import DataError
 from twinrl_data.grasp_view import has_grasp, log_grasp
 from twinrl_data.mcap_log import pose_groups
 
 Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
+
+
+@dataclass(frozen=True)
+class Contact:
+    """Where one of the robot's bodies touches another body at one step."""
+
+    position: np.ndarray  # xyz, base frame
+    robot: str  # the robot's body (a link, a finger)
+    other: str  # the body it touches (an object, the table)
+    distance: float  # m between the surfaces (negative: they overlap)
 
 
 @dataclass(frozen=True)
@@ -71,6 +85,9 @@ class CellModel(Protocol):
 
     def __call__(self, state: np.ndarray, environment: np.ndarray | None) -> dict[str, Pose]:
         """The moving bodies' poses at one step (its state and object-pose rows)."""
+
+    def contacts(self, state: np.ndarray, environment: np.ndarray | None) -> list[Contact]:
+        """What the robot's moving bodies touch at one step (no cell measures it)."""
 
 
 GHOST_ALPHA = 90  # opacity (of 255) of every cell after the first
@@ -107,16 +124,29 @@ def log_episodes(
     labels = labels_for(episodes)
     rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True, recording=recording)
     mounts = {} if cell is None else cell.cameras()
+    touched = False
     for i, (color, label, episode) in enumerate(zip(COLORS * 4, labels, episodes, strict=False)):
         if cell is not None:
             opacity = GHOST_ALPHA if i > 0 else 255
             log_cell_geometry(cell, f"world/{label}/cell", recording, opacity)
             _log_frusta(episode, label, mounts, recording)
         _log_one(episode, label, color, recording, cell, mounts)
+        if cell is not None:
+            touched |= log_contacts(cell, episode.data[contract.STATE], _object_poses(episode),
+                                    episode.meta.fps, label, recording)  # fmt: skip
         log_grasp(episode, label, color, recording)
         if i > 0:
             _log_apart(episodes[0], episode, label, color, recording)
-    recording.send_blueprint(_blueprint(episodes, labels, mounts))
+    recording.send_blueprint(_blueprint(episodes, labels, mounts, touched))
+
+
+def _object_poses(episode: contract.Episode) -> np.ndarray | None:
+    """The episode's object-pose rows, or None where it logs no object poses."""
+    if contract.ENVIRONMENT_STATE not in episode.data:
+        return None
+    if not pose_groups(_names(episode, contract.ENVIRONMENT_STATE)):
+        return None
+    return episode.data[contract.ENVIRONMENT_STATE]
 
 
 def _log_apart(
@@ -288,8 +318,7 @@ def _log_one(
                     rr.Points3D([[0, 0, 0]], radii=0.01, colors=[color], labels=[frame]),
                 )
     if cell is not None:
-        environment = data[contract.ENVIRONMENT_STATE] if env_poses else None
-        _send_cell_poses(cell, f"world/{label}/cell", data[contract.STATE], environment,
+        _send_cell_poses(cell, f"world/{label}/cell", data[contract.STATE], _object_poses(episode),
                          episode.meta.fps, recording)  # fmt: skip
 
 
@@ -358,7 +387,10 @@ def log_cell_geometry(
 
 
 def _blueprint(
-    episodes: Sequence[contract.Episode], labels: list[str], mounts: dict[str, CameraMount]
+    episodes: Sequence[contract.Episode],
+    labels: list[str],
+    mounts: dict[str, CameraMount],
+    touched: bool = False,
 ) -> rrb.Blueprint:
     cameras = [  # the whole image: Rerun's own bounds for a pinhole's view are a crop of it
         rrb.Spatial2DView(
@@ -385,6 +417,8 @@ def _blueprint(
         grasp = [rrb.TimeSeriesView(origin="signals/grasp", name="grasp: opening cm, in hand")]
     if any(contract.WRENCH in e.data for e in episodes):
         force = [rrb.TimeSeriesView(origin="signals/force", name="TCP force (N)")]
+    if touched:
+        force.append(rrb.TimeSeriesView(origin="signals/contacts", name="contacts (1: touching)"))
     plots = rrb.Vertical(
         rrb.TimeSeriesView(origin="signals/joints", name="joint positions and targets (rad)"),
         *apart,

@@ -7,11 +7,14 @@ geometry; per logged step it says where each moving body is, by the twin's forwa
 kinematics of the logged joints and gripper opening and the logged object poses, so a
 long episode adds a transform per body and step, never geometry again. Poses are in
 the world frame of the twin, which is the arm's base frame the episodes log poses in.
-It satisfies :class:`twinrl_data.view.CellModel`.
+It also says what the robot touches at a logged step (:meth:`TwinCell.contacts`): the
+twin's collision detection run on the logged configuration, since no cell measures
+contacts. It satisfies :class:`twinrl_data.view.CellModel`.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 
 import mujoco
@@ -19,7 +22,7 @@ import numpy as np
 import rerun as rr
 
 from twinrl_data.mcap_log import pose_groups
-from twinrl_data.view import CameraMount, Pose
+from twinrl_data.view import CameraMount, Contact, Pose
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.robots.gripper import STROKE
@@ -27,6 +30,9 @@ from twinrl_sim.robots.gripper import STROKE
 PLANE_EXTENT = 1.5  # m: half-size drawn for an infinite plane (the floor)
 PLANE_THICKNESS = 0.001  # m
 HIDDEN_GROUPS = 3  # geoms in group 3 and above are collision-only by MuJoCo convention
+# m: surfaces this close count as touching; a logged pose's millimetre of noise would
+# otherwise make a finger on an object flicker in and out of contact
+CONTACT_GAP = 0.002
 
 
 def _xyzw(wxyz: np.ndarray) -> rr.Quaternion:
@@ -82,6 +88,17 @@ class TwinCell:
             for b in range(1, model.nbody)
             if b not in self._hidden and (model.body_weldid[b] != 0 or model.body_mocapid[b] >= 0)
         ]
+        # The robot's moving bodies (links, gripper, fingers): the ones whose contacts
+        # are drawn (its base's seat on the table is always there and says nothing).
+        arm_root = model.body_rootid[model.jnt_bodyid[model.joint(scene.layout.arm_joints[0]).id]]
+        self._robot = {
+            b for b in range(1, model.nbody)
+            if model.body_rootid[b] == arm_root and model.body_weldid[b] != 0
+        }  # fmt: skip
+        # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is).
+        self._touch_model = copy.copy(model)
+        self._touch_model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_GAP)
+        self._touch_data = mujoco.MjData(self._touch_model)
 
     def _is_object(self, body: int) -> bool:
         """A body that is neither welded to the world nor part of the arm: a free object."""
@@ -192,7 +209,41 @@ class TwinCell:
     def __call__(self, state: np.ndarray, environment: np.ndarray | None = None) -> dict[str, Pose]:
         """Where each moving body is at one logged step (its state row and, when the
         episode logs them, its object poses)."""
-        data, model = self.data, self.model
+        model, data = self.model, self.data
+        self._pose(data, state, environment)
+        mujoco.mj_kinematics(model, data)
+        return {
+            model.body(b).name: (data.xpos[b].copy(), data.xquat[b].copy()) for b in self._moving
+        }
+
+    def contacts(self, state: np.ndarray, environment: np.ndarray | None = None) -> list[Contact]:
+        """What the robot's moving bodies touch at one logged step, as the twin's
+        collision geometry sees the logged configuration: each contact's point (world
+        frame) and the two bodies (the robot's first), nearest first for each pair.
+        Surfaces within :data:`CONTACT_GAP` count; an object whose pose is not logged
+        is not there."""
+        model, data = self._touch_model, self._touch_data
+        self._pose(data, state, environment)
+        mujoco.mj_fwdPosition(model, data)
+        found: dict[tuple[str, str], Contact] = {}
+        for contact in data.contact[: data.ncon]:
+            bodies = [int(model.geom_bodyid[g]) for g in contact.geom]
+            if bodies[1] in self._robot:
+                bodies.reverse()
+            robot, other = bodies
+            if robot not in self._robot or other in self._robot or other in self._hidden:
+                continue
+            if contact.dist > CONTACT_GAP:
+                continue
+            pair = (model.body(robot).name, model.body(other).name)
+            if pair not in found or contact.dist < found[pair].distance:
+                found[pair] = Contact(contact.pos.copy(), *pair, float(contact.dist))
+        return list(found.values())
+
+    def _pose(self, data: mujoco.MjData, state: np.ndarray, environment: np.ndarray | None) -> None:
+        """Put the arm, the fingers and the logged objects of ``data`` where one step's
+        state row and object poses say."""
+        model = self.model
         for column, address in self._arm:
             data.qpos[address] = state[column]
         if self._opening is not None:
@@ -211,7 +262,3 @@ class TwinCell:
                 else:
                     address = model.jnt_qposadr[model.body_jntadr[body]]
                     data.qpos[address : address + 7] = np.concatenate([position, quat])
-        mujoco.mj_kinematics(model, data)
-        return {
-            model.body(b).name: (data.xpos[b].copy(), data.xquat[b].copy()) for b in self._moving
-        }

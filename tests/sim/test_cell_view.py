@@ -86,6 +86,31 @@ def test_the_view_draws_the_cell_moved_by_the_logged_joints(tmp_path):
     assert first & 0xFF == 255 and ghost & 0xFF < 128
 
 
+def test_the_view_shows_what_the_robot_touches_as_the_twin_sees_the_logged_steps(tmp_path):
+    record_demos(tmp_path, seed=3)
+    saved = twinrl("view", "session#0", "--save", "touch.rrd", cwd=tmp_path)
+    assert saved.returncode == 0, saved.stderr
+    chunks = _chunks(tmp_path / "touch.rrd")
+    label = "twin_twin_demo"
+    names = {n for row in _column(chunks[f"/world/{label}/contacts"], "Points3D:labels")
+             for n in (row or [])}  # fmt: skip
+    assert {"gripper_finger_left / banana", "gripper_finger_right / banana"} <= names
+    # Each finger touches the banana from about the close on, not before.
+    episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)
+    closed = np.flatnonzero(episode.data[schema.ACTION][:, -1] >= schema.GRIPPER_CLOSED)
+    touching = np.array(
+        _column(chunks[f"/signals/contacts/{label}/gripper_finger_left-banana"], "Scalars:scalars")
+    )[:, 0]
+    assert len(touching) == len(episode) and touching[0] == 0
+    first = int(np.flatnonzero(touching)[0])
+    assert closed[0] <= first <= closed[0] + 5
+    # Nothing is drawn touching an object whose pose the episode does not log.
+    hidden = replace(episode, meta=replace(episode.meta, names={
+        **episode.meta.names, schema.ENVIRONMENT_STATE: []}))  # fmt: skip
+    cell = twin_cell(hidden)
+    assert not any(cell.contacts(row, None) for row in episode.data[schema.STATE])
+
+
 def test_episodes_of_no_built_in_twin_open_without_3d_and_say_why(tmp_path, capsys):
     record_demos(tmp_path, seed=3)
     episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)

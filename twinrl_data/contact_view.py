@@ -1,0 +1,64 @@
+"""What the robot touches, in the Rerun view: the twin's contacts of each logged step.
+
+No cell measures contacts, so they come from the cell's model
+(:meth:`twinrl_data.view.CellModel.contacts`: the twin's collision geometry posed by the
+logged joints, gripper opening and object poses). Each step's contacts are points in 3D
+under ``world/<label>/contacts``, labelled with the two bodies (a finger on the banana, a
+link on the table), and each pair that ever touches has a plot under
+``signals/contacts/<label>``, 1 while it does. A finger that lands on an object's top
+before the close, or the arm grazing the table, shows where it happens.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import rerun as rr
+
+if TYPE_CHECKING:
+    from twinrl_data.view import CellModel
+
+CONTACT_COLOR = [255, 40, 120]
+CONTACT_RADIUS = 0.006  # m
+
+
+def log_contacts(
+    cell: CellModel,
+    states: np.ndarray,
+    environments: np.ndarray | None,
+    fps: float,
+    label: str,
+    recording: rr.RecordingStream,
+) -> bool:
+    """Log every step's contacts of the robot (see the module docstring); whether any
+    step had one."""
+    steps = [
+        cell.contacts(state, None if environments is None else environments[t])
+        for t, state in enumerate(states)
+    ]
+    if not any(steps):
+        return False
+    index = np.arange(len(steps))
+    times = [rr.TimeColumn("step", sequence=index), rr.TimeColumn("time", duration=index / fps)]
+    positions = [c.position for step in steps for c in step]
+    names = [f"{c.robot} / {c.other}" for step in steps for c in step]
+    rr.send_columns(
+        f"world/{label}/contacts",
+        indexes=times,
+        columns=rr.Points3D.columns(
+            positions=np.array(positions),
+            labels=names,
+            radii=np.full(len(positions), CONTACT_RADIUS),
+            colors=np.tile(CONTACT_COLOR, (len(positions), 1)),
+        ).partition([len(step) for step in steps]),
+        recording=recording,
+    )
+    for pair in sorted(set(names)):
+        path = f"signals/contacts/{label}/{pair.replace(' / ', '-')}"
+        rr.log(path, rr.SeriesLines(names=pair), static=True, recording=recording)
+        touching = [float(any(f"{c.robot} / {c.other}" == pair for c in step)) for step in steps]
+        rr.send_columns(
+            path, indexes=times, columns=rr.Scalars.columns(scalars=touching), recording=recording
+        )
+    return True
