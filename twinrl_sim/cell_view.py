@@ -95,6 +95,9 @@ class TwinCell:
             b for b in range(1, model.nbody)
             if model.body_rootid[b] == arm_root and model.body_weldid[b] != 0
         }  # fmt: skip
+        self._is_robot = np.isin(np.arange(model.nbody), list(self._robot))
+        self._is_hidden = np.isin(np.arange(model.nbody), list(self._hidden))
+        self._body_names = [model.body(b).name for b in range(model.nbody)]
         # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is).
         self._touch_model = copy.copy(model)
         self._touch_model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_GAP)
@@ -224,21 +227,29 @@ class TwinCell:
         is not there."""
         model, data = self._touch_model, self._touch_data
         self._pose(data, state, environment)
-        mujoco.mj_fwdPosition(model, data)
-        found: dict[tuple[str, str], Contact] = {}
-        for contact in data.contact[: data.ncon]:
-            bodies = [int(model.geom_bodyid[g]) for g in contact.geom]
-            if bodies[1] in self._robot:
-                bodies.reverse()
-            robot, other = bodies
-            if robot not in self._robot or other in self._robot or other in self._hidden:
-                continue
-            if contact.dist > CONTACT_GAP:
-                continue
-            pair = (model.body(robot).name, model.body(other).name)
-            if pair not in found or contact.dist < found[pair].distance:
-                found[pair] = Contact(contact.pos.copy(), *pair, float(contact.dist))
-        return list(found.values())
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+        contacts = data.contact
+        bodies = model.geom_bodyid[contacts.geom[: data.ncon]]
+        robot_first = self._is_robot[bodies[:, 0]]
+        robot = np.where(robot_first, bodies[:, 0], bodies[:, 1])
+        other = np.where(robot_first, bodies[:, 1], bodies[:, 0])
+        keep = (
+            self._is_robot[robot]
+            & ~self._is_robot[other]
+            & ~self._is_hidden[other]
+            & (contacts.dist[: data.ncon] <= CONTACT_GAP)
+        )
+        found: dict[tuple[int, int], int] = {}
+        for i in np.flatnonzero(keep):
+            pair = (int(robot[i]), int(other[i]))
+            if pair not in found or contacts.dist[i] < contacts.dist[found[pair]]:
+                found[pair] = i
+        return [
+            Contact(contacts.pos[i].copy(), self._body_names[r], self._body_names[o],
+                    float(contacts.dist[i]))
+            for (r, o), i in found.items()
+        ]  # fmt: skip
 
     def _pose(self, data: mujoco.MjData, state: np.ndarray, environment: np.ndarray | None) -> None:
         """Put the arm, the fingers and the logged objects of ``data`` where one step's
