@@ -47,20 +47,63 @@ def held_objects(episode: contract.Episode) -> dict[str, np.ndarray]:
     frames = pose_groups(episode.meta.names.get(contract.ENVIRONMENT_STATE, []))
     if tcp is None or GRIPPER_OPENING not in names or environment is None or not frames:
         return {}
-    opening = state[:, names.index(GRIPPER_OPENING)]
-    commanded = episode.data[contract.ACTION][:, -1] >= GRIPPER_CLOSED
-    gripping = np.zeros(len(episode), bool)
+    positions = np.stack([environment[:, idx[:3]] for idx in frames.values()])
+    held = held_at(
+        state[:, names.index(GRIPPER_OPENING)],
+        episode.data[contract.ACTION][:, -1] >= GRIPPER_CLOSED,
+        state[:, tcp[:3]],
+        positions,
+    )
+    return dict(zip(frames, held, strict=True))
+
+
+def held_at(
+    opening: np.ndarray,
+    commanded: np.ndarray,
+    tcp: np.ndarray,
+    positions: np.ndarray,
+    widest: float | None = None,
+) -> np.ndarray:
+    """Whether each object is in hand at each step, (n_objects, T): ``opening`` (T,) m,
+    ``commanded`` (T,) the close commanded, ``tcp`` (T, 3), the objects' ``positions``
+    (n_objects, T, 3); ``widest`` the widest opening seen (default: ``opening``'s)."""
+    widest = float(opening.max()) if widest is None else widest
+    gripping = np.zeros(len(opening), bool)
     gripping[1:] = (
         commanded[:-1]
         & (np.abs(np.diff(opening)) < STILL)
         & (opening[1:] > EMPTY)
-        & (opening[1:] < opening.max() - EMPTY)
+        & (opening[1:] < widest - EMPTY)
     )
-    positions = np.stack([environment[:, idx[:3]] for idx in frames.values()])
-    distance = np.linalg.norm(positions - state[None, :, tcp[:3]], axis=2)
+    distance = np.linalg.norm(positions - tcp[None], axis=2)
     near = gripping & (distance.min(axis=0) < REACH)
     nearest = distance.argmin(axis=0)
-    return {frame: near & (nearest == i) for i, frame in enumerate(frames)}
+    return np.stack([near & (nearest == i) for i in range(len(positions))])
+
+
+class LiveGrasp:
+    """The object in hand step by step, as a recording goes (:func:`held_at` on the
+    last two steps, the widest opening so far)."""
+
+    def __init__(self) -> None:
+        self._last: tuple[float, bool] | None = None
+        self._widest = 0.0
+
+    def update(
+        self, opening: float, commanded: bool, tcp: np.ndarray, objects: dict[str, np.ndarray]
+    ) -> str | None:
+        """The object in hand now (None: none), given this step's opening (m), whether
+        the close is commanded, the TCP and each object's position."""
+        self._widest = max(self._widest, opening)
+        last, self._last = self._last, (opening, commanded)
+        if last is None or not objects:
+            return None
+        positions = np.stack([[p, p] for p in objects.values()])
+        held = held_at(
+            np.array([last[0], opening]), np.array([last[1], commanded]),
+            np.stack([tcp, tcp]), positions, self._widest,
+        )[:, 1]  # fmt: skip
+        return next((name for name, h in zip(objects, held, strict=True) if h), None)
 
 
 def has_grasp(episode: contract.Episode) -> bool:

@@ -5,7 +5,10 @@ from the twin, and the objects' outlines where they should go drawn over the liv
 camera of the same name, when the twin has that camera), then every step's camera
 images, the cell in 3D (the twin's arm, gripper, table and objects posed by the live
 joints, gripper opening and, where the cell measures them, object poses) with the TCP's
-path, joint positions and targets, the gripper's opening, the action and who chose it.
+path, what the robot touches (the twin's contacts of the live configuration:
+:mod:`twinrl_data.contact_view`) and, where object poses are measured, the object in
+hand (:class:`twinrl_data.grasp_view.LiveGrasp`), joint positions and targets, the
+gripper's opening, the action and who chose it.
 One blueprint lays it out: cameras and guidance, the scene, the plots. Each step is
 logged by a thread of the view's own, the newest step when it lags (the episode records
 every one), and the live cameras go as JPEG previews at most :data:`PREVIEW_WIDTH` wide:
@@ -26,8 +29,17 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from twinrl_data.grasp_view import ARROW_M_PER_N, FORCE_COLOR
-from twinrl_data.schema import ENVIRONMENT_STATE, GRIPPER_OPENING, STATE, WRENCH, image_field
+from twinrl_data.contact_view import CONTACT_COLOR, CONTACT_RADIUS
+from twinrl_data.grasp_view import ARROW_M_PER_N, FORCE_COLOR, HELD_COLOR, LiveGrasp
+from twinrl_data.mcap_log import pose_groups
+from twinrl_data.schema import (
+    ENVIRONMENT_STATE,
+    GRIPPER_CLOSED,
+    GRIPPER_OPENING,
+    STATE,
+    WRENCH,
+    image_field,
+)
 from twinrl_data.view import log_cell_geometry, log_cell_poses
 from twinrl_robot.robot import Sent
 from twinrl_sim.build import compile_scene
@@ -126,6 +138,8 @@ class LiveView:
         self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
         opening = GRIPPER_OPENING
         self._opening = state_names.index(opening) if opening in state_names else None
+        self._objects = pose_groups(list(environment_names))
+        self._grasp = LiveGrasp()
         blueprint = self._blueprint()
         if target == "spawn":
             self.stream.spawn(default_blueprint=blueprint)
@@ -255,9 +269,22 @@ class LiveView:
                     labels=[f"{np.linalg.norm(force):.0f} N"],
                 )  # fmt: skip
                 log("world/tcp_force", arrow)
+        environment = observation.get(ENVIRONMENT_STATE)
         if self.cell is not None:
-            environment = observation.get(ENVIRONMENT_STATE)
             log_cell_poses(self.cell, "world/cell", state, environment, self.stream)
+            touching = self.cell.contacts(state, environment)
+            log("world/contacts", rr.Points3D(
+                [c.position for c in touching], labels=[f"{c.robot} / {c.other}" for c in touching],
+                colors=[CONTACT_COLOR], radii=CONTACT_RADIUS,
+            ))  # fmt: skip
+        if self._opening is not None and len(tcp) == 3 and environment is not None:
+            objects = {name: environment[idx[:3]] for name, idx in self._objects.items()}
+            held = self._grasp.update(float(state[self._opening]),
+                                      bool(sent.action[-1] >= GRIPPER_CLOSED), np.array(tcp),
+                                      objects)  # fmt: skip
+            at = [objects[held]] if held else []
+            log("world/in_hand", rr.Points3D(at, labels=["in hand"] * len(at),
+                                             colors=[HELD_COLOR], radii=0.02))  # fmt: skip
 
     def note(self, text: str) -> None:
         self.stream.log("events", rr.TextLog(text))

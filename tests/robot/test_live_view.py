@@ -49,3 +49,43 @@ def test_the_steps_handed_to_the_view_are_logged_by_its_thread(tmp_path: Path) -
     # the grasp and the force at the tool, where the cell measures it
     assert {"/signals/grasp/opening", "/signals/grasp/command", "/signals/force/z",
             "/world/tcp_force"} <= entities  # fmt: skip
+
+
+def test_the_live_view_shows_what_the_robot_touches_and_the_object_in_hand(tmp_path: Path) -> None:
+    """A pick-and-place episode played to the live view step by step: the fingers'
+    contacts with the banana and the banana in hand show as they happen."""
+    import time
+
+    from rerun.experimental import RrdReader
+
+    from twinrl_data.mcap_log import read_episode
+    from twinrl_data.schema import ACTION, ENVIRONMENT_STATE
+    from twinrl_data.session import Session
+    from twinrl_robot.scripted import run_scripted_expert
+
+    session = Session.create(tmp_path / "s")
+    run_scripted_expert("pick_place", world="twin", episodes=1, session=session, seed=3)
+    episode = read_episode(session.episode_paths()[0], images=False)
+    names = episode.meta.names
+    view = LiveView(str(tmp_path / "live.rrd"), make_task("pick_place"), (), names[STATE],
+                    environment_names=names[ENVIRONMENT_STATE])  # fmt: skip
+    for t in range(len(episode)):
+        observation = {STATE: episode.data[STATE][t],
+                       ENVIRONMENT_STATE: episode.data[ENVIRONMENT_STATE][t]}  # fmt: skip
+        action = episode.data[ACTION][t]
+        view.step(observation, Sent(action=action, joint_target=np.zeros(6, np.float32)))
+        time.sleep(0.02)  # the view logs the newest step it has; let it log each
+    view.close()
+    labels: dict[str, set] = {}
+    for chunk in RrdReader(tmp_path / "live.rrd").store().stream().to_chunks():
+        batch = chunk.to_record_batch()
+        wanted = chunk.entity_path in ("/world/contacts", "/world/in_hand")
+        if wanted and "Points3D:labels" in batch.schema.names:
+            rows = batch.column("Points3D:labels").to_pylist()
+            labels.setdefault(chunk.entity_path, set()).update(
+                n for row in rows for n in (row or [])
+            )
+    assert {"gripper_finger_left / banana", "gripper_finger_right / banana"} <= labels[
+        "/world/contacts"
+    ]
+    assert labels["/world/in_hand"] == {"in hand"}
