@@ -8,7 +8,8 @@
 - Import: a LeRobotDataset back into episodes, with and without decoding the videos.
 - Catalog: a filtered query over 10 000 synthetic episode rows.
 - The Rerun view: seconds and megabytes to save a 60-s, 10 Hz episode with both cameras
-  as an .rrd, with and without the cell in 3D (``twinrl view --save``).
+  as an .rrd, with and without the cell in 3D, and with the cell and the twin's ghost
+  (``twinrl view --save``, ``--replay``).
 
 Camera frames are real twin renders (cycled), so compression sees realistic images.
 Usage::
@@ -42,8 +43,9 @@ from twinrl_data.schema import EpisodeMeta
 from twinrl_sim.env import TwinEnv
 
 
-def rendered_steps(count: int) -> list[dict]:
-    """Contract steps with real front/wrist renders from an expert episode of the twin."""
+def rendered_steps(count: int) -> tuple[list[dict], dict, dict]:
+    """Contract steps with real front/wrist renders from an expert episode of the twin,
+    the contract's names and the episode's task configuration."""
     env = TwinEnv("pick_place", images=True)
     obs, _ = env.reset(seed=0, options={"region": "ID"})
     expert = env.task.expert(env.config, np.random.default_rng(0))
@@ -67,8 +69,9 @@ def rendered_steps(count: int) -> list[dict]:
         "observation.state": env.cell.state_names,
         "observation.environment_state": env.cell.environment_names,
     }
+    config = env.config.to_dict()
     env.close()
-    return steps, names
+    return steps, names, config
 
 
 def record(path: Path, steps: list[dict], meta: EpisodeMeta) -> tuple[float, float]:
@@ -112,22 +115,32 @@ def lerobot_loop(episodes, root: Path) -> float:
 
 def view_costs(
     frames: list[dict], meta: EpisodeMeta, steps: int, work: Path
-) -> dict[str, tuple[float, float]]:
+) -> tuple[dict[str, tuple[float, float]], float]:
     """Seconds and megabytes of ``twinrl view --save`` on one episode of ``steps``
-    (the rendered frames cycled), without and with the cell in 3D."""
+    (the rendered frames cycled), without and with the cell in 3D, and with the cell and
+    the twin's ghost (``--replay``: the replay's simulation included); and the seconds
+    of that simulation alone."""
     from twinrl_data.view import save_rrd
     from twinrl_sim.cli.view import twin_cell
+    from twinrl_sim.replay import replayed_episode
 
     path = work / "view.mcap"
     record(path, [frames[t % len(frames)] for t in range(steps)], meta)
     episode = read_episode(path)
-    out = {}
-    for label, cell in (("cameras and plots", None), ("with the cell in 3D", twin_cell(episode))):
-        rrd = work / f"view_{cell is not None}.rrd"
+    cell = twin_cell(episode)
+    out, replay_seconds = {}, 0.0
+    for label, shown in (
+        ("cameras and plots", None),
+        ("with the cell in 3D", cell),
+        ("with the cell and the twin's ghost", cell),
+    ):
+        rrd = work / f"view_{len(out)}.rrd"
         start = time.perf_counter()
-        save_rrd([episode], rrd, cell=cell)
+        ghost = [replayed_episode(episode)] if "ghost" in label else []
+        replay_seconds = time.perf_counter() - start if ghost else replay_seconds
+        save_rrd([episode, *ghost], rrd, cell=shown)
         out[label] = (time.perf_counter() - start, rrd.stat().st_size / 1e6)
-    return out
+    return out, replay_seconds
 
 
 def synthetic_catalog(path: Path, rows: int) -> None:
@@ -163,7 +176,7 @@ def main(
 
     datasets.disable_progress_bars()
     work = Path(tempfile.mkdtemp(prefix="twinrl-bench-"))
-    frames, names = rendered_steps(steps)
+    frames, names, config = rendered_steps(steps)
     metas = [
         EpisodeMeta(
             task="pick_place",
@@ -171,6 +184,7 @@ def main(
             source="twin_demo",
             world="twin",
             names=names,
+            config=config,
         )
         for _ in range(episodes)
     ]
@@ -211,7 +225,7 @@ def main(
             where="length > 50",
         )
         timings.append(time.perf_counter() - start)
-    view = view_costs(frames, metas[0], view_steps, work)
+    view, replay_seconds = view_costs(frames, metas[0], view_steps, work)
     shutil.rmtree(work)
 
     share = 100 * cpu_per_step
@@ -246,11 +260,17 @@ def main(
         rows.append(
             (f"view of a {seconds:.0f}-s episode, {label}: s / MB", f"{wall:.2f} / {size:.1f}")
         )
-    (plain_wall, plain_size), (cell_wall, cell_size) = view.values()
-    more_time, more_size = 100 * (cell_wall / plain_wall - 1), 100 * (cell_size / plain_size - 1)
-    rows.append(
-        ("view: the cell in 3D adds (time / size)", f"{more_time:+.0f} % / {more_size:+.0f} %")
-    )
+    (plain_wall, plain_size), (cell_wall, cell_size), (ghost_wall, ghost_size) = view.values()
+    for name, (wall, size), (base_wall, base_size) in (
+        ("view: the cell in 3D adds (time / size)", (cell_wall, cell_size),
+         (plain_wall, plain_size)),
+        ("view: the ghost adds to the cell (time / size)", (ghost_wall, ghost_size),
+         (cell_wall, cell_size)),
+    ):  # fmt: skip
+        more_time, more_size = 100 * (wall / base_wall - 1), 100 * (size / base_size - 1)
+        rows.append((name, f"{more_time:+.0f} % / {more_size:+.0f} %"))
+    rows.append(("view: of the ghost's time, the twin's replay (simulation): s",
+                 f"{replay_seconds:.2f}"))  # fmt: skip
     print(
         f"{episodes} episodes x {steps} steps, 2 cameras 128x128 (JPEG in MCAP, AV1 in LeRobot)\n"
     )
