@@ -17,26 +17,17 @@ import numpy as np
 import rerun as rr
 
 if TYPE_CHECKING:
-    from twinrl_data.view import CellModel
+    from twinrl_data.view import Contact
 
 CONTACT_COLOR = [255, 40, 120]
 CONTACT_RADIUS = 0.006  # m
 
 
 def log_contacts(
-    cell: CellModel,
-    states: np.ndarray,
-    environments: np.ndarray | None,
-    fps: float,
-    label: str,
-    recording: rr.RecordingStream,
+    steps: list[list[Contact]], fps: float, label: str, recording: rr.RecordingStream
 ) -> bool:
-    """Log every step's contacts of the robot (see the module docstring); whether any
-    step had one."""
-    steps = [
-        cell.contacts(state, None if environments is None else environments[t])
-        for t, state in enumerate(states)
-    ]
+    """Log the robot's contacts at every step (``steps``: each step's, from the cell's
+    model; see the module docstring); whether any step had one."""
     if not any(steps):
         return False
     index = np.arange(len(steps))

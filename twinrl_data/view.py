@@ -130,10 +130,9 @@ def log_episodes(
             opacity = GHOST_ALPHA if i > 0 else 255
             log_cell_geometry(cell, f"world/{label}/cell", recording, opacity)
             _log_frusta(episode, label, mounts, recording)
-        _log_one(episode, label, color, recording, cell, mounts)
+        _log_one(episode, label, color, recording, mounts)
         if cell is not None:
-            touched |= log_contacts(cell, episode.data[contract.STATE], _object_poses(episode),
-                                    episode.meta.fps, label, recording)  # fmt: skip
+            touched |= _log_cell_steps(cell, episode, label, recording)
         log_grasp(episode, label, color, recording)
         if i > 0:
             _log_apart(episodes[0], episode, label, color, recording)
@@ -238,7 +237,6 @@ def _log_one(
     label: str,
     color: list[int],
     recording: rr.RecordingStream,
-    cell: CellModel | None,
     mounts: dict[str, CameraMount],
 ) -> None:
     data = episode.data
@@ -266,74 +264,85 @@ def _log_one(
         rr.SeriesLines(colors=[INTERVENTION_COLOR], names="intervention"),
         static=True,
     )
-    tcp_path = []
-    for t in range(len(episode)):
-        recording.set_time("step", sequence=t)
+    steps = np.arange(len(episode))
+    times = [
+        rr.TimeColumn("step", sequence=steps),
+        rr.TimeColumn("time", duration=steps / episode.meta.fps),
+    ]
+
+    def series(path: str, values: np.ndarray) -> None:
+        rr.send_columns(path, indexes=times, columns=rr.Scalars.columns(scalars=values),
+                        recording=recording)  # fmt: skip
+
+    def poses_of(path: str, rows: np.ndarray, idx: list[int]) -> None:
+        quats = rows[:, idx[3:]][:, [1, 2, 3, 0]]  # wxyz -> xyzw
+        rr.send_columns(path, indexes=times, recording=recording,
+                        columns=rr.Transform3D.columns(translation=rows[:, idx[:3]],
+                                                       quaternion=quats))  # fmt: skip
+
+    for t in steps if episode.images else ():  # images a step at a time (memory)
+        recording.set_time("step", sequence=int(t))
         recording.set_time("time", duration=t / episode.meta.fps)
         for camera, frames in episode.images.items():
             log(_image_path(label, camera, mounts), rr.Image(frames[t]))
-        state = data[contract.STATE][t]
-        for i in joints:
-            log(f"signals/joints/{state_names[i]}/{label}", rr.Scalars(float(state[i])))
-        if contract.JOINT_TARGET in data:
-            for j, value in enumerate(data[contract.JOINT_TARGET][t]):
-                name = state_names[joints[j]] if j < len(joints) else str(j)
-                log(f"signals/joints/{name}/{label}_target", rr.Scalars(float(value)))
-        for j, value in enumerate(data[contract.ACTION][t]):
-            log(f"signals/actions/{j}/{label}_executed", rr.Scalars(float(value)))
-        if contract.ACTION_POLICY in data:
-            for j, value in enumerate(data[contract.ACTION_POLICY][t]):
-                log(f"signals/actions/{j}/{label}_policy", rr.Scalars(float(value)))
-        for key, name in ((contract.REWARD, "reward"), (contract.SUCCESS, "success")):
-            if key in data:
-                log(f"signals/outcome/{name}/{label}", rr.Scalars(float(data[key][t])))
-        log(f"signals/intervention/{label}", rr.Scalars(float(intervention[t])))
-        if t == 0 or intervention[t] != intervention[t - 1]:
-            text = "human takes over" if intervention[t] else "policy in control"
-            if t > 0 or intervention[t]:
-                log(
-                    f"events/{label}", rr.TextLog(text, level="WARN" if intervention[t] else "INFO")
-                )
-        for frame, idx in poses.items():
-            pos, quat = state[idx[:3]], state[idx[3:]]
-            log(
-                f"world/{label}/{frame}",
-                rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
-            )
-            log(f"world/{label}/{frame}/axes", rr.TransformAxes3D(0.05))
-            if frame == "tcp":
-                tcp_path.append(pos.tolist())
-                log(f"world/{label}/tcp_path", rr.LineStrips3D([tcp_path], colors=[color]))
-        if env_poses:
-            env = data[contract.ENVIRONMENT_STATE][t]
-            for frame, idx in env_poses.items():
-                pos, quat = env[idx[:3]], env[idx[3:]]
-                path = f"world/{label}/objects/{frame}"
-                log(
-                    path,
-                    rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=_xyzw(quat))),
-                )
-                log(
-                    f"{path}/marker",
-                    rr.Points3D([[0, 0, 0]], radii=0.01, colors=[color], labels=[frame]),
-                )
-    if cell is not None:
-        _send_cell_poses(cell, f"world/{label}/cell", data[contract.STATE], _object_poses(episode),
-                         episode.meta.fps, recording)  # fmt: skip
+    states = data[contract.STATE]
+    for i in joints:
+        series(f"signals/joints/{state_names[i]}/{label}", states[:, i])
+    if contract.JOINT_TARGET in data:
+        for j, values in enumerate(data[contract.JOINT_TARGET].T):
+            name = state_names[joints[j]] if j < len(joints) else str(j)
+            series(f"signals/joints/{name}/{label}_target", values)
+    for j, values in enumerate(data[contract.ACTION].T):
+        series(f"signals/actions/{j}/{label}_executed", values)
+    if contract.ACTION_POLICY in data:
+        for j, values in enumerate(data[contract.ACTION_POLICY].T):
+            series(f"signals/actions/{j}/{label}_policy", values)
+    for key, name in ((contract.REWARD, "reward"), (contract.SUCCESS, "success")):
+        if key in data:
+            series(f"signals/outcome/{name}/{label}", np.asarray(data[key], float))
+    series(f"signals/intervention/{label}", np.asarray(intervention, float))
+    changes = [t for t in steps if (t > 0 and intervention[t] != intervention[t - 1])
+               or (t == 0 and intervention[0])]  # fmt: skip
+    for t in changes:
+        recording.set_time("step", sequence=int(t))
+        recording.set_time("time", duration=t / episode.meta.fps)
+        takes_over = bool(intervention[t])
+        text = "human takes over" if takes_over else "policy in control"
+        log(f"events/{label}", rr.TextLog(text, level="WARN" if takes_over else "INFO"))
+    for frame, idx in poses.items():
+        poses_of(f"world/{label}/{frame}", states, idx)
+        log(f"world/{label}/{frame}/axes", rr.TransformAxes3D(0.05), static=True)
+        if frame == "tcp":  # the whole path at once: growing it step by step is quadratic
+            log(f"world/{label}/tcp_path", rr.LineStrips3D([states[:, idx[:3]]], colors=[color]),
+                static=True)  # fmt: skip
+    if env_poses:
+        for frame, idx in env_poses.items():
+            path = f"world/{label}/objects/{frame}"
+            poses_of(path, data[contract.ENVIRONMENT_STATE], idx)
+            log(f"{path}/marker", rr.Points3D([[0, 0, 0]], radii=0.01, colors=[color],
+                                             labels=[frame]), static=True)  # fmt: skip
+
+
+def _log_cell_steps(
+    cell: CellModel, episode: contract.Episode, label: str, recording: rr.RecordingStream
+) -> bool:
+    """The cell's moving bodies and the robot's contacts at every step of ``episode``
+    (posed once a step for both); whether it touched anything."""
+    states, environments = episode.data[contract.STATE], _object_poses(episode)
+    poses, contacts = [], []
+    for t, state in enumerate(states):
+        environment = None if environments is None else environments[t]
+        poses.append(cell(state, environment))
+        contacts.append(cell.contacts(state, environment))
+    _send_cell_poses(poses, f"world/{label}/cell", episode.meta.fps, recording)
+    return log_contacts(contacts, episode.meta.fps, label, recording)
 
 
 def _send_cell_poses(
-    cell: CellModel,
-    root: str,
-    states: np.ndarray,
-    environments: np.ndarray | None,
-    fps: float,
-    recording: rr.RecordingStream,
+    poses: list[dict[str, Pose]], root: str, fps: float, recording: rr.RecordingStream
 ) -> None:
     """Every step's pose of each moving body, one column per body (as fast as logging
     them step by step is slow: a long episode has thousands of body poses)."""
-    poses = [cell(s, None if environments is None else environments[t])
-             for t, s in enumerate(states)]  # fmt: skip
     if not poses:
         return
     steps = np.arange(len(poses))

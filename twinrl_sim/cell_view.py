@@ -98,10 +98,12 @@ class TwinCell:
         self._is_robot = np.isin(np.arange(model.nbody), list(self._robot))
         self._is_hidden = np.isin(np.arange(model.nbody), list(self._hidden))
         self._body_names = [model.body(b).name for b in range(model.nbody)]
-        # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is).
+        # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is);
+        # its data poses the cell at each step, for its poses and its contacts.
         self._touch_model = copy.copy(model)
         self._touch_model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_GAP)
         self._touch_data = mujoco.MjData(self._touch_model)
+        self._last_posed: tuple[bytes, bytes | None] | None = None
 
     def _is_object(self, body: int) -> bool:
         """A body that is neither welded to the world nor part of the arm: a free object."""
@@ -212,12 +214,9 @@ class TwinCell:
     def __call__(self, state: np.ndarray, environment: np.ndarray | None = None) -> dict[str, Pose]:
         """Where each moving body is at one logged step (its state row and, when the
         episode logs them, its object poses)."""
-        model, data = self.model, self.data
-        self._pose(data, state, environment)
-        mujoco.mj_kinematics(model, data)
-        return {
-            model.body(b).name: (data.xpos[b].copy(), data.xquat[b].copy()) for b in self._moving
-        }
+        data = self._posed(state, environment)
+        return {self._body_names[b]: (data.xpos[b].copy(), data.xquat[b].copy())
+                for b in self._moving}  # fmt: skip
 
     def contacts(self, state: np.ndarray, environment: np.ndarray | None = None) -> list[Contact]:
         """What the robot's moving bodies touch at one logged step, as the twin's
@@ -225,9 +224,7 @@ class TwinCell:
         frame) and the two bodies (the robot's first), nearest first for each pair.
         Surfaces within :data:`CONTACT_GAP` count; an object whose pose is not logged
         is not there."""
-        model, data = self._touch_model, self._touch_data
-        self._pose(data, state, environment)
-        mujoco.mj_kinematics(model, data)
+        model, data = self._touch_model, self._posed(state, environment)
         mujoco.mj_collision(model, data)
         contacts = data.contact
         bodies = model.geom_bodyid[contacts.geom[: data.ncon]]
@@ -250,6 +247,16 @@ class TwinCell:
                     float(contacts.dist[i]))
             for (r, o), i in found.items()
         ]  # fmt: skip
+
+    def _posed(self, state: np.ndarray, environment: np.ndarray | None) -> mujoco.MjData:
+        """The cell posed at one step, its kinematics computed; asked again for the same
+        step (its poses, then its contacts), the same."""
+        key = (state.tobytes(), None if environment is None else environment.tobytes())
+        if key != self._last_posed:
+            self._pose(self._touch_data, state, environment)
+            mujoco.mj_kinematics(self._touch_model, self._touch_data)
+            self._last_posed = key
+        return self._touch_data
 
     def _pose(self, data: mujoco.MjData, state: np.ndarray, environment: np.ndarray | None) -> None:
         """Put the arm, the fingers and the logged objects of ``data`` where one step's
