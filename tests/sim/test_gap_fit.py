@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from mujoco.rollout import Rollout
 
+from tests.sim.test_gap import _at_rate
 from tests.sim.test_gap_diagnose import SCENE, _record
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -56,8 +57,7 @@ def test_a_fit_that_ends_worse_is_reported_failed_not_named(tmp_path, monkeypatc
 
 def _record_at(path, rate, effects, episodes=2, duration=6.0):
     """Excitation episodes of the pick_place cell logged as a UR controller logs them."""
-    physics = SCENE.physics.model_copy(update={"control_hz": rate, "servo": "track"})
-    scene = SCENE.model_copy(update={"physics": physics})
+    scene = _at_rate(rate)
     session = Session.create(path)
     run_excitation(
         "pick_place",
