@@ -30,9 +30,9 @@ def test_a_first_step_explains_a_hidden_load_and_never_less_than_its_start(tmp_p
     x, residuals = payload.first_step()
     stepped = likelihood_term(residuals)
     assert np.allclose(residuals, payload.residuals(x))  # the residuals are those at x
-    assert stepped < start - 100  # most of the way from the start towards the load
-    mass = payload.effects_at(x)["payload"]["mass"]
-    assert 0.5 * HIDDEN["payload"]["mass"] < mass < 1.5 * HIDDEN["payload"]["mass"]
+    assert stepped < start - 100  # a good part of the way from the start towards the load
+    mass = payload.effects_at(x)["payload"]["mass"]  # the share of the step that helps most
+    assert 0.25 * HIDDEN["payload"]["mass"] < mass < 1.5 * HIDDEN["payload"]["mass"]
     # A candidate the log does not call for: its step is kept only where it helps.
     base = WindowReplay(SCENE, windows, NoiseFloor(), free=["base_offset"])
     _, residuals = base.first_step()
@@ -66,3 +66,20 @@ def test_the_report_says_which_candidates_were_screened(tmp_path):
     assert any(r.screened for r in diagnosis.rounds[0])
     write_markdown(diagnosis, [], tmp_path / "report.md")
     assert "screened (one step; others explained more)" in (tmp_path / "report.md").read_text()
+
+
+def test_a_tools_screen_reaches_towards_it_though_its_full_step_overshoots(tmp_path):
+    """A 2.2 kg tool with its centre of gravity off the flange, logged at 125 Hz with a
+    UR's servos: from a 0.1 kg start the Gauss-Newton step puts the centre of gravity
+    metres away (it and its half explain less than the start); its quarter explains
+    much of the tool, so the payload is not screened out behind smaller effects."""
+    from tests.sim.test_gap_fit import _record_at
+
+    tool = {"mass": 2.2, "cog": [0.04, -0.03, 0.08]}
+    scene, episodes = _record_at(tmp_path / "s", 125.0, {"payload": tool})
+    windows = cut_windows(episodes, compile_scene(scene).layout, [o.name for o in scene.objects])
+    payload = WindowReplay(scene, windows, NoiseFloor(), free=["payload"])
+    start = likelihood_term(payload.residuals())
+    x, residuals = payload.first_step()
+    assert likelihood_term(residuals) < start - 1000
+    assert payload.effects_at(x)["payload"]["mass"] > 0.2
