@@ -11,13 +11,21 @@ before the close, or the arm grazing the table, shows where it happens.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 import rerun as rr
 
-if TYPE_CHECKING:
-    from twinrl_data.view import Contact
+
+@dataclass(frozen=True)
+class Contact:
+    """Where one of the robot's bodies touches another body at one step."""
+
+    position: np.ndarray  # xyz, base frame
+    robot: str  # the robot's body (a link, a finger)
+    other: str  # the body it touches (an object, the table)
+    distance: float  # m between the surfaces (negative: they overlap)
+
 
 CONTACT_COLOR = [255, 40, 120]
 CONTACT_RADIUS = 0.006  # m

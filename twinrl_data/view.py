@@ -41,22 +41,12 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from twinrl_data import schema as contract
-from twinrl_data.contact_view import log_contacts
+from twinrl_data.contact_view import Contact, log_contacts
 from twinrl_data.errors import DataError
 from twinrl_data.grasp_view import has_grasp, log_grasp
 from twinrl_data.mcap_log import pose_groups
 
 Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
-
-
-@dataclass(frozen=True)
-class Contact:
-    """Where one of the robot's bodies touches another body at one step."""
-
-    position: np.ndarray  # xyz, base frame
-    robot: str  # the robot's body (a link, a finger)
-    other: str  # the body it touches (an object, the table)
-    distance: float  # m between the surfaces (negative: they overlap)
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,9 @@ import mujoco
 import numpy as np
 import rerun as rr
 
+from twinrl_data.contact_view import Contact
 from twinrl_data.mcap_log import pose_groups
-from twinrl_data.view import CameraMount, Contact, Pose
+from twinrl_data.view import CameraMount, Pose
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.robots.gripper import STROKE
