@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import rerun as rr
 
+from twinrl_data.timeline import step_times
+
 
 @dataclass(frozen=True)
 class Contact:
@@ -25,6 +27,11 @@ class Contact:
     robot: str  # the robot's body (a link, a finger)
     other: str  # the body it touches (an object, the table)
     distance: float  # m between the surfaces (negative: they overlap)
+
+    @property
+    def label(self) -> str:
+        """The two bodies, as the view names the contact: ``robot / other``."""
+        return f"{self.robot} / {self.other}"
 
 
 CONTACT_COLOR = [255, 40, 120]
@@ -38,10 +45,9 @@ def log_contacts(
     model; see the module docstring); whether any step had one."""
     if not any(steps):
         return False
-    index = np.arange(len(steps))
-    times = [rr.TimeColumn("step", sequence=index), rr.TimeColumn("time", duration=index / fps)]
+    times = step_times(len(steps), fps)
     positions = [c.position for step in steps for c in step]
-    names = [f"{c.robot} / {c.other}" for step in steps for c in step]
+    names = [c.label for step in steps for c in step]
     rr.send_columns(
         f"world/{label}/contacts",
         indexes=times,
@@ -53,10 +59,11 @@ def log_contacts(
         ).partition([len(step) for step in steps]),
         recording=recording,
     )
+    pairs = [{c.label for c in step} for step in steps]
     for pair in sorted(set(names)):
         path = f"signals/contacts/{label}/{pair.replace(' / ', '-')}"
         rr.log(path, rr.SeriesLines(names=pair), static=True, recording=recording)
-        touching = [float(any(f"{c.robot} / {c.other}" == pair for c in step)) for step in steps]
+        touching = [float(pair in step) for step in pairs]
         rr.send_columns(
             path, indexes=times, columns=rr.Scalars.columns(scalars=touching), recording=recording
         )

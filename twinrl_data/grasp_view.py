@@ -24,6 +24,7 @@ import rerun as rr
 from twinrl_data import schema as contract
 from twinrl_data.mcap_log import pose_groups
 from twinrl_data.schema import GRIPPER_CLOSED, GRIPPER_OPENING
+from twinrl_data.timeline import step_times
 
 STILL = 0.001  # m the opening may change in a step with the fingers stopped
 EMPTY = 0.002  # m; at or below it the fingers closed on nothing
@@ -116,9 +117,7 @@ def log_grasp(
 ) -> None:
     """Log ``episode``'s grasp and TCP force (see the module docstring) under ``label``,
     one column per signal on the timelines ``step`` and ``time``."""
-    steps = np.arange(len(episode))
-    times = [rr.TimeColumn("step", sequence=steps),
-             rr.TimeColumn("time", duration=steps / episode.meta.fps)]  # fmt: skip
+    times = step_times(len(episode), episode.meta.fps)
     names, state = _state(episode)
     if GRIPPER_OPENING in names:
         opening = state[:, names.index(GRIPPER_OPENING)].astype(float) * 100

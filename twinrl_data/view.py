@@ -45,6 +45,7 @@ from twinrl_data.contact_view import Contact, log_contacts
 from twinrl_data.errors import DataError
 from twinrl_data.grasp_view import has_grasp, log_grasp
 from twinrl_data.mcap_log import pose_groups
+from twinrl_data.timeline import set_step, step_times
 
 Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the base frame
 
@@ -254,11 +255,8 @@ def _log_one(
         rr.SeriesLines(colors=[INTERVENTION_COLOR], names="intervention"),
         static=True,
     )
-    steps = np.arange(len(episode))
-    times = [
-        rr.TimeColumn("step", sequence=steps),
-        rr.TimeColumn("time", duration=steps / episode.meta.fps),
-    ]
+    fps = episode.meta.fps
+    times = step_times(len(episode), fps)
 
     def series(path: str, values: np.ndarray) -> None:
         rr.send_columns(path, indexes=times, columns=rr.Scalars.columns(scalars=values),
@@ -270,9 +268,8 @@ def _log_one(
                         columns=rr.Transform3D.columns(translation=rows[:, idx[:3]],
                                                        quaternion=quats))  # fmt: skip
 
-    for t in steps if episode.images else ():  # images a step at a time (memory)
-        recording.set_time("step", sequence=int(t))
-        recording.set_time("time", duration=t / episode.meta.fps)
+    for t in range(len(episode)) if episode.images else ():  # a step at a time (memory)
+        set_step(recording, t, fps)
         for camera, frames in episode.images.items():
             log(_image_path(label, camera, mounts), rr.Image(frames[t]))
     states = data[contract.STATE]
@@ -291,11 +288,9 @@ def _log_one(
         if key in data:
             series(f"signals/outcome/{name}/{label}", np.asarray(data[key], float))
     series(f"signals/intervention/{label}", np.asarray(intervention, float))
-    changes = [t for t in steps if (t > 0 and intervention[t] != intervention[t - 1])
-               or (t == 0 and intervention[0])]  # fmt: skip
-    for t in changes:
-        recording.set_time("step", sequence=int(t))
-        recording.set_time("time", duration=t / episode.meta.fps)
+    # Where control changes hands (a run that starts with the person in control too).
+    for t in np.flatnonzero(np.diff(np.asarray(intervention, int), prepend=0)):
+        set_step(recording, t, fps)
         takes_over = bool(intervention[t])
         text = "human takes over" if takes_over else "policy in control"
         log(f"events/{label}", rr.TextLog(text, level="WARN" if takes_over else "INFO"))
@@ -335,11 +330,7 @@ def _send_cell_poses(
     them step by step is slow: a long episode has thousands of body poses)."""
     if not poses:
         return
-    steps = np.arange(len(poses))
-    indexes = [
-        rr.TimeColumn("step", sequence=steps),
-        rr.TimeColumn("time", duration=steps / fps),
-    ]
+    indexes = step_times(len(poses), fps)
     for body in poses[0]:
         translations = np.array([p[body][0] for p in poses])
         quats = np.array([p[body][1] for p in poses])[:, [1, 2, 3, 0]]  # wxyz -> xyzw

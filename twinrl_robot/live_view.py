@@ -136,8 +136,8 @@ class LiveView:
         self.cameras = cameras
         self._joints = [(i, n) for i, n in enumerate(state_names) if n.startswith("q.")]
         self._tcp = [i for i, n in enumerate(state_names) if n.startswith("tcp.")][:3]
-        opening = GRIPPER_OPENING
-        self._opening = state_names.index(opening) if opening in state_names else None
+        names = state_names
+        self._opening = names.index(GRIPPER_OPENING) if GRIPPER_OPENING in names else None
         self._objects = pose_groups(list(environment_names))
         self._grasp = LiveGrasp()
         blueprint = self._blueprint()
@@ -274,7 +274,7 @@ class LiveView:
             log_cell_poses(self.cell, "world/cell", state, environment, self.stream)
             touching = self.cell.contacts(state, environment)
             log("world/contacts", rr.Points3D(
-                [c.position for c in touching], labels=[f"{c.robot} / {c.other}" for c in touching],
+                [c.position for c in touching], labels=[c.label for c in touching],
                 colors=[CONTACT_COLOR], radii=CONTACT_RADIUS,
             ))  # fmt: skip
         if self._opening is not None and len(tcp) == 3 and environment is not None:

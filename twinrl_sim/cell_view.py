@@ -92,11 +92,7 @@ class TwinCell:
         # The robot's moving bodies (links, gripper, fingers): the ones whose contacts
         # are drawn (its base's seat on the table is always there and says nothing).
         arm_root = model.body_rootid[model.jnt_bodyid[model.joint(scene.layout.arm_joints[0]).id]]
-        self._robot = {
-            b for b in range(1, model.nbody)
-            if model.body_rootid[b] == arm_root and model.body_weldid[b] != 0
-        }  # fmt: skip
-        self._is_robot = np.isin(np.arange(model.nbody), list(self._robot))
+        self._is_robot = (model.body_rootid == arm_root) & (model.body_weldid != 0)
         self._is_hidden = np.isin(np.arange(model.nbody), list(self._hidden))
         self._body_names = [model.body(b).name for b in range(model.nbody)]
         # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is);
