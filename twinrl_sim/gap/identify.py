@@ -397,8 +397,8 @@ class WindowReplay:
         optimiser units (see :meth:`physical`)."""
         if not self.free:
             return np.zeros(0), np.zeros(0), 0
-        start = self.params.as_vector()
-        before = likelihood_term(self.residuals(start))
+        at_start = self.residuals()
+        before = likelihood_term(at_start)
         objective = self.residual_fn
         params, result, iterations = least_squares(
             self.params.copy(), objective, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
@@ -407,7 +407,7 @@ class WindowReplay:
         if self.refit_by_likelihood:
             # The squares' minimum is worse by the likelihood than the start: minimise the
             # likelihood's bound at the start instead, which cannot end worse.
-            objective = self._weighed(signal_weights(self.residuals(start)))
+            objective = self._weighed(signal_weights(at_start))
             params, result, more = least_squares(
                 self.params.copy(), objective, eps=FD_STEP, xtol=XTOL, max_iters=max_iters
             )
@@ -446,7 +446,7 @@ class WindowReplay:
         trials = np.clip(start + step[:, None] * np.array([STEP_FRACTIONS]), *bounds)
         points = np.column_stack([start, trials])
         residuals = np.column_stack([at_start, residual(trials)])
-        scores = [likelihood_term(residuals[:, i].reshape(shape)) for i in range(len(points.T))]
+        scores = [likelihood_term(residuals[:, i].reshape(shape)) for i in range(points.shape[1])]
         best = int(np.argmin(scores))
         return points[:, best], residuals[:, best].reshape(shape)
 

@@ -188,7 +188,7 @@ def cut_windows(
             starts.append(len(state) - 1 - window)
         q_start, qd_start = smoothed_start(q, qd, starts, control_hz, noise)
         # Before the first row the servos held where the arm stood.
-        held = _held_before(q_start[0] if starts and starts[0] == 0 else q[0], targets)
+        held = _held_before(q_start[0] if starts else q[0], targets)  # starts[0] is row 0
         padded = np.vstack([np.repeat(held[None], history_steps, 0), targets])
         for k, start in enumerate(starts):
             parts["measured"].append(measured[start + 1 : start + window + 1])
