@@ -59,6 +59,9 @@ def _excite(folder: Path, effects: dict) -> list:
     return [read_episode(p, images=False) for p in session.episode_paths()]
 
 
+# Real time: the emulated controller's link jitter grows with the host's load, and with
+# other tests beside it the tracking twin's start ratio passed 0.75 (0.757 once).
+@pytest.mark.realtime
 def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Path) -> None:
     delayed = _excite(tmp_path / "delayed", {"actuator_delay": {"seconds": HIDDEN_DELAY}})
     # A twin whose servos hold each target lacks what the arm does: it is named first.
