@@ -9,7 +9,7 @@
 - Catalog: a filtered query over 10 000 synthetic episode rows.
 - The Rerun view: seconds and megabytes to save a 60-s, 10 Hz episode with both cameras
   as an .rrd, with and without the cell in 3D, and with the cell and the twin's ghost
-  (``twinrl view --save``, ``--replay``).
+  (``twinrl view --save``, ``--replay``), each the median of five saves.
 
 Camera frames are real twin renders (cycled), so compression sees realistic images.
 Usage::
@@ -114,12 +114,14 @@ def lerobot_loop(episodes, root: Path) -> float:
 
 
 def view_costs(
-    frames: list[dict], meta: EpisodeMeta, steps: int, work: Path
+    frames: list[dict], meta: EpisodeMeta, steps: int, work: Path, repeats: int = 5
 ) -> tuple[dict[str, tuple[float, float]], float]:
     """Seconds and megabytes of ``twinrl view --save`` on one episode of ``steps``
     (the rendered frames cycled), without and with the cell in 3D, and with the cell and
     the twin's ghost (``--replay``: the replay's simulation included); and the seconds
-    of that simulation alone."""
+    of that simulation alone. Each figure is the median of ``repeats`` saves, the
+    variants taking turns, since one save's noise on a shared host is larger than the
+    cell's share."""
     from twinrl_data.view import save_rrd
     from twinrl_sim.cli.view import twin_cell
     from twinrl_sim.replay import replayed_episode
@@ -128,19 +130,26 @@ def view_costs(
     record(path, [frames[t % len(frames)] for t in range(steps)], meta)
     episode = read_episode(path)
     cell = twin_cell(episode)
-    out, replay_seconds = {}, 0.0
-    for label, shown in (
-        ("cameras and plots", None),
-        ("with the cell in 3D", cell),
-        ("with the cell and the twin's ghost", cell),
-    ):
-        rrd = work / f"view_{len(out)}.rrd"
-        start = time.perf_counter()
-        ghost = [replayed_episode(episode)] if "ghost" in label else []
-        replay_seconds = time.perf_counter() - start if ghost else replay_seconds
-        save_rrd([episode, *ghost], rrd, cell=shown)
-        out[label] = (time.perf_counter() - start, rrd.stat().st_size / 1e6)
-    return out, replay_seconds
+    variants = {
+        "cameras and plots": None,
+        "with the cell in 3D": cell,
+        "with the cell and the twin's ghost": cell,
+    }
+    walls: dict[str, list[float]] = {label: [] for label in variants}
+    sizes: dict[str, float] = {}
+    replays = []
+    for _ in range(repeats):
+        for i, (label, shown) in enumerate(variants.items()):
+            rrd = work / f"view_{i}.rrd"
+            start = time.perf_counter()
+            ghost = [replayed_episode(episode)] if "ghost" in label else []
+            if ghost:
+                replays.append(time.perf_counter() - start)
+            save_rrd([episode, *ghost], rrd, cell=shown, force=True)
+            walls[label].append(time.perf_counter() - start)
+            sizes[label] = rrd.stat().st_size / 1e6
+    out = {label: (float(np.median(walls[label])), sizes[label]) for label in variants}
+    return out, float(np.median(replays))
 
 
 def synthetic_catalog(path: Path, rows: int) -> None:

@@ -51,6 +51,15 @@ Pose = tuple[np.ndarray, np.ndarray]  # position xyz, quaternion wxyz, in the ba
 
 
 @dataclass(frozen=True)
+class CellSteps:
+    """The cell at every step of an episode: each moving body's positions (T, 3) and
+    quaternions (T, 4, wxyz) by name, and what the robot touches at each step."""
+
+    poses: dict[str, Pose]
+    contacts: list[list[Contact]]
+
+
+@dataclass(frozen=True)
 class CameraMount:
     """Where a camera sits on a body of the cell, and how wide it sees."""
 
@@ -79,6 +88,10 @@ class CellModel(Protocol):
 
     def contacts(self, state: np.ndarray, environment: np.ndarray | None) -> list[Contact]:
         """What the robot's moving bodies touch at one step (no cell measures it)."""
+
+    def steps(self, states: np.ndarray, environments: np.ndarray | None) -> CellSteps:
+        """The poses and contacts of every step of an episode at once (its state rows
+        and object-pose rows): what a saved view draws, the same as asking step by step."""
 
 
 GHOST_ALPHA = 90  # opacity (of 255) of every cell after the first
@@ -311,35 +324,21 @@ def _log_one(
 def _log_cell_steps(
     cell: CellModel, episode: contract.Episode, label: str, recording: rr.RecordingStream
 ) -> bool:
-    """The cell's moving bodies and the robot's contacts at every step of ``episode``
-    (posed once a step for both); whether it touched anything."""
-    states, environments = episode.data[contract.STATE], _object_poses(episode)
-    poses, contacts = [], []
-    for t, state in enumerate(states):
-        environment = None if environments is None else environments[t]
-        poses.append(cell(state, environment))
-        contacts.append(cell.contacts(state, environment))
-    _send_cell_poses(poses, f"world/{label}/cell", episode.meta.fps, recording)
-    return log_contacts(contacts, episode.meta.fps, label, recording)
-
-
-def _send_cell_poses(
-    poses: list[dict[str, Pose]], root: str, fps: float, recording: rr.RecordingStream
-) -> None:
-    """Every step's pose of each moving body, one column per body (as fast as logging
-    them step by step is slow: a long episode has thousands of body poses)."""
-    if not poses:
-        return
-    indexes = step_times(len(poses), fps)
-    for body in poses[0]:
-        translations = np.array([p[body][0] for p in poses])
-        quats = np.array([p[body][1] for p in poses])[:, [1, 2, 3, 0]]  # wxyz -> xyzw
+    """The cell's moving bodies and the robot's contacts at every step of ``episode``,
+    each body's poses one column; whether it touched anything."""
+    steps = cell.steps(episode.data[contract.STATE], _object_poses(episode))
+    indexes = step_times(len(episode), episode.meta.fps)
+    for body, (translations, quats) in steps.poses.items():
         rr.send_columns(
-            f"{root}/{body}",
+            f"world/{label}/cell/{body}",
             indexes=indexes,
-            columns=rr.Transform3D.columns(translation=translations, quaternion=quats),
+            columns=rr.Transform3D.columns(
+                translation=translations,
+                quaternion=quats[:, [1, 2, 3, 0]],  # wxyz -> xyzw
+            ),
             recording=recording,
         )
+    return log_contacts(steps.contacts, episode.meta.fps, label, recording)
 
 
 def log_cell_poses(

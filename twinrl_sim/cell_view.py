@@ -23,7 +23,7 @@ import rerun as rr
 
 from twinrl_data.contact_view import Contact
 from twinrl_data.mcap_log import pose_groups
-from twinrl_data.view import CameraMount, Pose
+from twinrl_data.view import CameraMount, CellSteps, Pose
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
 from twinrl_sim.robots.gripper import STROKE
@@ -95,12 +95,30 @@ class TwinCell:
         self._is_robot = (model.body_rootid == arm_root) & (model.body_weldid != 0)
         self._is_hidden = np.isin(np.arange(model.nbody), list(self._hidden))
         self._body_names = [model.body(b).name for b in range(model.nbody)]
-        # A copy that detects surfaces within CONTACT_GAP (the drawn model is left as is);
-        # its data poses the cell at each step, for its poses and its contacts.
-        self._touch_model = copy.copy(model)
-        self._touch_model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_GAP)
+        self._touch_model = self._touching_model()
         self._touch_data = mujoco.MjData(self._touch_model)
         self._last_posed: tuple[bytes, bytes | None] | None = None
+        arm = np.array(self._arm, int).reshape(-1, 2)
+        self._arm_columns, self._arm_addresses = arm[:, 0], arm[:, 1]
+        fingers = np.array(self._fingers, float).reshape(-1, 3)
+        self._finger_addresses = fingers[:, 0].astype(int)
+        self._finger_offsets, self._finger_gains = fingers[:, 1], fingers[:, 2]
+
+    def _touching_model(self) -> mujoco.MjModel:
+        """A copy of the model whose collision detection answers only what the view asks:
+        surfaces within CONTACT_GAP count, and only pairs of a robot's moving body and
+        a posed body that is not the robot's are checked (a geom that collides with
+        nothing stays so). The drawn model is left as is; the copy's data poses the cell
+        at each step, for its poses and its contacts."""
+        model = self.model
+        touch = copy.copy(model)
+        touch.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_GAP)
+        colliding = (model.geom_contype | model.geom_conaffinity) != 0
+        robot = self._is_robot[model.geom_bodyid]
+        posed = ~self._is_hidden[model.geom_bodyid]
+        touch.geom_contype[:] = colliding & robot
+        touch.geom_conaffinity[:] = colliding & ~robot & posed
+        return touch
 
     def _is_object(self, body: int) -> bool:
         """A body that is neither welded to the world nor part of the arm: a free object."""
@@ -221,10 +239,43 @@ class TwinCell:
         frame) and the two bodies (the robot's first), nearest first for each pair.
         Surfaces within :data:`CONTACT_GAP` count; an object whose pose is not logged
         is not there."""
-        model, data = self._touch_model, self._posed(state, environment)
-        mujoco.mj_collision(model, data)
+        data = self._posed(state, environment)
+        mujoco.mj_collision(self._touch_model, data)
+        return self._touching(data)
+
+    def steps(self, states: np.ndarray, environments: np.ndarray | None = None) -> CellSteps:
+        """The moving bodies' poses and the robot's contacts at every logged step (its
+        state rows and object-pose rows), as :meth:`__call__` and :meth:`contacts` say
+        them step by step. The configurations are built as arrays, so only MuJoCo's
+        kinematics and collision detection run once a step. A step whose object pose
+        is not finite keeps the object's last logged pose (its place in the model
+        before the first)."""
+        model, data = self._touch_model, self._touch_data
+        qpos, mocap_pos, mocap_quat = self._configurations(
+            states, environments, mujoco.MjData(model)
+        )
+        moving = self._moving
+        positions = np.empty((len(states), len(moving), 3))
+        quats = np.empty((len(states), len(moving), 4))
+        contacts = []
+        for t in range(len(states)):
+            data.qpos[:] = qpos[t]
+            data.mocap_pos[:] = mocap_pos[t]
+            data.mocap_quat[:] = mocap_quat[t]
+            mujoco.mj_kinematics(model, data)
+            positions[t] = data.xpos[moving]
+            quats[t] = data.xquat[moving]
+            mujoco.mj_collision(model, data)
+            contacts.append(self._touching(data) if data.ncon else [])
+        self._last_posed = None
+        poses = {self._body_names[b]: (positions[:, i], quats[:, i]) for i, b in enumerate(moving)}
+        return CellSteps(poses, contacts)
+
+    def _touching(self, data: mujoco.MjData) -> list[Contact]:
+        """The robot's contacts that collision detection left in ``data``, one per pair
+        of bodies (the nearest)."""
         contacts = data.contact
-        bodies = model.geom_bodyid[contacts.geom[: data.ncon]]
+        bodies = self._touch_model.geom_bodyid[contacts.geom[: data.ncon]]
         robot_first = self._is_robot[bodies[:, 0]]
         robot = np.where(robot_first, bodies[:, 0], bodies[:, 1])
         other = np.where(robot_first, bodies[:, 1], bodies[:, 0])
@@ -247,33 +298,51 @@ class TwinCell:
 
     def _posed(self, state: np.ndarray, environment: np.ndarray | None) -> mujoco.MjData:
         """The cell posed at one step, its kinematics computed; asked again for the same
-        step (its poses, then its contacts), the same."""
+        step (its poses, then its contacts), the same. An object pose that is not
+        finite keeps the object where the step before put it."""
         key = (state.tobytes(), None if environment is None else environment.tobytes())
         if key != self._last_posed:
-            self._pose(self._touch_data, state, environment)
-            mujoco.mj_kinematics(self._touch_model, self._touch_data)
+            data = self._touch_data
+            qpos, mocap_pos, mocap_quat = self._configurations(
+                state[None], None if environment is None else environment[None], data
+            )
+            data.qpos[:] = qpos[0]
+            data.mocap_pos[:], data.mocap_quat[:] = mocap_pos[0], mocap_quat[0]
+            mujoco.mj_kinematics(self._touch_model, data)
             self._last_posed = key
         return self._touch_data
 
-    def _pose(self, data: mujoco.MjData, state: np.ndarray, environment: np.ndarray | None) -> None:
-        """Put the arm, the fingers and the logged objects of ``data`` where one step's
-        state row and object poses say."""
-        model = self.model
-        for column, address in self._arm:
-            data.qpos[address] = state[column]
+    def _configurations(
+        self, states: np.ndarray, environments: np.ndarray | None, before: mujoco.MjData
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model's joint positions (T, nq), mocap positions (T, nmocap, 3) and
+        quaternions (T, nmocap, 4) at each step of ``states`` (and ``environments``): the
+        arm and the fingers where the state rows say, the logged objects where their
+        rows say, and everything else, or an object before its first finite pose, as
+        in ``before``."""
+        model, steps = self.model, len(states)
+        qpos = np.repeat(before.qpos[None], steps, axis=0)
+        mocap_pos = np.repeat(before.mocap_pos[None], steps, axis=0)
+        mocap_quat = np.repeat(before.mocap_quat[None], steps, axis=0)
+        qpos[:, self._arm_addresses] = states[:, self._arm_columns]
         if self._opening is not None:
             # The pads' distance to the driven finger's travel (the gripper's own mapping).
-            finger = float(np.clip(STROKE - state[self._opening] / 2.0, 0.0, STROKE))
-            for address, offset, gain in self._fingers:
-                data.qpos[address] = offset + gain * finger
-        if environment is not None:
-            for body, columns in self._objects:
-                position, quat = environment[columns[:3]], environment[columns[3:]]
-                if not np.all(np.isfinite(position)):
-                    continue
-                if model.body_mocapid[body] >= 0:
-                    data.mocap_pos[model.body_mocapid[body]] = position
-                    data.mocap_quat[model.body_mocapid[body]] = quat
-                else:
-                    address = model.jnt_qposadr[model.body_jntadr[body]]
-                    data.qpos[address : address + 7] = np.concatenate([position, quat])
+            finger = np.clip(STROKE - states[:, self._opening] / 2.0, 0.0, STROKE)
+            qpos[:, self._finger_addresses] = (
+                self._finger_offsets + self._finger_gains * finger[:, None]
+            )
+        if environments is None:
+            return qpos, mocap_pos, mocap_quat
+        for body, columns in self._objects:
+            pose = environments[:, columns]
+            latest = np.where(np.all(np.isfinite(pose[:, :3]), axis=1), np.arange(steps), -1)
+            latest = np.maximum.accumulate(latest)
+            logged = latest >= 0
+            if model.body_mocapid[body] >= 0:
+                mocap = model.body_mocapid[body]
+                mocap_pos[logged, mocap] = pose[latest[logged], :3]
+                mocap_quat[logged, mocap] = pose[latest[logged], 3:]
+            else:
+                address = model.jnt_qposadr[model.body_jntadr[body]]
+                qpos[logged, address : address + 7] = pose[latest[logged]]
+        return qpos, mocap_pos, mocap_quat

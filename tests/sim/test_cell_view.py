@@ -111,6 +111,34 @@ def test_the_view_shows_what_the_robot_touches_as_the_twin_sees_the_logged_steps
     assert not any(cell.contacts(row, None) for row in episode.data[schema.STATE])
 
 
+def test_a_whole_episode_is_posed_as_step_by_step_with_a_lost_object_held_where_last_seen(
+    tmp_path,
+):
+    """The saved view poses every step at once (:meth:`TwinCell.steps`); the live view
+    step by step: both say the same, and a stretch where the object's pose was lost (a
+    tracker's NaN rows) keeps it where it was last logged."""
+    record_demos(tmp_path, seed=3)
+    episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)
+    states = episode.data[schema.STATE]
+    environments = episode.data[schema.ENVIRONMENT_STATE].copy()
+    banana = episode.meta.names[schema.ENVIRONMENT_STATE].index("banana.x")
+    lost = slice(len(episode) // 2, len(episode) // 2 + 5)
+    environments[lost, banana : banana + 7] = np.nan
+    cell = twin_cell(episode)
+    steps = cell.steps(states, environments)
+    assert sum(map(len, steps.contacts)) > 0
+    for t in range(len(episode)):
+        poses = cell(states[t], environments[t])
+        assert set(poses) == set(steps.poses)
+        for body, (position, quat) in poses.items():
+            assert np.allclose(steps.poses[body][0][t], position, atol=1e-9), (t, body)
+            assert np.allclose(steps.poses[body][1][t], quat, atol=1e-9), (t, body)
+        alone = [(c.label, c.distance) for c in cell.contacts(states[t], environments[t])]
+        assert alone == [(c.label, c.distance) for c in steps.contacts[t]], t
+    held = steps.poses["banana"][0][lost]
+    assert np.allclose(held, environments[lost.start - 1, banana : banana + 3], atol=1e-9)
+
+
 def test_episodes_of_no_built_in_twin_open_without_3d_and_say_why(tmp_path, capsys):
     record_demos(tmp_path, seed=3)
     episode = read_episode(Session(tmp_path / "session").episode_paths()[0], images=False)
