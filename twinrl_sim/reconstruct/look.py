@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 import pycolmap
+import xatlas
 from PIL import Image
 
 from twinrl_sim.cubemap import cube_directions
@@ -252,13 +253,12 @@ def _paint_surface(
     table: TablePlane,
     occluders: o3d.t.geometry.RaycastingScene,
 ) -> o3d.geometry.TriangleMesh:
-    """The object's surface (its own frame) with a texture atlas (open3d's UVAtlas):
-    per texel, the median colour of the frames that see its point on the surface
-    unhidden, by the object itself or another; texels none sees take its colour."""
-    surface = o3d.t.geometry.TriangleMesh.from_legacy(obj.shape.surface)
-    surface.compute_uvatlas(size=OBJECT_PICTURE)
-    painted = surface.to_legacy()
-    corners = np.asarray(_placed(obj, table).vertices)[np.asarray(painted.triangles)]
+    """The object's surface (its own frame) with a texture atlas: per texel, the
+    median colour of the frames that see its point on the surface unhidden, by the
+    object itself or another; texels none sees take its colour."""
+    painted = _atlas(obj.shape.surface)
+    placed = o3d.geometry.TriangleMesh(painted).transform(_placed_pose(obj, table))
+    corners = np.asarray(placed.vertices)[np.asarray(painted.triangles)]
     uvs = np.asarray(painted.triangle_uvs).reshape(-1, 3, 2)
     # Which triangle each texel lies in (texel row r at v = (r + 0.5) / size, as an OBJ
     # texture coordinate reads in MuJoCo), then its point by barycentric coordinates.
@@ -286,6 +286,31 @@ def _paint_surface(
     painted.triangle_normals = o3d.utility.Vector3dVector()  # OBJ keeps vertex normals only
     painted.textures = [o3d.geometry.Image(picture.round().astype(np.uint8))]
     painted.triangle_material_ids = o3d.utility.IntVector([0] * len(painted.triangles))
+    return painted
+
+
+def _atlas(surface: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """``surface`` cut into charts laid out on an :data:`OBJECT_PICTURE` square
+    (xatlas), its vertices split along the seams: the same surface always gets the
+    same layout (open3d's UVAtlas draws from an unseeded random device, so two builds
+    of one seed dressed their objects differently)."""
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(
+        np.asarray(surface.vertices, np.float32), np.asarray(surface.triangles, np.uint32)
+    )
+    packing = xatlas.PackOptions()
+    packing.resolution, packing.padding = OBJECT_PICTURE, 1
+    atlas.generate(pack_options=packing)
+    kept, triangles, uvs = atlas[0]
+    painted = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(surface.vertices)[kept]),
+        o3d.utility.Vector3iVector(triangles.astype(np.int32)),
+    )
+    if surface.has_vertex_normals():
+        painted.vertex_normals = o3d.utility.Vector3dVector(
+            np.asarray(surface.vertex_normals)[kept]
+        )
+    painted.triangle_uvs = o3d.utility.Vector2dVector(uvs[triangles].reshape(-1, 2))
     return painted
 
 
