@@ -111,15 +111,22 @@ def test_candidates_without_silhouettes_are_dropped_with_the_reason():
 
 
 @pytest.mark.slow
-def test_a_dark_bottle_and_a_box_taller_than_the_phone_are_built_whole(tmp_path):
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_dark_bottle_and_a_box_taller_than_the_phone_are_built_whole(tmp_path, seed):
     """Filmed low over a glossy table with clutter behind (issue 52): a dark bottle in a
     label and a box taller than the phone is held, each within 10 % of its height and
-    3 cm of where it stands, and no other object."""
+    3 cm of where it stands, and no other object. Seed 1's walk shakes less (its view
+    shifts 0.22 image widths in all), and was refused as a camera that barely moves."""
     walk = render_walkthrough(
-        CLUTTERED_SCENE, tmp_path / "frames", tags=OFFICE_TAG, settings=LOW_WALK
+        CLUTTERED_SCENE, tmp_path / "frames", tags=OFFICE_TAG, settings=LOW_WALK, seed=seed
     )
     settings = BuildSettings(
-        tag_size=0.14, tag_pose=tuple(walk.tag_poses[12]), tag_id=12, frames=93, look=False
+        tag_size=0.14,
+        tag_pose=tuple(walk.tag_poses[12]),
+        tag_id=12,
+        frames=93,
+        look=False,
+        seed=seed,
     )
     built = build_twin(walk.video, tmp_path / "cell", settings)
     assert len(built.objects) == len(CLUTTERED_SCENE.objects)

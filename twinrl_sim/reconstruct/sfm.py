@@ -4,7 +4,7 @@ model is shared by all frames (one phone, fixed zoom).
 
 Real footage breaks a mapper that must grow one model from its first pair: the mapper
 may make several models (the largest is kept) and, when that is still too small, is
-rerun with a more lenient initial pair. Extraction and matching run on one thread so
+rerun with a more lenient initial pair. Extraction, matching and mapping run on one thread so
 that the same frames and seed give the same reconstruction (see :func:`run_sfm`).
 
 Photos from the cell's fixed cameras join the same reconstruction: each gets a camera
@@ -160,6 +160,10 @@ def run_sfm(
     # often seed the mapper's initial pair, and its unknown focal length can sink it.
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = seed
+    # The mapper on one thread too: its bundle adjustments' sums otherwise come in
+    # whatever order the threads finish, and a build on a loaded host came out with its
+    # table 1.2 deg off its twin's; a 93-frame walk maps in the same 17 s either way.
+    options.num_threads = 1
     options.image_names = frame_names
     estimated = (options.ba_refine_focal_length, options.ba_refine_extra_params)
     if intrinsics is not None:  # held as given (the principal point never is refined)
