@@ -9,7 +9,9 @@ long episode adds a transform per body and step, never geometry again. Poses are
 the world frame of the twin, which is the arm's base frame the episodes log poses in.
 It also says what the robot touches at a logged step (:meth:`TwinCell.contacts`): the
 twin's collision detection run on the logged configuration, since no cell measures
-contacts. It satisfies :class:`twinrl_data.view.CellModel`.
+contacts. A live view asks step by step; a saved one asks for a whole episode at once
+(:meth:`TwinCell.steps`), which only MuJoCo's calls run through step by step. It
+satisfies :class:`twinrl_data.view.CellModel`.
 """
 
 from __future__ import annotations
