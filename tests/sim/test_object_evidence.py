@@ -8,10 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from twinrl_sim.reconstruct.evidence import judge_candidates
+from twinrl_sim.reconstruct.evidence import ObjectEvidence, bound_depth, judge_candidates
 from twinrl_sim.reconstruct.pipeline import build_twin
 from twinrl_sim.reconstruct.report import dropped_lines
-from twinrl_sim.reconstruct.segment import ObjectCluster, TablePlane, find_objects
+from twinrl_sim.reconstruct.segment import (
+    ObjectCluster,
+    TablePlane,
+    describe_cluster,
+    find_objects,
+)
 from twinrl_sim.reconstruct.settings import BuildSettings
 from twinrl_sim.reconstruct.silhouette import Hull, _carving, _lab, object_colours
 from twinrl_sim.reconstruct.synthetic import (
@@ -108,6 +113,28 @@ def test_candidates_without_silhouettes_are_dropped_with_the_reason():
     table = "\n".join(dropped_lines(dropped))
     assert "| 0.000 | 0.000 | 66 x 22 x 38 | 48 | no silhouette" in table
     assert dropped_lines([]) == []
+
+
+def test_an_object_seen_from_one_side_is_no_deeper_than_it_is_wide():
+    """A bottle (71 mm across) filmed from one side: its points sit on the half facing
+    the phone, triangulated 2 cm off along the view (a narrow baseline), which made it
+    149 mm deep. Its depth is bounded by its width across; seen all round, or carved
+    from silhouettes, it is left as it is."""
+    rng = np.random.default_rng(1)
+    angle, z = rng.uniform(-np.pi / 2, np.pi / 2, 400), rng.uniform(0.01, 0.23, 400)
+    front = np.c_[0.33 + 0.0355 * np.cos(angle), 0.14 + 0.0355 * np.sin(angle), z]
+    front[:, 0] += rng.normal(0.0, 0.02, len(front))  # the views look along -x
+    cluster = describe_cluster(front, DARK, TABLE)
+    assert cluster.size[0] > 0.1  # as deep as the error made it
+    one_side = ObjectEvidence(93, 42.0, len(front), False, (), np.array([-1.0, 0.0]))
+    bounded = bound_depth(cluster, one_side, TABLE)
+    assert bounded.size[:2] == pytest.approx([0.071, 0.071], rel=0.1)
+    assert bounded.size[2] == pytest.approx(cluster.size[2])
+    assert np.linalg.norm(bounded.center[:2] - cluster.center[:2]) < 0.01
+    all_round = ObjectEvidence(93, 120.0, len(front), False, (), np.array([-1.0, 0.0]))
+    assert bound_depth(cluster, all_round, TABLE) is cluster
+    carved = describe_cluster(front, DARK, TABLE, front[:, :2])
+    assert bound_depth(carved, one_side, TABLE) is carved
 
 
 @pytest.mark.slow

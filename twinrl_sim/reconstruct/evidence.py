@@ -6,16 +6,27 @@ and says so: each object carries the frames that saw it, the arc of directions t
 it from, its points and whether its silhouette was carved, a confidence and, in words,
 what is thin. A candidate without evidence a person would accept is no object: it is
 dropped, and the report says which and why (:func:`judge_candidates`).
+
+An object seen from one side and not carved is made no deeper along the view than it
+is wide across it (:func:`bound_depth`): its points' spread along the view is mostly
+their triangulation's error (a narrow baseline places a point well across the view and
+poorly along it), which made a 71 mm bottle 149 mm deep.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from twinrl_sim.reconstruct.align import Similarity
-from twinrl_sim.reconstruct.segment import ObjectCluster, arc_deg
+from twinrl_sim.reconstruct.segment import (
+    FOOTPRINT_TRIM,
+    ObjectCluster,
+    TablePlane,
+    arc_deg,
+    describe_cluster,
+)
 from twinrl_sim.reconstruct.sfm import SparseModel, project
 from twinrl_sim.reconstruct.silhouette import Hull
 
@@ -33,6 +44,8 @@ class ObjectEvidence:
     points: int  # SfM points of its cluster
     carved: bool  # whether its footprint was carved from silhouettes
     doubts: tuple[str, ...]  # what is thin, one phrase each
+    # the mean horizontal direction (unit xy) the frames saw it along; None: never seen
+    looked_along: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def confidence(self) -> str:
@@ -104,8 +117,10 @@ def weigh_evidence(
         seen_from = to_cell.apply(np.array(directions)) - centre
         azimuths = np.arctan2(seen_from[:, 1], seen_from[:, 0])
         arc = arc_deg(azimuths)
+        along = -np.array([np.cos(azimuths).sum(), np.sin(azimuths).sum()])
+        looked_along = along / np.linalg.norm(along) if np.linalg.norm(along) > 0 else None
     else:
-        arc = 0.0
+        arc, looked_along = 0.0, None
     carved = cluster.carved is not None
     doubts = []
     if len(directions) < MIN_VIEWS:
@@ -113,7 +128,7 @@ def weigh_evidence(
     if arc < ALL_ROUND_DEG:
         doubts.append(
             f"seen from one side only ({arc:.0f} deg of arc): its depth along the view is "
-            "a guess; film it from more sides"
+            "a guess (taken as at most its width across); film it from more sides"
         )
     if cluster.outline and not carved:
         doubts.append(
@@ -131,4 +146,44 @@ def weigh_evidence(
             f"only {len(cluster.points)} points and no silhouette (a clear, glossy or plain "
             "surface, or one the colour of the table): its size is rough"
         )
-    return ObjectEvidence(len(directions), arc, len(cluster.points), carved, tuple(doubts))
+    return ObjectEvidence(
+        len(directions), arc, len(cluster.points), carved, tuple(doubts), looked_along
+    )
+
+
+def bound_depth(
+    cluster: ObjectCluster, evidence: ObjectEvidence, table: TablePlane
+) -> ObjectCluster:
+    """``cluster`` no deeper along the view than it is wide across it, where it was
+    seen from one side only and has no carved footprint (see the module docstring): its
+    points' offsets along the view, from the middle of their span, shrunk to the width
+    across;
+    as it was otherwise (seen all round, carved, joined from an outline, or not deeper
+    than wide)."""
+    along_view = evidence.looked_along
+    if (
+        along_view is None
+        or evidence.arc_deg >= ALL_ROUND_DEG
+        or cluster.carved is not None
+        or cluster.outline
+    ):
+        return cluster
+    across_view = np.array([-along_view[1], along_view[0]])
+    xy = cluster.points[:, :2]
+    trimmed = [FOOTPRINT_TRIM, 100 - FOOTPRINT_TRIM]
+    near, far = np.percentile(xy @ along_view, trimmed)
+    depth, width = far - near, float(np.ptp(np.percentile(xy @ across_view, trimmed)))
+    if depth <= width:
+        return cluster
+    middle = (near + far) / 2  # the footprint's centre stays where it was
+    points = cluster.points.copy()
+    points[:, :2] -= np.outer((xy @ along_view - middle) * (1 - width / depth), along_view)
+    from_silhouettes = cluster.top_from == "silhouettes"
+    return describe_cluster(
+        points,
+        cluster.color,
+        table,
+        point_colors=cluster.point_colors,
+        hull_top=float(cluster.size[2]) if from_silhouettes else None,
+        top_seen=cluster.top_seen,
+    )

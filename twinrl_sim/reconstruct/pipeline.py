@@ -30,7 +30,12 @@ from twinrl_sim.reconstruct.align import (
     check_reference_points,
 )
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
-from twinrl_sim.reconstruct.evidence import ObjectEvidence, judge_candidates, weigh_evidence
+from twinrl_sim.reconstruct.evidence import (
+    ObjectEvidence,
+    bound_depth,
+    judge_candidates,
+    weigh_evidence,
+)
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell, split_views
 from twinrl_sim.reconstruct.look_score import score_look, twin_lighting
@@ -263,6 +268,7 @@ def build_twin(
         chosen, dropped = judge_candidates(clusters, hulls)
         clusters = [_with_hull(clusters[k], hulls[k], table) for k in chosen]
         evidence = [weigh_evidence(cluster, model, to_cell) for cluster in clusters]
+        clusters = [bound_depth(c, e, table) for c, e in zip(clusters, evidence, strict=True)]
         objects, ratio = _objects(clusters, evidence, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {
