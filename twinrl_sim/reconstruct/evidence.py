@@ -157,9 +157,8 @@ def bound_depth(
     """``cluster`` no deeper along the view than it is wide across it, where it was
     seen from one side only and has no carved footprint (see the module docstring): its
     points' offsets along the view, from the middle of their span, shrunk to the width
-    across;
-    as it was otherwise (seen all round, carved, joined from an outline, or not deeper
-    than wide)."""
+    across; as it was otherwise (seen all round, carved, joined from an outline, or not
+    deeper than wide)."""
     along_view = evidence.looked_along
     if (
         along_view is None
