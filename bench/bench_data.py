@@ -9,7 +9,7 @@
 - Catalog: a filtered query over 10 000 synthetic episode rows.
 - The Rerun view: seconds and megabytes to save a 60-s, 10 Hz episode with both cameras
   as an .rrd, with and without the cell in 3D, and with the cell and the twin's ghost
-  (``twinrl view --save``, ``--replay``), each the median of five saves.
+  (``twinrl view --save``, ``--replay``), each the median of 15 saves.
 
 Camera frames are real twin renders (cycled), so compression sees realistic images.
 Usage::
@@ -114,7 +114,7 @@ def lerobot_loop(episodes, root: Path) -> float:
 
 
 def view_costs(
-    frames: list[dict], meta: EpisodeMeta, steps: int, work: Path, repeats: int = 5
+    frames: list[dict], meta: EpisodeMeta, steps: int, work: Path, repeats: int = 15
 ) -> tuple[dict[str, tuple[float, float]], float]:
     """Seconds and megabytes of ``twinrl view --save`` on one episode of ``steps``
     (the rendered frames cycled), without and with the cell in 3D, and with the cell and

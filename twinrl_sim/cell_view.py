@@ -256,28 +256,27 @@ class TwinCell:
         qpos, mocap_pos, mocap_quat = self._configurations(
             states, environments, mujoco.MjData(model)
         )
-        moving = self._moving
-        positions = np.empty((len(states), len(moving), 3))
-        quats = np.empty((len(states), len(moving), 4))
+        positions = np.empty((len(states), model.nbody, 3))  # every body: whole copies
+        quats = np.empty((len(states), model.nbody, 4))  # are cheaper than picking
         contacts = []
         for t in range(len(states)):
             data.qpos[:] = qpos[t]
-            data.mocap_pos[:] = mocap_pos[t]
-            data.mocap_quat[:] = mocap_quat[t]
+            if model.nmocap:
+                data.mocap_pos[:], data.mocap_quat[:] = mocap_pos[t], mocap_quat[t]
             mujoco.mj_kinematics(model, data)
-            positions[t] = data.xpos[moving]
-            quats[t] = data.xquat[moving]
+            positions[t], quats[t] = data.xpos, data.xquat
             mujoco.mj_collision(model, data)
             contacts.append(self._touching(data) if data.ncon else [])
         self._last_posed = None
-        poses = {self._body_names[b]: (positions[:, i], quats[:, i]) for i, b in enumerate(moving)}
+        poses = {self._body_names[b]: (positions[:, b], quats[:, b]) for b in self._moving}
         return CellSteps(poses, contacts)
 
     def _touching(self, data: mujoco.MjData) -> list[Contact]:
         """The robot's contacts that collision detection left in ``data``, one per pair
         of bodies (the nearest)."""
-        contacts = data.contact
-        bodies = self._touch_model.geom_bodyid[contacts.geom[: data.ncon]]
+        count, contacts = data.ncon, data.contact
+        dist, pos = contacts.dist[:count], contacts.pos[:count]  # each field read once
+        bodies = self._touch_model.geom_bodyid[contacts.geom[:count]]
         robot_first = self._is_robot[bodies[:, 0]]
         robot = np.where(robot_first, bodies[:, 0], bodies[:, 1])
         other = np.where(robot_first, bodies[:, 1], bodies[:, 0])
@@ -285,18 +284,17 @@ class TwinCell:
             self._is_robot[robot]
             & ~self._is_robot[other]
             & ~self._is_hidden[other]
-            & (contacts.dist[: data.ncon] <= CONTACT_GAP)
+            & (dist <= CONTACT_GAP)
         )
         found: dict[tuple[int, int], int] = {}
         for i in np.flatnonzero(keep):
             pair = (int(robot[i]), int(other[i]))
-            if pair not in found or contacts.dist[i] < contacts.dist[found[pair]]:
+            if pair not in found or dist[i] < dist[found[pair]]:
                 found[pair] = i
         return [
-            Contact(contacts.pos[i].copy(), self._body_names[r], self._body_names[o],
-                    float(contacts.dist[i]))
+            Contact(pos[i].copy(), self._body_names[r], self._body_names[o], float(dist[i]))
             for (r, o), i in found.items()
-        ]  # fmt: skip
+        ]
 
     def _posed(self, state: np.ndarray, environment: np.ndarray | None) -> mujoco.MjData:
         """The cell posed at one step, its kinematics computed; asked again for the same
