@@ -69,11 +69,15 @@ class TwinCell:
             raise TwinError(
                 f"the logged state lacks joint positions q.{missing[0]} (and maybe more)"
             )
-        self._arm = [
-            (index[f"q.{j}"], model.joint(j).qposadr[0]) for j in scene.layout.arm_joints
-        ]  # fmt: skip
+        # Where each arm joint is in a state row, and in the model's qpos.
+        self._arm_columns = np.array([index[f"q.{j}"] for j in scene.layout.arm_joints])
+        self._arm_addresses = np.array([model.joint(j).qposadr[0] for j in scene.layout.arm_joints])
         self._opening = index.get("gripper.opening")
-        self._fingers = [] if self._opening is None else self._finger_joints(scene)
+        fingers = np.array(
+            [] if self._opening is None else self._finger_joints(scene), float
+        ).reshape(-1, 3)
+        self._finger_addresses = fingers[:, 0].astype(int)
+        self._finger_offsets, self._finger_gains = fingers[:, 1], fingers[:, 2]
         groups = pose_groups(list(environment_names))
         self._objects = [
             (body, groups[model.body(body).name])
@@ -100,11 +104,6 @@ class TwinCell:
         self._touch_model = self._touching_model()
         self._touch_data = mujoco.MjData(self._touch_model)
         self._last_posed: tuple[bytes, bytes | None] | None = None
-        arm = np.array(self._arm, int).reshape(-1, 2)
-        self._arm_columns, self._arm_addresses = arm[:, 0], arm[:, 1]
-        fingers = np.array(self._fingers, float).reshape(-1, 3)
-        self._finger_addresses = fingers[:, 0].astype(int)
-        self._finger_offsets, self._finger_gains = fingers[:, 1], fingers[:, 2]
 
     def _touching_model(self) -> mujoco.MjModel:
         """A copy of the model whose collision detection answers only what the view asks:
