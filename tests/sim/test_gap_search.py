@@ -83,3 +83,23 @@ def test_a_tools_screen_reaches_towards_it_though_its_full_step_overshoots(tmp_p
     x, residuals = payload.first_step()
     assert likelihood_term(residuals) < start - 1000
     assert payload.effects_at(x)["payload"]["mass"] > 0.2
+
+
+def outcome(diagnosis) -> tuple:
+    """What a diagnosis found, without its timings."""
+    rounds = [
+        [(r.effect, r.params, r.heldout_error, r.bic, r.screened) for r in results]
+        for results in diagnosis.rounds
+    ]
+    return rounds, diagnosis.selected, diagnosis.gap_before, diagnosis.gap_after
+
+
+def test_a_round_on_worker_processes_finds_what_one_process_finds(tmp_path):
+    episodes, _ = _windows(tmp_path)
+    allowed = ["payload", "base_offset", "table_height", "joint_damping", "servo_gain"]
+    alone = diagnose(episodes, SCENE, allowed=allowed)
+    heard = []
+    spread = diagnose(episodes, SCENE, allowed=allowed, workers=2, log=heard.append)
+    assert outcome(spread) == outcome(alone)
+    assert [s["effect"] for s in alone.selected] == ["payload"]
+    assert any(line.startswith("screening") and "on 2 workers" in line for line in heard)

@@ -1,7 +1,7 @@
 """The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
 come back in order, the first failure is raised as it was, `expand` keeps the same
-demonstrations as the process pool and mining finds what one process finds, for the
-same seed."""
+demonstrations as the process pool, and mining and the gap diagnosis find what one
+process finds, for the same seed."""
 
 import json
 import sys
@@ -16,6 +16,8 @@ from ray.cluster_utils import Cluster
 from typer.testing import CliRunner
 
 from tests.data.test_executor import chatty  # the same chatty job on Ray as on processes
+from tests.sim.test_gap_diagnose import SCENE, _record
+from tests.sim.test_gap_search import HIDDEN, outcome
 from twinrl_data import ray_executor
 from twinrl_data.executor import make_executor
 from twinrl_data.mcap_log import read_episode
@@ -25,6 +27,7 @@ from twinrl_learn.cli import app, main
 from twinrl_learn.mining import mine
 from twinrl_learn.runners import ExpertRunner
 from twinrl_sim.expand import expand
+from twinrl_sim.gap.diagnose import diagnose
 
 LOOPBACK = {"127.0.0.1", "::ffff:127.0.0.1", "::1"}
 
@@ -142,6 +145,26 @@ def test_mining_on_the_cluster_finds_what_one_process_finds(cluster, tmp_path):
     for ours, theirs in zip(episodes("ray"), episodes("alone"), strict=True):
         assert ours.meta.config == theirs.meta.config
         np.testing.assert_array_equal(ours.data["action"], theirs.data["action"])
+
+
+@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
+def test_a_gap_diagnosis_on_the_cluster_finds_what_one_process_finds(cluster, tmp_path):
+    episodes = _record(tmp_path / "s", HIDDEN, episodes=3)
+    allowed = ["payload", "base_offset", "table_height", "joint_damping", "servo_gain"]
+    alone = diagnose(episodes, SCENE, allowed=allowed)
+    args = ["gap", "diagnose", str(tmp_path / "s"), "--twin", "pick_place"]
+    result = CliRunner().invoke(
+        app,
+        [*args, "--effects-allowed", ",".join(allowed), "--cluster", cluster.address,
+         "--out", str(tmp_path / "ray")],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "ray" / "gap_report.json").read_text())
+    fields = ("effect", "params", "heldout_error", "bic", "screened")
+    on_ray = [[tuple(r[f] for f in fields) for r in rnd] for rnd in report["rounds"]]
+    assert on_ray == outcome(alone)[0]
+    assert report["selected"] == alone.selected
+    assert [s["effect"] for s in alone.selected] == ["payload"]
 
 
 @pytest.mark.parametrize("value", ["bogus", "ray:/head:10001", "head:0", "ray://head"])

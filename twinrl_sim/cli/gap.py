@@ -16,7 +16,7 @@ from rich.table import Table
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.console import progress
 from twinrl_data.errors import UsageError
-from twinrl_sim.cli.common import console
+from twinrl_sim.cli.common import ClusterOption, console
 from twinrl_sim.gap.candidates import CANDIDATES, IMAGE_EFFECTS
 from twinrl_sim.tasks import TASKS, twin_scene
 
@@ -141,6 +141,15 @@ def diagnose_command(
             "unscreened, slower)."
         ),
     ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            help="Workers for each round's screens and fits (default: 1, in this process; "
+            "on a cluster, one per CPU).",
+            min=1,
+        ),
+    ] = None,
+    cluster: ClusterOption = "",
 ) -> None:
     """Name the physical effects the twin lacks: screen every candidate effect on the
     measured episodes (mujoco.sysid over shooting windows) and fit the most promising,
@@ -174,6 +183,8 @@ def diagnose_command(
             seed=seed,
             **({} if fitted_per_round is None else {"fitted_per_round": fitted_per_round or None}),
             log=lambda message: bar.update(job, description=message),
+            workers=workers,
+            cluster=cluster,
         )
         bar.update(job, description="localise and write the report")
         replays = [replay_windows(e, scene, window=window) for e in episodes]

@@ -42,6 +42,7 @@ from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import SettingError
+from twinrl_data.executor import Executor, cluster_address, make_executor
 from twinrl_sim.build import build_mjspec, compile_scene
 from twinrl_sim.effects import EFFECTS
 from twinrl_sim.errors import TwinError
@@ -275,13 +276,21 @@ def diagnose(
     fit_windows: int = FIT_WINDOWS,
     fitted_per_round: int | None = SCREEN_KEEP,
     log: Callable[[str], None] = lambda _: None,
+    workers: int | None = None,
+    cluster: str = "",
 ) -> Diagnosis:
     """Find, fit and name the effects that ``scene`` lacks to explain ``episodes``.
 
     Each round fits the ``fitted_per_round`` candidates whose first step explains most
-    (None: every candidate, unscreened; slower, for checking the screen)."""
+    (None: every candidate, unscreened; slower, for checking the screen). A round's
+    screens and fits run on ``workers`` worker processes, or as Ray tasks where
+    ``cluster`` says (:func:`~twinrl_data.executor.make_executor`; ``workers`` None: one
+    per CPU of the cluster); without a cluster, one worker (the default) runs them in
+    this process, its replays on two threads. The diagnosis is the same wherever they
+    run."""
     started = time.perf_counter()
     noise = noise or NoiseFloor()
+    on_cluster = cluster_address(cluster) is not None  # a bad address stops it here
     if not 0 < heldout < 1:
         raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
     if fitted_per_round is not None and fitted_per_round < 1:
@@ -314,6 +323,11 @@ def diagnose(
     cameras = logged if wanted["camera_pose"] else []
     log(f"{split.describe()}; {len(fit_on)} windows fitted; candidates: {', '.join(pool)}")
     rollout = Rollout(nthread=2)
+    executor: Executor | None = None
+    if on_cluster:
+        executor = make_executor(workers, cluster=cluster)
+    elif workers not in (None, 1):
+        executor = make_executor(workers)
     try:
         fixed: dict[str, dict] = {}
         baseline = score(scene, fit_on, held, noise, fixed, rollout)
@@ -322,7 +336,10 @@ def diagnose(
         selected: list[dict] = []
         while pool and len(selected) < MAX_EFFECTS:
             log(f"round {len(rounds) + 1}: {len(pool)} candidates")
-            results = search_round(scene, fit_on, held, noise, fixed, pool, baseline, rollout, log)
+            results = search_round(
+                scene, fit_on, held, noise, fixed, pool, baseline, rollout, log,
+                keep=fitted_per_round, executor=executor,
+            )  # fmt: skip
             rounds.append(results)
             best = results[0]
             if not best.significant:
@@ -378,6 +395,8 @@ def diagnose(
         predicted_after = after.predict([after.sequences.gt_model])[0][0]
     finally:
         rollout.close()
+        if executor is not None:
+            executor.close()
     named_cameras = [s["params"]["camera"] for s in selected if s["effect"] == "camera_pose"]
     scale = np.array([getattr(noise, f) for f in windows.families])
     per_signal = lambda p: np.sqrt(np.mean((held.measured - p) ** 2, axis=(0, 1)))  # noqa: E731

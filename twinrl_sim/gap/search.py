@@ -15,16 +15,24 @@ in the next round, with that effect named.
 Judging is the naming rule: a candidate is *significant* when its BIC beats the twin
 without it by more than :data:`BIC_MARGIN` and it cuts the held-out error by at least
 :data:`MIN_HELDOUT_GAIN`.
+
+A round's screens, and then its fits, are independent of one another: given an
+:class:`~twinrl_data.executor.Executor`, each is one of its jobs (worker processes, or
+Ray tasks on a cluster), and the round comes out the same as in one process.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
+from mujoco.rollout import Rollout
 
+from twinrl_data.executor import Executor
 from twinrl_sim.gap.identify import WindowReplay, likelihood_term
 
 BIC_MARGIN = 10.0  # BIC difference counted as very strong evidence (Kass & Raftery scale)
@@ -96,6 +104,57 @@ def size(effects: dict[str, dict]) -> int:
     return sum(np.size(value) for params in effects.values() for value in params.values())
 
 
+@dataclass(frozen=True)
+class CandidateJob:
+    """One candidate's screen or fit in a round, with all it is judged on: a job that
+    runs anywhere (:func:`run_candidate`)."""
+
+    kind: str  # screen, fit, or joint (refit together with the named effects)
+    name: str
+    scene: Any
+    fit_on: Any
+    held: Any
+    noise: Any
+    fixed: dict
+    baseline: Score
+
+
+def run_candidate(job: CandidateJob, rollout: Rollout) -> CandidateResult:
+    """``job`` screened or fitted with ``rollout``'s threads."""
+    args = (job.scene, job.fit_on, job.held, job.noise, job.fixed, job.name, job.baseline)
+    if job.kind == "screen":
+        return screen_candidate(*args, rollout)
+    return fit_candidate(*args, rollout, jointly=job.kind == "joint")
+
+
+_worker_rollout: Rollout | None = None  # a worker's own threads, made by its first job
+
+
+def _run_in_worker(job: CandidateJob) -> CandidateResult:
+    global _worker_rollout
+    if _worker_rollout is None:
+        _worker_rollout = Rollout(nthread=1)  # a worker is one CPU's job
+    return run_candidate(job, _worker_rollout)
+
+
+def _run_all(
+    jobs: list[CandidateJob],
+    rollout: Rollout,
+    executor: Executor | None,
+    log: Callable[[str], None],
+) -> list[CandidateResult]:
+    """Every job's result, in order: here one after another, or on ``executor``."""
+    if executor is None:
+        results = []
+        for job in jobs:
+            log(f"{'screening' if job.kind == 'screen' else 'fitting'} {job.name}")
+            results.append(run_candidate(job, rollout))
+        return results
+    verb = "screening" if jobs[0].kind == "screen" else "fitting"
+    log(f"{verb} {', '.join(j.name for j in jobs)} on {executor.workers} workers")
+    return executor.map(_run_in_worker, jobs)
+
+
 def search_round(
     scene,
     fit_on,
@@ -107,34 +166,31 @@ def search_round(
     rollout,
     log,
     keep: int | None = SCREEN_KEEP,
+    executor: Executor | None = None,
 ) -> list[CandidateResult]:
     """One round: every candidate of ``pool`` screened, the best ``keep`` fitted (None:
     every candidate fitted, unscreened), and, when none of them is significant with
     named effects held, the best :data:`JOINT_REFITS` refit together with those (held
     where they were named, the named effects keep what they absorbed of the next one: a
     friction fitted without the rotor inertia beside it takes part of its torque). Best
-    first: fitted by held-out error, then the screened ones by BIC."""
+    first: fitted by held-out error, then the screened ones by BIC. The screens, then
+    the fits, run on ``executor`` when one is given (here with ``rollout`` otherwise)."""
+
+    def jobs(kind: str, names: list[str]) -> list[CandidateJob]:
+        return [
+            CandidateJob(kind, name, scene, fit_on, held, noise, fixed, baseline) for name in names
+        ]
+
     screens, chosen = [], list(pool)
     if keep is not None and keep < len(pool):
-        for name in pool:
-            log(f"screening {name}")
-            screens.append(
-                screen_candidate(scene, fit_on, held, noise, fixed, name, baseline, rollout)
-            )
+        screens = _run_all(jobs("screen", pool), rollout, executor, log)
         screens.sort(key=lambda r: r.bic)
         chosen, screens = [r.effect for r in screens[:keep]], screens[keep:]
-    fitted = []
-    for name in chosen:
-        log(f"fitting {name}")
-        fitted.append(fit_candidate(scene, fit_on, held, noise, fixed, name, baseline, rollout))
+    fitted = _run_all(jobs("fit", chosen), rollout, executor, log) if chosen else []
     fitted.sort(key=lambda r: r.heldout_error)
     if fixed and fitted and not fitted[0].significant:
-        joint = [
-            fit_candidate(
-                scene, fit_on, held, noise, fixed, r.effect, baseline, rollout, jointly=True
-            )
-            for r in fitted[:JOINT_REFITS]
-        ]
+        again = [r.effect for r in fitted[:JOINT_REFITS]]
+        joint = _run_all(jobs("joint", again), rollout, executor, log)
         fitted = sorted(joint + fitted[JOINT_REFITS:], key=lambda r: r.heldout_error)
     return fitted + screens
 
