@@ -239,7 +239,7 @@ def _evaluate_spread(
     count: Callable[[_Episode, bool], None],
 ) -> None:
     """The episodes in chunks on an executor, added to the session ``folder`` in order."""
-    with make_executor(workers, initializer=_one_thread, cluster=cluster) as executor:
+    with make_executor(workers, initializer=single_threaded, cluster=cluster) as executor:
         session = Session.create(folder)
         size = max(1, -(-len(draws) // (4 * executor.workers)))  # a few chunks per worker
         episodes = str(session.path / EPISODES)
@@ -253,7 +253,8 @@ def _evaluate_spread(
                 count(draw, success)
 
 
-def _one_thread() -> None:
+def single_threaded() -> None:
+    """A worker's torch on one thread: the workers share the cores."""
     torch.set_num_threads(1)
 
 

@@ -365,6 +365,10 @@ def test_the_stages_are_measured_on_shared_configurations(smoke_run, tmp_path):
         assert len(starts) == 1
     for name in ("stages.md", "stages.json", "stages.png"):
         assert (tmp_path / "stages" / name).is_file()
+    # Side by side on two worker processes, each evaluation comes out as it did alone.
+    apart = replace(settings, out=tmp_path / "apart", seeds=(1,), finals=False, workers=2)
+    for label, measured in measure_stages(apart)["policies"].items():
+        assert measured["per_seed"] == [policies[label]["per_seed"][1]], label
     # A finished study is not overwritten; a folder that is no pipeline run is refused.
     with pytest.raises(ValueError, match="not empty"):
         measure_stages(settings)

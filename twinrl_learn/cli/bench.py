@@ -86,7 +86,9 @@ def stages(settings: dict[str, Any], run: Path) -> None:
 settings_command(
     app,
     "stages",
-    options(StagesSettings, only=("out", "seeds", "grid", "episodes", "finals")),
+    options(
+        StagesSettings, only=("out", "seeds", "grid", "episodes", "finals", "workers", "cluster")
+    ),
     stages,
     help="What each stage of a pipeline run adds, on many plant episodes per policy: the "
     "Stage I and Stage II policies, the Stage II policy after the real-RL offline phase "

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twinrl_data.errors import SettingError
+from twinrl_data.executor import cluster_address
 from twinrl_learn.compute import check_device
 from twinrl_learn.settings import check_inputs
 
@@ -83,9 +84,17 @@ class StagesSettings:
     """Evaluation episodes per grid cell."""
     finals: bool = True
     """Also measure the final policies of the run's TwinRL runs."""
+    workers: int | None = None
+    """Evaluations side by side (default: one at a time; on a cluster, one per CPU)."""
+    cluster: str = ""
+    """Where the evaluations run: none (this machine's worker processes), local, auto,
+    HOST:PORT or ray://HOST:PORT (a Ray cluster's head); see docs/guides/scale-out.md."""
 
     def __post_init__(self) -> None:
         if self.episodes < 1:
             raise SettingError("episodes", f"must be at least 1, got {self.episodes}")
         if not self.seeds:
             raise SettingError("seeds", "needs at least one seed")
+        if self.workers is not None and self.workers < 1:
+            raise SettingError("workers", f"must be at least 1, got {self.workers}")
+        cluster_address(self.cluster)  # a bad address stops here, before anything runs

@@ -13,6 +13,11 @@ again on many more plant episodes, every policy on the same configurations (eval
   ``k``: what the twin buffer changes before the robot moves (the paper reports the
   smallest dip at the offline-to-online switch for TwinRL);
 - the final policies of the run's TwinRL and TwinRL-without-twin-buffer runs.
+
+Each evaluation (one policy, one seed, its offline phase included) is a job of its own,
+on ``workers`` worker processes or Ray tasks where ``cluster`` says
+(:func:`~twinrl_data.executor.make_executor`); each is seeded alone, so the study comes
+out the same wherever they run.
 """
 
 from __future__ import annotations
@@ -27,8 +32,9 @@ import numpy as np
 
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
+from twinrl_data.executor import Send, cluster_address, make_executor
 from twinrl_learn.errors import LearnError
-from twinrl_learn.evaluate import evaluate
+from twinrl_learn.evaluate import evaluate, single_threaded
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl import RealRL
 from twinrl_learn.runners import TwinrlRunner
@@ -112,29 +118,27 @@ def measure_stages(
     if out.exists() and any(out.iterdir()):
         raise LearnError(f"{out} exists and is not empty; choose another output folder")
     task = json.loads((s.run / "run.json").read_text())["task"]
+    jobs = [
+        _Evaluation(s.run, out / "evaluations" / f"seed{k}" / f"{index:02d}", task, k, c, s)
+        for k in s.seeds
+        for index, c in enumerate(candidates)
+    ]
+    started = 0
+
+    def starting(label: str) -> None:
+        nonlocal started
+        if on_evaluation is not None:
+            on_evaluation(started, len(jobs), label)
+        started += 1
+
+    # One at a time here unless asked; on a cluster, one per CPU unless asked.
+    workers = s.workers or (None if cluster_address(s.cluster) is not None else 1)
+    with make_executor(workers, initializer=single_threaded, cluster=s.cluster) as executor:
+        measured = executor.run(_evaluated, jobs, starting)
     rates: dict[str, list[dict[str, float]]] = {c.label: [] for c in candidates}
-    total = len(s.seeds) * len(candidates)
-    for i, k in enumerate(s.seeds):
-        for index, c in enumerate(candidates):
-            if on_evaluation is not None:
-                on_evaluation(i * len(candidates) + index, total, f"seed {k}: {c.label}")
-            if c.checkpoint is None:
-                with tempfile.TemporaryDirectory() as scratch:  # the run's logs hold nothing
-                    policy = _offline_policy(s.run, Path(scratch) / "run", k, c.method)
-                runner = TwinrlRunner(policy, name=f"offline:{c.method.slug}:seed{k}")
-            else:
-                runner = TwinrlRunner(c.checkpoint)
-            report = evaluate(
-                runner,
-                task,
-                world="plant",
-                grid=s.grid,
-                episodes=s.episodes,
-                seed=EVAL_SEED + k,
-                out=out / "evaluations" / f"seed{k}" / f"{index:02d}",
-            )
-            rates[c.label].append({r: report.success_rate().get(r, 0.0) for r in REGION_NAMES})
-    per_region = {r: sum(c.episodes for c in report.cells if c.region == r) for r in REGION_NAMES}
+    for job, (rate, _) in zip(jobs, measured, strict=True):
+        rates[job.candidate.label].append(rate)
+    per_region = measured[-1][1]  # episodes per region of one evaluation (all alike)
     result = {
         "run": str(s.run),
         "task": task,
@@ -159,6 +163,41 @@ def measure_stages(
     _plot(result, out / "stages.png")
     write_text_atomic(out / "stages.md", _markdown(result, per_region))
     return result
+
+
+@dataclass(frozen=True)
+class _Evaluation:
+    """One policy measured with one seed: a job that runs anywhere."""
+
+    run: Path
+    out: Path
+    task: str
+    seed: int
+    candidate: _Candidate
+    settings: StagesSettings
+
+
+def _evaluated(job: _Evaluation, send: Send) -> tuple[dict[str, float], dict[str, int]]:
+    """``job``'s success rate per region and its episodes per region."""
+    c, k, s = job.candidate, job.seed, job.settings
+    send(f"seed {k}: {c.label}")
+    if c.checkpoint is None:
+        with tempfile.TemporaryDirectory() as scratch:  # the run's logs hold nothing
+            policy = _offline_policy(job.run, Path(scratch) / "run", k, c.method)
+        runner = TwinrlRunner(policy, name=f"offline:{c.method.slug}:seed{k}")
+    else:
+        runner = TwinrlRunner(c.checkpoint)
+    report = evaluate(
+        runner,
+        job.task,
+        world="plant",
+        grid=s.grid,
+        episodes=s.episodes,
+        seed=EVAL_SEED + k,
+        out=job.out,
+    )
+    rates = {r: report.success_rate().get(r, 0.0) for r in REGION_NAMES}
+    return rates, {r: sum(c.episodes for c in report.cells if c.region == r) for r in REGION_NAMES}
 
 
 def _mean(values: list[dict[str, float]]) -> dict[str, float]:
