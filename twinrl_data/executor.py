@@ -15,6 +15,9 @@ On one machine the process pool is the default: it starts in about a second wher
 takes several, and runs jobs as fast (``bench/bench_scale.py``), so Ray only pays where
 there are more machines.
 
+Work that keeps state between calls (a shard of twin environments) asks the executor
+for :mod:`actors <twinrl_data.actors>` instead: one object of a class per worker.
+
 Results come back in job order whatever the number of workers, so a seeded computation
 gives the same results on one core or many. A job may send messages (log lines,
 progress) to the caller while it runs: ``run`` passes every job a ``send`` callable
@@ -34,6 +37,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Protocol, TypeVar
 
+from twinrl_data.actors import Actors, LocalActors, ProcessActors
 from twinrl_data.errors import SettingError, TwinrlError
 
 LOCAL = "local"  # the cluster setting's value for Ray embedded on this machine
@@ -57,6 +61,11 @@ class Executor(Protocol):
         jobs: Iterable[Job],
         on_message: Callable[[Any], None],
     ) -> list[Result]: ...
+
+    def actors(self, cls: type, inits: list[dict[str, Any]]) -> Actors:
+        """One object of ``cls`` per ``inits`` entry (its keyword arguments), each where
+        a job would run (:mod:`twinrl_data.actors`)."""
+        ...
 
     def close(self) -> None: ...
 
@@ -100,6 +109,9 @@ class InlineExecutor:
         on_message: Callable[[Any], None],
     ) -> list[Result]:
         return [fn(job, on_message) for job in jobs]
+
+    def actors(self, cls: type, inits: list[dict[str, Any]]) -> Actors:
+        return LocalActors(cls, inits)
 
     def close(self) -> None:
         """Nothing to release."""
@@ -173,6 +185,9 @@ class ProcessExecutor:
                     future.cancel()  # jobs under way finish; the others never start
                 break
         return [future.result() for future in futures]  # a job's error is raised here
+
+    def actors(self, cls: type, inits: list[dict[str, Any]]) -> Actors:
+        return ProcessActors(cls, inits)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)

@@ -25,12 +25,12 @@ from __future__ import annotations
 import logging
 import os
 import warnings
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, TypeVar
 
 import ray
 from ray._private import ray_constants
-from ray.exceptions import AuthenticationError, RayTaskError
+from ray.exceptions import AuthenticationError, RayActorError, RayTaskError
 from ray.util.queue import Queue
 
 from twinrl_data.errors import TwinrlError
@@ -177,6 +177,9 @@ class RayExecutor:
             if messages is not None:
                 messages.shutdown()
 
+    def actors(self, cls: type, inits: list[dict[str, Any]]) -> RayActors:
+        return RayActors(cls, inits)
+
     def close(self) -> None:
         if self._owns_ray:
             ray.shutdown()
@@ -186,6 +189,39 @@ class RayExecutor:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class RayActors:
+    """Each object a Ray actor of one CPU (:mod:`twinrl_data.actors`), anywhere on the
+    cluster; an object's error is raised as it was raised."""
+
+    def __init__(self, cls: type, inits: list[dict[str, Any]]) -> None:
+        remote = ray.remote(num_cpus=1, max_restarts=0)(cls)
+        self._handles = [remote.remote(**init) for init in inits]
+
+    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+        if len(args) != len(self._handles):
+            raise TwinrlError(
+                f"a call to {len(self._handles)} actors needs as many argument tuples, "
+                f"got {len(args)}"
+            )
+        refs = [getattr(h, method).remote(*a) for h, a in zip(self._handles, args, strict=True)]
+        try:
+            return ray.get(refs)
+        except RayTaskError as err:  # as the object raised it
+            raise err.cause from err
+        except RayActorError as err:  # it died, or its class could not make it
+            raise TwinrlError(f"a Ray actor of {method} stopped: {err}") from err
+
+    def close(self) -> None:
+        for handle in self._handles:
+            try:
+                if hasattr(handle, "close"):
+                    ray.get(handle.close.remote())
+            except (RayTaskError, RayActorError):
+                pass
+            ray.kill(handle)
+        self._handles = []
 
 
 def _failed(ref: Any) -> bool:

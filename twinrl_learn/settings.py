@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from twinrl_data.errors import SettingError
+from twinrl_data.executor import cluster_address
 from twinrl_learn.compute import check_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import RewardSettings
@@ -304,12 +305,21 @@ class TwinRLSettings:
     """Failed rollouts to add to the exported twin buffer (at most)."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
+    workers: int | None = None
+    """Shards of the environments, each stepped by a worker (default: 1, in this process;
+    on a cluster, one per CPU); the run is the same with any number."""
+    cluster: str = ""
+    """Where the shards run: none (this machine's worker processes), local, auto,
+    HOST:PORT or ray://HOST:PORT (a Ray cluster's head); see docs/guides/scale-out.md."""
     rl: RLConfig = field(default_factory=RLConfig)
     """The agent's settings."""
 
     def __post_init__(self) -> None:
         check_device(self.device)
         task_class(self.task)  # an unknown task: the nearest name
+        if self.workers is not None and self.workers < 1:
+            raise SettingError("workers", f"must be at least 1, got {self.workers}")
+        cluster_address(self.cluster)  # a bad address stops here, before anything runs
         for name in ("envs", "steps"):
             if getattr(self, name) < 1:
                 raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")
@@ -394,12 +404,21 @@ class RealRLSettings:
     The robot loop never waits for an update either way."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
+    workers: int | None = None
+    """Shards of the environments, each stepped by a worker (default: 1, in this process;
+    on a cluster, one per CPU); the run is the same with any number."""
+    cluster: str = ""
+    """Where the shards run: none (this machine's worker processes), local, auto,
+    HOST:PORT or ray://HOST:PORT (a Ray cluster's head); see docs/guides/scale-out.md."""
     rl: RLConfig = field(default_factory=RLConfig)
     """The agent's settings."""
 
     def __post_init__(self) -> None:
         check_device(self.device)
         task_class(self.task)  # an unknown task: the nearest name
+        if self.workers is not None and self.workers < 1:
+            raise SettingError("workers", f"must be at least 1, got {self.workers}")
+        cluster_address(self.cluster)  # a bad address stops here, before anything runs
         if self.robot not in LEARNING_ROBOTS:
             raise SettingError(
                 "robot",

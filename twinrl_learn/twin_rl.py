@@ -1,6 +1,8 @@
 """Stage II: online RL in N parallel twin environments from the SFT policy.
 
-Each round resets the ``envs`` batched twin environments to configurations drawn
+Each round resets the ``envs`` batched twin environments (in this process, or split
+into shards over worker processes or a Ray cluster: :mod:`twinrl_sim.sharded`, the
+same run either way) to configurations drawn
 uniformly over the task's regions (ID and OOD), rolls the current policy out (sampling
 from its tanh-Gaussian, one action chunk at a time; the arm held while the gripper
 closes when the policy's ``grasp_hold`` says so) and logs every rollout as an
@@ -18,11 +20,13 @@ Outputs (besides :mod:`twinrl_learn.online`'s)::
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
 from twinrl_data.errors import SettingError
+from twinrl_data.executor import Executor, cluster_address, make_executor
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
@@ -35,7 +39,8 @@ from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.settings import RLConfig, TwinRLSettings
 from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.batch import BatchEnv
-from twinrl_sim.tasks import Progress, make_task
+from twinrl_sim.sharded import ShardedBatchEnv
+from twinrl_sim.tasks import Progress, Task, make_task
 
 
 def load_demo_buffer(demos: list[str], policy: Policy, rl: RLConfig) -> ReplayBuffer:
@@ -71,28 +76,44 @@ def run_twin_rl(
         run.pretrain(on_update)
         run.checkpoint()
     cameras = tuple(policy.config.cameras) if policy.needs_images else ()
-    env = BatchEnv(task, settings.envs, cameras=cameras)
-    try:
+    with ExitStack() as stack:
+        env = _environments(task, settings, cameras, stack)
         while run.agent.env_steps < settings.steps:
             episodes, metrics = _round(run, env, settings)
             record = run.record_round(episodes, metrics)
             run.checkpoint()
             if on_round is not None:
                 on_round(record, run)
-    finally:
-        env.close()
     plot_curve(run.history, run.out / "curve.png", title=f"twin RL: {task.name}")
     export_twin_buffer(run, settings.failures)
     return run
 
 
-def _round(run: OnlineRun, env: BatchEnv, settings: TwinRLSettings):
+def _environments(
+    task: Task, settings: TwinRLSettings, cameras: tuple[str, ...], stack: ExitStack
+) -> BatchEnv | ShardedBatchEnv:
+    """The run's ``envs`` environments: here, or in shards on the executor that
+    ``workers`` and ``cluster`` ask for (closed with ``stack``)."""
+    executor: Executor | None = None
+    if cluster_address(settings.cluster) is not None:
+        executor = stack.enter_context(make_executor(settings.workers, cluster=settings.cluster))
+    elif settings.workers not in (None, 1):
+        executor = stack.enter_context(make_executor(settings.workers))
+    if executor is None:
+        env: BatchEnv | ShardedBatchEnv = BatchEnv(task, settings.envs, cameras=cameras)
+    else:
+        env = ShardedBatchEnv(task, settings.envs, executor, cameras=cameras)
+    stack.callback(env.close)
+    return env
+
+
+def _round(run: OnlineRun, env: BatchEnv | ShardedBatchEnv, settings: TwinRLSettings):
     """One episode per env, logged and learned from; returns (episodes, last metrics)."""
     task, agent, n = env.task, run.agent, env.num_envs
     regions = [settings.regions[int(run.rng.integers(len(settings.regions)))] for _ in range(n)]
     configs = [task.sample_config(run.rng, region) for region in regions]
     obs = env.reset([c.to_dict() for c in configs])
-    names = env.cells[0].contract_names()
+    names = env.contract_names()
     recorders = [Recorder(run.session) for _ in range(n)]
     for recorder, region, config in zip(recorders, regions, configs, strict=True):
         recorder.start_episode(

@@ -13,7 +13,9 @@ Two shapes of work:
 calls: its results are bit-identical to stepping each env alone. :class:`BatchRollout`
 and :func:`~twinrl_sim.replay.replay` run the same engine and agree exactly.
 
-For envs in worker processes, the Gymnasium vector API works on the registered ids
+For many envs over worker processes or a Ray cluster, :class:`~twinrl_sim.sharded.
+ShardedBatchEnv` splits them into shards with the same API. For one env per worker
+process, the Gymnasium vector API works on the registered ids
 (``gymnasium.make_vec("twinrl_sim:twinrl/PickPlace-v0", num_envs=4,
 vectorization_mode="async", vector_kwargs={"context": "spawn"})``).
 """
@@ -153,6 +155,11 @@ class BatchEnv:
         self._steps = np.zeros(num_envs, dtype=int)
         self._low, self._high = action_bounds()
         self.cameras = tuple(cameras)
+
+    def contract_names(self) -> dict[str, list[str]]:
+        """The names of the observation's and the command's columns (the episode
+        contract's ``names``)."""
+        return self.cells[0].contract_names()
 
     def _obs(self) -> dict[str, np.ndarray]:
         obs = {

@@ -57,3 +57,41 @@ def test_the_cluster_setting_names_where_jobs_run(monkeypatch):
     for bad in ("head", "http://head:8265", "ray://head:70000"):
         with pytest.raises(SettingError, match=f"got '{bad}'$"):
             cluster_address(bad)
+
+
+class Counter:
+    """A stateful object for the actors: it remembers what it was told."""
+
+    def __init__(self, start: int) -> None:
+        if start < 0:
+            raise ArithmeticError(f"cannot start at {start}")
+        self.total, self.closed = start, False
+
+    def add(self, n: int) -> tuple[int, int]:
+        if n == 13:
+            raise ArithmeticError("13 is not added")
+        self.total += n
+        return self.total, os.getpid()
+
+    def close(self) -> None:
+        self.closed = True
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_actors_keep_their_state_between_calls_and_raise_as_raised(workers):
+    with make_executor(workers) as executor:
+        actors = executor.actors(Counter, [{"start": 0}, {"start": 100}])
+        assert [t for t, _ in actors.call("add", [(1,), (2,)])] == [1, 102]
+        totals = actors.call("add", [(10,), (20,)])
+        assert [t for t, _ in totals] == [11, 122]
+        pids = {pid for _, pid in totals}
+        assert (pids == {os.getpid()}) if workers == 1 else (len(pids) == 2)
+        with pytest.raises(ArithmeticError, match="13 is not added"):
+            actors.call("add", [(13,), (1,)])
+        # Still in step after a failure (whether the others' calls ran is not said).
+        assert actors.call("add", [(0,), (0,)])[0][0] == 11
+        with pytest.raises(ValueError, match="needs 2 argument tuples"):
+            actors.call("add", [(1,)])
+        actors.close()
+        with pytest.raises(ArithmeticError, match="cannot start at -1"):
+            executor.actors(Counter, [{"start": 1}, {"start": -1}])

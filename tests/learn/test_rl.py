@@ -176,6 +176,38 @@ def test_twin_rl_logs_rollouts_and_resumes_exactly(demos, tmp_path):
         run_twin_rl(settings(tmp_path / "split", 400))
 
 
+def twin_rl_outcome(run) -> tuple:
+    """What a twin RL run did: its weights and every episode's actions, in order."""
+    episodes = [read_episode(p) for p in run.session.episode_paths()]
+    return (
+        {k: v.clone() for k, v in run.agent.policy.state_dict().items()},
+        [(e.meta.config, e.data["action"].tolist(), e.meta.success) for e in episodes],
+    )
+
+
+def test_twin_rl_with_its_environments_in_shards_is_the_same_run(demos, tmp_path):
+    """Three environments split over two worker processes: the same episodes, updates
+    and weights as in one process."""
+    dataset, sft = demos
+    torch.set_num_threads(1)
+    rl = RLConfig(offline_steps=4, batch_size=16, utd=0.05)
+
+    def run(out, workers):
+        return run_twin_rl(
+            TwinRLSettings(
+                task="pick_place", init=str(sft), out=str(out), demos=[str(dataset)],
+                envs=3, steps=150, rl=rl, workers=workers,
+            )
+        )  # fmt: skip
+
+    alone, apart = run(tmp_path / "alone", 1), run(tmp_path / "apart", 2)
+    (weights, episodes), (their_weights, their_episodes) = map(twin_rl_outcome, (alone, apart))
+    assert episodes == their_episodes and len(episodes) >= 3
+    assert alone.agent.updates == apart.agent.updates > 4
+    for key, value in weights.items():
+        torch.testing.assert_close(value, their_weights[key], rtol=0, atol=0)
+
+
 def test_mining_prefers_failure_prone_informative_configurations():
     # A synthetic success map over the 4x4 grid: target y decides the true rate.
     rng = np.random.default_rng(0)

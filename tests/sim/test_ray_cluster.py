@@ -1,7 +1,8 @@
 """The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
 come back in order, the first failure is raised as it was, `expand` keeps the same
-demonstrations as the process pool, and mining and the gap diagnosis find what one
-process finds, for the same seed."""
+demonstrations as the process pool, mining and the gap diagnosis find what one process
+finds, and twin RL with its environments in shards on the nodes is the same run, for the
+same seed."""
 
 import json
 import sys
@@ -11,11 +12,14 @@ import numpy as np
 import psutil
 import pytest
 import ray
+import torch
 from ray._private import ray_constants
 from ray.cluster_utils import Cluster
 from typer.testing import CliRunner
 
+from tests.conftest import tiny_state_policy
 from tests.data.test_executor import chatty  # the same chatty job on Ray as on processes
+from tests.learn.test_rl import twin_rl_outcome
 from tests.sim.test_gap_diagnose import SCENE, _record
 from tests.sim.test_gap_search import HIDDEN, outcome
 from twinrl_data import ray_executor
@@ -26,6 +30,8 @@ from twinrl_data.session import Session
 from twinrl_learn.cli import app, main
 from twinrl_learn.mining import mine
 from twinrl_learn.runners import ExpertRunner
+from twinrl_learn.settings import RLConfig, TwinRLSettings
+from twinrl_learn.twin_rl import run_twin_rl
 from twinrl_sim.expand import expand
 from twinrl_sim.gap.diagnose import diagnose
 
@@ -165,6 +171,27 @@ def test_a_gap_diagnosis_on_the_cluster_finds_what_one_process_finds(cluster, tm
     assert on_ray == outcome(alone)[0]
     assert report["selected"] == alone.selected
     assert [s["effect"] for s in alone.selected] == ["payload"]
+
+
+@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
+def test_twin_rl_with_its_environments_on_the_nodes_is_the_same_run(cluster, tmp_path):
+    dataset, sft = tiny_state_policy(tmp_path / "sft", seed=3, steps=30)
+    torch.set_num_threads(1)
+
+    def run(out, cluster_address):
+        return run_twin_rl(
+            TwinRLSettings(
+                task="pick_place", init=str(sft), out=str(out), demos=[str(dataset)],
+                envs=2, steps=100, cluster=cluster_address,
+                rl=RLConfig(offline_steps=4, batch_size=16, utd=0.05),
+            )
+        )  # fmt: skip
+
+    alone, spread = run(tmp_path / "alone", ""), run(tmp_path / "ray", cluster.address)
+    (weights, episodes), (their_weights, their_episodes) = map(twin_rl_outcome, (alone, spread))
+    assert episodes == their_episodes and len(episodes) >= 2
+    for key, value in weights.items():
+        torch.testing.assert_close(value, their_weights[key], rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("value", ["bogus", "ray:/head:10001", "head:0", "ray://head"])

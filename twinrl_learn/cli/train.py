@@ -187,7 +187,9 @@ def twin_rl(settings: dict[str, Any], resume: bool) -> None:
     )
 
 
-TWIN_RL_FIELDS = ("task", "out", "init", "demos", "envs", "steps", "failures", "device")
+TWIN_RL_FIELDS = (
+    "task", "out", "init", "demos", "envs", "steps", "failures", "device", "workers", "cluster",
+)  # fmt: skip
 settings_command(
     app,
     "twin-rl",

@@ -1,0 +1,133 @@
+"""Stateful workers beside the executor's jobs: :class:`Actors`.
+
+A job (:mod:`twinrl_data.executor`) starts from nothing and returns one result. Some
+work keeps state between calls: a shard of twin environments steps from where its last
+call left it. An executor's :meth:`~twinrl_data.executor.Executor.actors` makes one
+object of a class per worker, where its jobs would run, and :meth:`Actors.call` calls
+one method on every object at once and returns their results in order:
+
+- :class:`LocalActors`: the objects in this process (one worker);
+- :class:`ProcessActors`: each object in a spawned process of its own, spoken to over
+  a pipe;
+- :class:`~twinrl_data.ray_executor.RayActors`: each a Ray actor, on a cluster or Ray
+  embedded here.
+
+An object's error is raised in the caller as it was raised in the worker. Classes and
+arguments must be picklable, as jobs are.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+from twinrl_data.errors import TwinrlError
+
+
+class Actors(Protocol):
+    """One object per worker; see the module docstring."""
+
+    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+        """``method`` of every object at once, object ``i`` with ``args[i]``; the results
+        in order."""
+        ...
+
+    def close(self) -> None:
+        """Close every object (its ``close`` method, if it has one) and stop its worker."""
+        ...
+
+
+def _checked(count: int, args: Sequence[tuple]) -> None:
+    if len(args) != count:
+        raise TwinrlError(
+            f"a call to {count} actors needs {count} argument tuples, got {len(args)}"
+        )
+
+
+class LocalActors:
+    """The objects in this process, called one after another."""
+
+    def __init__(self, cls: type, inits: Sequence[dict[str, Any]]) -> None:
+        self.objects = [cls(**init) for init in inits]
+
+    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+        _checked(len(self.objects), args)
+        return [getattr(o, method)(*a) for o, a in zip(self.objects, args, strict=True)]
+
+    def close(self) -> None:
+        for obj in self.objects:
+            getattr(obj, "close", lambda: None)()
+
+
+def _serve(connection: Any, cls: type, init: dict[str, Any]) -> None:
+    """A worker process's loop: make the object, then answer calls until told to stop."""
+    try:
+        obj = cls(**init)
+    except BaseException as error:  # handed to the caller at its first call
+        connection.send(("error", error))
+        return
+    connection.send(("ok", None))
+    while (message := connection.recv()) is not None:
+        method, args = message
+        try:
+            connection.send(("ok", getattr(obj, method)(*args)))
+        except BaseException as error:
+            connection.send(("error", error))
+    getattr(obj, "close", lambda: None)()
+    connection.send(("ok", None))
+
+
+class ProcessActors:
+    """Each object in a spawned process of its own (spawned, as the executor's workers
+    are, so MuJoCo's GL contexts and torch start clean)."""
+
+    def __init__(self, cls: type, inits: Sequence[dict[str, Any]]) -> None:
+        context = multiprocessing.get_context("spawn")
+        self._pipes, self._processes = [], []
+        for init in inits:
+            ours, theirs = context.Pipe()
+            process = context.Process(target=_serve, args=(theirs, cls, init), daemon=True)
+            process.start()
+            theirs.close()
+            self._pipes.append(ours)
+            self._processes.append(process)
+        try:
+            self._answers()  # every object made, or the first error raised
+        except BaseException:
+            self.close()
+            raise
+
+    def _answers(self) -> list[Any]:
+        """One answer from every worker (all read, so the pipes stay in step); the first
+        error is raised."""
+        answers = []
+        for pipe, process in zip(self._pipes, self._processes, strict=True):
+            try:
+                answers.append(pipe.recv())
+            except EOFError:
+                answers.append(("error", TwinrlError(f"actor process {process.pid} died")))
+        for status, value in answers:
+            if status == "error":
+                raise value
+        return [value for _, value in answers]
+
+    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+        _checked(len(self._pipes), args)
+        for pipe, a in zip(self._pipes, args, strict=True):
+            pipe.send((method, tuple(a)))
+        return self._answers()
+
+    def close(self) -> None:
+        for pipe, process in zip(self._pipes, self._processes, strict=True):
+            if process.is_alive():
+                try:
+                    pipe.send(None)
+                    pipe.recv()
+                except (EOFError, BrokenPipeError, OSError):
+                    pass
+            process.join(timeout=10)
+            if process.is_alive():
+                process.kill()
+            pipe.close()
+        self._pipes, self._processes = [], []
