@@ -31,8 +31,9 @@ and ``representative.rrd`` (a TwinRL episode with an intervention and its last o
 With ``resume`` a stopped pipeline continues: finished stages are skipped and an
 interrupted real-RL run resumes from its last checkpoint. The real-RL runs are
 independent (each has its own seed, folder and plant), so ``workers`` processes run
-them side by side, or Ray tasks on a cluster (``cluster``, as Stage I's synthesis);
-the results do not depend on how many.
+them side by side, or Ray tasks on a cluster (``cluster``); on a cluster, Stage I's
+synthesis, Stage II's twin environments and the mining's grid spread over it too. The
+results do not depend on how many workers or machines.
 """
 
 from __future__ import annotations
@@ -97,8 +98,8 @@ def run_demo(
     ``inputs`` overrides the preset's state-policy inputs (``absolute``/``relative``);
     ``on_progress`` hears from every real-RL run after each of its episodes; ``device``
     is where every stage's networks run (:mod:`twinrl_learn.compute`); ``cluster`` where
-    the twin demos and the real-RL runs do (:func:`twinrl_data.executor.cluster_address`:
-    ``out`` on storage every node sees)."""
+    the twin demos, Stage II's environments, the mining and the real-RL runs do
+    (:func:`twinrl_data.executor.cluster_address`: ``out`` on storage every node sees)."""
     make_task(task)
     check_device(device)
     cluster_address(cluster)
@@ -125,8 +126,8 @@ def run_demo(
     _check_same_run(out / "run.json", recorded)
     out.mkdir(parents=True, exist_ok=True)
     stage1 = _stage1(task, p, out / "stage1", log, device, cluster)
-    stage2 = _stage2(task, p, out, stage1, log, device)
-    targets = _mining(task, p, out, stage2, log, device)
+    stage2 = _stage2(task, p, out, stage1, log, device, cluster)
+    targets = _mining(task, p, out, stage2, log, device, cluster)
     runs: dict[str, dict[int, Path]] = {}
     jobs = []
     for method in METHOD_TABLE:
@@ -245,7 +246,7 @@ def _demos(stage1: dict[str, Path], *, twin: bool) -> list[str]:
 
 
 def _stage2(
-    task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log, device: str
+    task: str, p: Preset, out: Path, stage1: dict[str, Path], log: Log, device: str, cluster: str
 ) -> Path:
     folder = out / "stage2"
     if not _done(folder):
@@ -259,6 +260,7 @@ def _stage2(
                 envs=p.twin_envs,
                 steps=p.twin_rl_steps,
                 device=device,
+                cluster=cluster,  # none: the envs in this process
                 rl=twin_rl_config(p),
             )
         )
@@ -269,7 +271,9 @@ def _stage2(
     return folder
 
 
-def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str) -> Path:
+def _mining(
+    task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str, cluster: str
+) -> Path:
     path = out / "targets.json"
     if not path.is_file():
         log("Stage III: mining failure-prone configurations in the twin")
@@ -280,6 +284,8 @@ def _mining(task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str
             out=path,
             grid=p.mining_grid,
             episodes=p.mining_episodes,
+            workers=None if cluster_address(cluster) is not None else 1,  # a cluster's CPUs
+            cluster=cluster,
         )
     return path
 
