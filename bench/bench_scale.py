@@ -1,4 +1,5 @@
-"""Scale-out: twin demo synthesis (`twinrl expand`) on this machine's worker processes
+"""Scale-out: twin demo synthesis (`twinrl expand`) and twin RL's environments
+(:class:`~twinrl_sim.sharded.ShardedBatchEnv`) on this machine's worker processes
 against Ray embedded on this machine, for 1 and 2 workers, side by side in one run.
 
 Each backend's start-up (the executor made, a trivial job on every worker, closed) is
@@ -8,9 +9,13 @@ overhead is its time over the processes' for the same workers and the same attem
 (which must keep the same demonstrations: same seed, same results). From Ray's rate
 per worker it estimates a paper-scale synthesis on ``machines`` machines of ``cores``
 cores each, assuming jobs scale linearly (they share nothing but the output folder).
-Usage::
 
-    python bench/bench_scale.py --demos 40
+Twin RL's environments: ``envs`` pick-and-place envs stepped ``steps`` times with the
+same seeded actions, in this process (one worker) or in shards, with and without the
+two cameras; env-steps per second once the shards are up, and the observations of
+every variant checked equal. Usage::
+
+    python bench/bench_scale.py --demos 40 --envs 8 --steps 60
 """
 
 from __future__ import annotations
@@ -21,10 +26,14 @@ import time
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 from twinrl_data.executor import make_executor
+from twinrl_sim.batch import BatchEnv
 from twinrl_sim.expand import ExpandReport, expand
+from twinrl_sim.sharded import ShardedBatchEnv
+from twinrl_sim.tasks import make_task
 
 BACKENDS = {"processes": "", "Ray (embedded)": "local"}
 
@@ -55,13 +64,42 @@ def synthesized(task: str, demos: int, workers: int, cluster: str) -> ExpandRepo
         shutil.rmtree(out.parent)
 
 
+def stepped(
+    envs: int, steps: int, workers: int, cluster: str, cameras: tuple[str, ...]
+) -> tuple[float, np.ndarray]:
+    """(env-steps per second once started, the last observation's state rows) of
+    ``envs`` envs stepped ``steps`` times with seeded actions."""
+    task = make_task("pick_place")
+    rng = np.random.default_rng(0)
+    configs = [task.sample_config(rng).to_dict() for _ in range(envs)]
+    actions = rng.uniform(-1.0, 1.0, (steps, envs, 7)) * [0.01, 0.01, 0.01, 0.05, 0.05, 0.05, 1]
+    actions[:, :, 6] = actions[:, :, 6] > 0  # the gripper opened or closed
+    with make_executor(workers, cluster=cluster) as executor:
+        if workers == 1 and not cluster:
+            env: BatchEnv | ShardedBatchEnv = BatchEnv(task, envs, cameras=cameras)
+        else:
+            env = ShardedBatchEnv(task, envs, executor, cameras=cameras)
+        try:
+            env.reset(configs)
+            start = time.perf_counter()
+            for row in actions:
+                obs, *_ = env.step(row)
+            seconds = time.perf_counter() - start
+        finally:
+            env.close()
+    return envs * steps / seconds, obs["observation.state"]
+
+
 def main(
     task: Annotated[str, typer.Option(help="Task to synthesize.")] = "pick_place",
     demos: Annotated[int, typer.Option(help="Demonstrations, half ID, half OOD.")] = 40,
     paper_demos: Annotated[int, typer.Option(help="Demonstrations of the estimate.")] = 1000,
     machines: Annotated[int, typer.Option(help="Machines of the estimate.")] = 4,
     cores: Annotated[int, typer.Option(help="Cores per machine of the estimate.")] = 16,
+    envs: Annotated[int, typer.Option(help="Twin RL environments.")] = 8,
+    steps: Annotated[int, typer.Option(help="Vector steps of the environments.")] = 60,
 ) -> None:
+    _environments(envs, steps, machines, cores)
     rows, reports = [], {}
     for workers in (1, 2):
         for name, cluster in BACKENDS.items():
@@ -93,6 +131,26 @@ def main(
         f"\nestimate: {paper_demos} demos on {machines} machines x {cores} cores at "
         f"{per_worker:.2f} attempts/s per worker and a {100 * yield_rate:.0f} % yield: "
         f"{paper_demos / yield_rate / rate:.0f} s of synthesis (plus the cluster's start-up)"
+    )
+
+
+def _environments(envs: int, steps: int, machines: int, cores: int) -> None:
+    print(f"twin RL environments: {envs} pick_place envs, {steps} vector steps\n")
+    print("| cameras | workers | backend | env-steps/s | ratio to one process |")
+    print("|---|---|---|---|---|")
+    for cameras in ((), ("front", "wrist")):
+        alone, states = stepped(envs, steps, 1, "", cameras)
+        label = "front, wrist" if cameras else "none"
+        print(f"| {label} | 1 | in the process | {alone:.0f} | 1.00 |")
+        for name, cluster in BACKENDS.items():
+            rate, theirs = stepped(envs, steps, 2, cluster, cameras)
+            assert np.array_equal(states, theirs), f"{name}: other observations"
+            print(f"| {label} | 2 | {name} | {rate:.0f} | {rate / alone:.2f} |")
+        per_worker = rate / 2
+    print(
+        f"\nestimate, with cameras: {machines} machines x {cores} cores at {per_worker:.0f} "
+        f"env-steps/s per Ray worker: {per_worker * machines * cores:.0f} env-steps/s, if "
+        "the learner's machine keeps up with their observations\n"
     )
 
 
