@@ -69,6 +69,7 @@ from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
 from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord, region_success
+from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl_progress import (
     EVALUATIONS_FILE,
@@ -79,6 +80,7 @@ from twinrl_learn.real_rl_progress import (
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.reward_classifier import RewardClassifier
 from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.seeing_operator import SeeingOperator
 from twinrl_learn.settings import RealRLSettings, RLConfig
 from twinrl_robot.backends import ROBOTS, open_robot
 from twinrl_robot.cell_file import load_cell
@@ -221,6 +223,8 @@ class RealRL:
         cameras = list(policy.config.cameras) if policy.needs_images else []
         if self.classifier is not None:
             cameras += [c for c in self.classifier.settings.cameras if c not in cameras]
+        watched = getattr(operator, "cameras", ())  # an operator who judges by sight
+        cameras += [c for c in watched if c not in cameras]
         self._cameras = tuple(cameras)
         real = s.robot == "ur"
         if real and not s.emulated and policy.config.kind == "state":
@@ -570,8 +574,13 @@ def checked_classifier(
 
 def _operator(settings: RealRLSettings, operator: Operator | None) -> Operator | None:
     """The operator given, else the simulated one where the cell lends it the ground
-    truth and no person's device is named (a device's operator is opened with it)."""
+    truth and no person's device is named (a device's operator is opened with it); with
+    ``operator_sees``, the simulated one that judges from a pose estimator's view."""
     simulated = settings.robot == "plant" or settings.emulated
     if operator is not None or settings.operator is None or settings.teleop or not simulated:
         return operator
-    return SimulatedOperator(settings.operator, seed=settings.rl.seed + 7)
+    seed = settings.rl.seed + 7
+    if settings.operator_sees is not None:
+        estimator = PoseEstimator.from_pretrained(settings.operator_sees, settings.device)
+        return SeeingOperator(estimator, settings.operator, seed=seed)
+    return SimulatedOperator(settings.operator, seed=seed)

@@ -404,21 +404,21 @@ class RealRLSettings:
     The robot loop never waits for an update either way."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
-    workers: int | None = None
-    """Shards of the environments, each stepped by a worker (default: 1, in this process;
-    on a cluster, one per CPU); the run is the same with any number."""
-    cluster: str = ""
-    """Where the shards run: none (this machine's worker processes), local, auto,
-    HOST:PORT or ray://HOST:PORT (a Ray cluster's head); see docs/guides/scale-out.md."""
+    operator_sees: str | None = None
+    """A pose estimator (`twinrl train perception`): the simulated operator decides from
+    where it sees the objects in the cameras, not from the plant's progress (a person's
+    eyes, not the ground truth)."""
     rl: RLConfig = field(default_factory=RLConfig)
     """The agent's settings."""
 
     def __post_init__(self) -> None:
         check_device(self.device)
         task_class(self.task)  # an unknown task: the nearest name
-        if self.workers is not None and self.workers < 1:
-            raise SettingError("workers", f"must be at least 1, got {self.workers}")
-        cluster_address(self.cluster)  # a bad address stops here, before anything runs
+        if self.operator_sees is not None and (self.operator is None or self.teleop):
+            raise SettingError(
+                "operator_sees", "is the simulated operator's eyes: not with a person's "
+                "device (teleop) or without an operator"
+            )  # fmt: skip
         if self.robot not in LEARNING_ROBOTS:
             raise SettingError(
                 "robot",

@@ -26,7 +26,7 @@ from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, JOINT_TARGET, STATE
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import EndEffectorController
 from twinrl_sim.effects import torque_offset
-from twinrl_sim.robots.gripper import opening_from_joint
+from twinrl_sim.robots.gripper import STROKE, opening_from_joint
 from twinrl_sim.servo import servo_lead, tracking_setpoints
 
 
@@ -127,6 +127,20 @@ class Cell:
         else:
             self.data.mocap_pos[self._mocap[name]] = pos
             self.data.mocap_quat[self._mocap[name]] = quat
+
+    def pose(
+        self, arm_q: np.ndarray, opening: float, objects: dict[str, tuple[np.ndarray, np.ndarray]]
+    ) -> None:
+        """Put the arm at ``arm_q``, the fingers ``opening`` m apart and each of
+        ``objects`` at its (position, quaternion wxyz), and update the kinematics without
+        stepping the physics: the twin posed as a log or an estimate says (a task's
+        progress can then be judged on it)."""
+        self.data.qpos[self.arm_qpos] = arm_q
+        if self.gripper_qpos is not None:
+            self.data.qpos[self.gripper_qpos] = np.clip(STROKE - opening / 2.0, 0.0, STROKE)
+        for name, (pos, quat) in objects.items():
+            self.place_object(name, pos, quat)
+        mujoco.mj_kinematics(self.model, self.data)
 
     def finish_reset(self) -> None:
         """Recompute derived quantities and initialise actuator history after placing."""

@@ -167,3 +167,137 @@ def test_rl_updates_of_a_perceiving_policy_read_estimates_computed_once(trained,
     finally:
         FrozenBackbone.__call__ = original
     assert batch.estimates.shape == batch.next_estimates.shape == (8, 18)
+
+
+def test_objects_are_placed_in_the_world_where_the_estimates_say(trained):
+    """world_poses inverts the estimator's targets (the relative poses a perfect
+    estimator would say) back into the logged world poses."""
+    from twinrl_learn.policy.inputs import relative_poses
+    from twinrl_learn.seeing_operator import world_poses
+    from twinrl_sim.tasks import make_task
+
+    folder, _, out, _ = trained
+    episode = read_episode(Session(folder / "session").episode_paths()[0])
+    names = make_task("pick_place").scene.object_names
+    order = PoseEstimator.from_pretrained(out).config.objects
+    state = episode.data["observation.state"]
+    environment = episode.data["observation.environment_state"]
+    tcp = episode.meta.names["observation.state"].index("tcp.x")
+    exact = relative_poses(
+        torch.as_tensor(state), torch.as_tensor(environment), tcp,
+        [7 * names.index(n) for n in order], True,
+    ).numpy()  # fmt: skip
+    for row in range(0, len(state), 7):
+        poses = world_poses(exact[row], state[row], tcp)
+        for k, name in enumerate(order):
+            truth = environment[row, 7 * names.index(name) : 7 * names.index(name) + 7]
+            np.testing.assert_allclose(poses[k, :3], truth[:3], atol=1e-5)
+            assert abs(abs(np.dot(poses[k, 3:], truth[3:])) - 1) < 1e-5  # q and -q alike
+
+
+def test_the_seeing_operator_judges_progress_on_what_it_sees(trained, tmp_path):
+    """Given exact estimates, the operator's twin says success exactly where the episode
+    did (the settled frames after it); with the trained estimator it sees the objects
+    within its error, and it never asks for the plant's progress."""
+    from twinrl_learn.policy.inputs import relative_poses
+    from twinrl_learn.seeing_operator import SeeingOperator, world_poses
+    from twinrl_robot.scripted import run_scripted_expert
+    from twinrl_sim.tasks import TaskConfig, make_task
+
+    _, _, out, _ = trained
+    session = Session.create(tmp_path / "session")
+    run_scripted_expert("pick_place", world="twin", episodes=1, regions=("ID",), seed=8,
+                        session=session, settle=3)  # fmt: skip
+    episode = read_episode(session.episode_paths()[0])
+    assert episode.meta.success
+    task = make_task("pick_place")
+    estimator = PoseEstimator.from_pretrained(out)
+    operator = SeeingOperator(estimator, seed=0)
+    assert operator.judges_progress is False and operator.cameras == ("front", "wrist")
+    state = episode.data["observation.state"]
+    environment = episode.data["observation.environment_state"]
+    tcp = episode.meta.names["observation.state"].index("tcp.x")
+    names = task.scene.object_names
+    indices = [7 * names.index(n) for n in estimator.config.objects]
+    exact = relative_poses(torch.as_tensor(state), torch.as_tensor(environment), tcp, indices,
+                           True)  # fmt: skip
+
+    class Perfect:
+        """A perfect estimator: the logged poses, as an estimator says them."""
+
+        config = estimator.config
+        row = 0
+
+        def estimate(self, images, state):
+            return exact[self.row][None]
+
+    def observation(t):
+        return {
+            "observation.state": state[t],
+            "observation.environment_state": np.zeros_like(environment[t]),  # never read
+            **{f"observation.images.{c}": episode.images[c][t] for c in ("front", "wrist")},
+        }
+
+    perfect = Perfect()
+    operator.estimator = perfect
+    operator.reset(task, TaskConfig.from_dict(episode.meta.config))
+    judged = []
+    for t in range(len(state)):
+        perfect.row = t
+        seen, progress = operator.seen(observation(t))
+        np.testing.assert_allclose(seen["observation.environment_state"], environment[t], atol=1e-4)
+        judged.append(progress.success)
+    succeeded = np.asarray(episode.data["next.success"], bool)
+    first = int(np.argmax(succeeded))
+    assert judged[: first + 1] == [False] * (first + 1) and all(judged[first + 1 :])
+    # The trained estimator (a tiny one): what the operator sees is what it says.
+    operator.estimator = estimator
+    operator.reset(task, TaskConfig.from_dict(episode.meta.config))
+    seen, _ = operator.seen(observation(0))
+    images = {c: episode.images[c][:1] for c in ("front", "wrist")}
+    said = world_poses(estimator.estimate(images, state[:1])[0].numpy(), state[0], tcp)
+    order = [estimator.config.objects.index(n) for n in names]
+    np.testing.assert_allclose(seen["observation.environment_state"], said[order].ravel(),
+                               atol=1e-5)  # fmt: skip
+    assert operator.intervene(observation(1), None) is None  # it watches before acting
+    with pytest.raises(LearnError, match="watches camera front"):
+        operator.intervene({"observation.state": state[2]}, None)
+
+
+def test_real_rl_with_an_operator_who_sees_reads_no_progress_from_the_plant(trained, tmp_path):
+    """`operator_sees`: the simulated operator is the one that sees through the estimator,
+    the cell records the cameras it watches (the state policy needs none), and the plant's
+    progress never reaches it."""
+    from tests.conftest import tiny_state_policy
+    from twinrl_learn.real_rl import RealRL
+    from twinrl_learn.seeing_operator import SeeingOperator
+    from twinrl_learn.settings import RealRLSettings, RLConfig
+    from twinrl_robot.operator import OperatorRule
+
+    _, _, out, _ = trained
+    dataset, sft = tiny_state_policy(tmp_path / "sft", seed=5, steps=20)
+    heard = []
+    original = SeeingOperator.intervene
+    SeeingOperator.intervene = lambda self, obs, progress: (
+        heard.append(progress) or original(self, obs, progress)
+    )
+    try:
+        real = RealRL.start(
+            RealRLSettings(
+                task="pick_place", init=str(sft), out=str(tmp_path / "run"), demos=[str(dataset)],
+                plant_steps=30, eval_every=0, eval_grid=(1, 1), refresh_every=0,
+                show_resets=False, operator=OperatorRule(patience=3, delay=1),
+                operator_sees=str(out),
+                rl=RLConfig.for_method("twinrl", offline_steps=2, batch_size=16, seed=1),
+            )
+        )  # fmt: skip
+        assert isinstance(real.operator, SeeingOperator)
+        run = real.run()
+    finally:
+        SeeingOperator.intervene = original
+    assert run.agent.env_steps >= 30 and heard and all(p is None for p in heard)
+    episode = read_episode(Session(tmp_path / "run" / "session").episode_paths()[0])
+    assert set(episode.images) == {"front", "wrist"}  # what the operator watched
+    with pytest.raises(SettingError, match="operator_sees"):
+        RealRLSettings(task="pick_place", init=str(sft), out=str(tmp_path / "x"),
+                       operator=None, operator_sees=str(out))  # fmt: skip

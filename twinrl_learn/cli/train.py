@@ -293,7 +293,7 @@ REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
     "classifier", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "plant_steps", "eval_every", "eval_grid",
-    "eval_episodes", "learner_sync", "show_resets", "view", "device",
+    "eval_episodes", "learner_sync", "show_resets", "view", "device", "operator_sees",
 )  # fmt: skip
 settings_command(
     app,

@@ -1,0 +1,125 @@
+"""A simulated person who decides from what the cameras show, not from the plant.
+
+:class:`~twinrl_robot.operator.SimulatedOperator` judges the task's progress from the
+plant's ground truth and drives the scripted expert from the true object poses: a
+person who knows where everything is to the millimetre. :class:`SeeingOperator` is the
+same person with only their eyes: every step a pose estimator
+(:mod:`twinrl_learn.perception`, trained on twin renders) says where the objects are
+from the cameras and the arm's own pose; the operator's copy of the twin is posed with
+the arm's measured joints and those estimates, and the task's progress (its tracker:
+which marks a wipe has taken, say) is judged there. The takeover rule, the expert's
+plan and the hand-back all run on what was seen. It needs no privileged channel, so it
+also stands in for a person at an emulated cell whose ground truth is not read.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import torch
+
+from twinrl_data.schema import ENVIRONMENT_STATE, STATE, image_field
+from twinrl_learn.errors import LearnError
+from twinrl_learn.perception.estimator import PoseEstimator
+from twinrl_robot.operator import OperatorRule, SimulatedOperator
+from twinrl_sim.build import compile_scene
+from twinrl_sim.cell import Cell
+from twinrl_sim.tasks import Progress, Task, TaskConfig
+from twinrl_sim.tasks.base import Tracker
+
+
+def world_poses(estimates: np.ndarray, state: np.ndarray, tcp_index: int) -> np.ndarray:
+    """Each object's world pose (n, 7: xyz, quaternion wxyz) from one row of a pose
+    estimator's ``estimates`` (positions relative to the TCP in decimetres, base axes,
+    then each orientation's 6-number code in the tool frame) and the ``state`` row
+    holding the TCP's pose at ``tcp_index``."""
+    count = len(estimates) // 9
+    tcp = np.asarray(state[tcp_index : tcp_index + 3], float)
+    tool = np.empty(9)
+    mujoco.mju_quat2Mat(tool, np.asarray(state[tcp_index + 3 : tcp_index + 7], float))
+    poses = np.empty((count, 7))
+    for k in range(count):
+        poses[k, :3] = tcp + estimates[3 * k : 3 * k + 3] / 10.0
+        code = np.asarray(estimates[3 * count + 6 * k : 3 * count + 6 * k + 6], float)
+        relative = _rotation(code[0::2], code[1::2])  # the matrix's first two columns
+        mujoco.mju_mat2Quat(poses[k, 3:], (tool.reshape(3, 3) @ relative).ravel())
+    return poses
+
+
+def _rotation(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """The rotation whose first two columns are nearest ``first`` and ``second``
+    (Gram-Schmidt)."""
+    x = first / max(np.linalg.norm(first), 1e-9)
+    y = second - np.dot(x, second) * x
+    y /= max(np.linalg.norm(y), 1e-9)
+    return np.column_stack([x, y, np.cross(x, y)])
+
+
+class SeeingOperator(SimulatedOperator):
+    """The simulated operator judging from ``estimator``'s view (module docstring)."""
+
+    judges_progress = False  # it judges for itself, from what it sees
+
+    def __init__(
+        self, estimator: PoseEstimator, rule: OperatorRule | None = None, seed: int | None = None
+    ) -> None:
+        super().__init__(rule or OperatorRule(), seed)
+        self.estimator = estimator
+        self.cameras = tuple(estimator.config.cameras)
+        self._cell: Cell | None = None
+        self._tracker: Tracker | None = None
+        self._scene_of: Task | None = None
+        self._tcp_index = estimator.config.state_names.index("tcp.x")
+
+    def reset(self, task: Task, config: TaskConfig) -> None:
+        super().reset(task, config)
+        missing = set(task.scene.object_names) - set(self.estimator.config.objects)
+        if missing:
+            raise LearnError(
+                f"the pose estimator does not see {sorted(missing)[0]}, which {task.name} "
+                "needs; train one on this task's twin (`twinrl train perception`)"
+            )
+        if self._cell is None or self._scene_of is not task:
+            if self._cell is not None:
+                self._cell.close()
+            self._cell, self._scene_of = Cell(compile_scene(task.scene)), task
+        self._tracker = task.start(self._cell, config)  # where the person set things up
+
+    def seen(self, observation: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], Progress]:
+        """``observation`` with the object poses the estimator sees in its cameras, and
+        the task's progress judged on them."""
+        if self._cell is None or self._tracker is None or self.task is None:
+            raise RuntimeError("reset the operator at the start of each episode")
+        missing = [c for c in self.cameras if image_field(c) not in observation]
+        if missing:
+            raise LearnError(
+                f"the operator watches camera {missing[0]}, which the robot does not record"
+            )
+        state = np.asarray(observation[STATE], np.float32)
+        images = {c: np.asarray(observation[image_field(c)])[None] for c in self.cameras}
+        with torch.no_grad():
+            estimates = self.estimator.estimate(images, state[None])[0].numpy()
+        poses = world_poses(estimates, state, self._tcp_index)
+        order = {name: k for k, name in enumerate(self.estimator.config.objects)}
+        names = self.task.scene.object_names
+        self._cell.pose(
+            state[: len(self._cell.arm_qpos)],
+            float(state[-1]),  # the gripper's measured opening
+            {name: (poses[order[name], :3], poses[order[name], 3:]) for name in names},
+        )
+        environment = np.concatenate([poses[order[n]] for n in names])
+        return {**observation, ENVIRONMENT_STATE: environment.astype(np.float32)}, (
+            self._tracker.update()
+        )
+
+    def intervene(
+        self, observation: dict[str, np.ndarray], progress: Progress | None
+    ) -> np.ndarray | None:
+        """As the simulated operator, on what it sees (``progress`` is not read)."""
+        seen, judged = self.seen(observation)
+        return super().intervene(seen, judged)
+
+    def close(self) -> None:
+        if self._cell is not None:
+            self._cell.close()
+            self._cell = None
