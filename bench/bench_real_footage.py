@@ -9,8 +9,9 @@ with the phone's calibration file, each twice with one seed:
 
 Targets (the footage issues' acceptance): >= 90 % of frames registered, the table plane
 within 1 cm and 2 deg of the tag's, each object within 3 cm of where it stands and its
-height within 10 %, no phantom (a built object where none stands), at most 2 minutes
-for 100 frames at 640x480 on 2 cores; and the two builds of one seed alike. Also the
+height within 10 % (its footprint, long x short, is reported beside), no phantom (a
+built object where none stands), at most 2 minutes for 100 frames at 640x480 on 2
+cores; and the two builds of one seed alike. Also the
 look: masked PSNR and SSIM of the twin, dressed in the frames' pictures and in flat
 colours, against held-out frames. Usage::
 
@@ -46,10 +47,20 @@ SAME_OBJECT = 0.05  # m: a built object this near where one stands is that objec
 CASES = {"office": (OFFICE_SCENE, REALISTIC_WALK), "cluttered": (CLUTTERED_SCENE, LOW_WALK)}
 
 
+def _footprint(geoms) -> tuple[float, float]:
+    """(long, short) m of the widest of an object's box and cylinder geoms."""
+    sizes = [
+        sorted(2 * np.asarray(g.size[:2]))[::-1] if g.type == "box" else [2 * g.size[0]] * 2
+        for g in geoms
+    ]
+    return tuple(np.max(sizes, axis=0))
+
+
 def _objects(built, scene: SceneSpec) -> dict[str, str | int]:
     """Per object of ``scene``: its built height against the true one (the bottom of
-    each object sits on the table, so its true height is twice its ``pos`` z), how far
-    from where it stands; and the phantoms, built objects near none."""
+    each object sits on the table, so its true height is twice its ``pos`` z), its
+    footprint against the true one, how far from where it stands; and the phantoms,
+    built objects near none."""
     cells, matched = [], set()
     for truth in scene.objects:
         near = [
@@ -63,13 +74,15 @@ def _objects(built, scene: SceneSpec) -> dict[str, str | int]:
         matched.add(k)
         cluster = built.objects[k].cluster
         bound = "" if cluster.top_seen else " (lower bound)"
+        long, short = _footprint(truth.geoms)
         cells.append(
             f"{truth.name}: {1000 * cluster.size[2]:.0f}/{2000 * truth.pos[2]:.0f} mm "
             f"({100 * (cluster.size[2] / (2 * truth.pos[2]) - 1):+.0f} %){bound}, "
-            f"{1000 * distance:.0f} mm off"
+            f"{1000 * cluster.size[0]:.0f}x{1000 * cluster.size[1]:.0f}/"
+            f"{1000 * long:.0f}x{1000 * short:.0f}, {1000 * distance:.0f} mm off"
         )
     return {
-        "objects: height built/true, position": "; ".join(cells),
+        "objects: height built/true, footprint built/true (mm), position": "; ".join(cells),
         "phantoms": len(built.objects) - len(matched),
         "dropped": len(built.dropped),
     }

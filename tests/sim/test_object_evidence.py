@@ -8,7 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from twinrl_sim.reconstruct.evidence import ObjectEvidence, bound_depth, judge_candidates
+from twinrl_sim.reconstruct.evidence import (
+    ObjectEvidence,
+    bound_one_sided,
+    judge_candidates,
+)
 from twinrl_sim.reconstruct.pipeline import build_twin
 from twinrl_sim.reconstruct.report import dropped_lines
 from twinrl_sim.reconstruct.segment import (
@@ -127,14 +131,52 @@ def test_an_object_seen_from_one_side_is_no_deeper_than_it_is_wide():
     cluster = describe_cluster(front, DARK, TABLE)
     assert cluster.size[0] > 0.1  # as deep as the error made it
     one_side = ObjectEvidence(93, 42.0, len(front), False, (), np.array([-1.0, 0.0]))
-    bounded = bound_depth(cluster, one_side, TABLE)
+    bounded = bound_one_sided(cluster, one_side, None, TABLE)
     assert bounded.size[:2] == pytest.approx([0.071, 0.071], rel=0.1)
     assert bounded.size[2] == pytest.approx(cluster.size[2])
     assert np.linalg.norm(bounded.center[:2] - cluster.center[:2]) < 0.01
     all_round = ObjectEvidence(93, 120.0, len(front), False, (), np.array([-1.0, 0.0]))
-    assert bound_depth(cluster, all_round, TABLE) is cluster
+    assert bound_one_sided(cluster, all_round, None, TABLE) is cluster
     carved = describe_cluster(front, DARK, TABLE, front[:, :2])
-    assert bound_depth(carved, one_side, TABLE) is carved
+    assert bound_one_sided(carved, one_side, None, TABLE) is carved
+
+
+def test_an_object_seen_from_one_side_is_no_wider_across_the_view_than_its_hulls_base():
+    """A purple box (100 x 70 mm, turned so that it spans 87 mm across the view) filmed
+    from one side: stray matches on the clutter behind it spread its points 19 cm across
+    the view. Its hull's base, seen against the table, spans the box alone; the points
+    outside that band go, and the depth is bounded by what is left. A hull whose base
+    misses most of the points leaves them."""
+    rng = np.random.default_rng(2)
+    yaw, half = 0.4, np.array([0.05, 0.035])
+    turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    faces = rng.uniform(-1, 1, (300, 2)) * half
+    faces[np.arange(300) % 2 == 0, 0] = half[0]  # the two faces towards the phone
+    faces[np.arange(300) % 2 == 1, 1] = half[1]
+    box = np.c_[np.array([0.42, -0.2]) + faces @ turn.T, rng.uniform(0.01, 0.33, 300)]
+    box[:, 0] += rng.normal(0.0, 0.03, 300)  # the views look along -x: depth is error
+    strays = np.c_[
+        rng.uniform(0.36, 0.48, 40), rng.uniform(-0.3, -0.1, 40), rng.uniform(0.1, 0.3, 40)
+    ]
+    purple = np.array([0.55, 0.2, 0.6])
+    cluster = describe_cluster(np.vstack([box, strays]), purple, TABLE)
+    assert cluster.size[:2].max() > 0.17
+    one_side = ObjectEvidence(93, 43.0, len(cluster.points), False, (), np.array([-1.0, 0.0]))
+    corners = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)]) * half @ turn.T
+    low, high = corners.min(axis=0) + [0.42, -0.2], corners.max(axis=0) + [0.42, -0.2]
+    grid = np.stack(
+        np.meshgrid(*(np.arange(a, b, 0.003) for a, b in zip(low, high, strict=True))), -1
+    )
+    base = grid.reshape(-1, 2)  # the columns over the box's bounding rectangle
+    hull = Hull(base, False, None, False, 0.0, chromatic=True, base=base)
+    bounded = bound_one_sided(cluster, one_side, hull, TABLE)
+    across = float(np.ptp(corners[:, 1]))  # 87 mm
+    assert bounded.size[:2].max() < 1.15 * across
+    assert np.linalg.norm(bounded.center[:2] - [0.42, -0.2]) < 0.02
+    assert bounded.size[2] == pytest.approx(cluster.size[2], abs=0.01)
+    aside = Hull(base + [0.0, 0.3], False, None, False, 0.0, chromatic=True, base=base + [0.0, 0.3])
+    for unsure in (None, aside):
+        assert bound_one_sided(cluster, one_side, unsure, TABLE).size[:2].max() > 0.15
 
 
 @pytest.mark.slow

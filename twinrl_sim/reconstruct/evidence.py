@@ -7,10 +7,12 @@ it from, its points and whether its silhouette was carved, a confidence and, in 
 what is thin. A candidate without evidence a person would accept is no object: it is
 dropped, and the report says which and why (:func:`judge_candidates`).
 
-An object seen from one side and not carved is made no deeper along the view than it
-is wide across it (:func:`bound_depth`): its points' spread along the view is mostly
-their triangulation's error (a narrow baseline places a point well across the view and
-poorly along it), which made a 71 mm bottle 149 mm deep.
+An object seen from one side and not carved is made no wider across the view than its
+silhouettes' base and no deeper along the view than it is wide across it
+(:func:`bound_one_sided`): its points' spread along the view is mostly their
+triangulation's error (a narrow baseline places a point well across the view and
+poorly along it), which made a 71 mm bottle 149 mm deep, and stray matches on what
+stands behind fringe it across, which made a 100 x 70 mm box 188 mm wide.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from twinrl_sim.reconstruct.segment import (
     describe_cluster,
 )
 from twinrl_sim.reconstruct.sfm import SparseModel, project
-from twinrl_sim.reconstruct.silhouette import Hull
+from twinrl_sim.reconstruct.silhouette import VOXEL, Hull
 
 MIN_VIEWS = 10  # frames an object needs before its place is more than a glimpse
 ALL_ROUND_DEG = 90.0  # arc of view directions from which an object's depth is seen
@@ -151,14 +153,18 @@ def weigh_evidence(
     )
 
 
-def bound_depth(
-    cluster: ObjectCluster, evidence: ObjectEvidence, table: TablePlane
+def bound_one_sided(
+    cluster: ObjectCluster, evidence: ObjectEvidence, hull: Hull | None, table: TablePlane
 ) -> ObjectCluster:
-    """``cluster`` no deeper along the view than it is wide across it, where it was
-    seen from one side only and has no carved footprint (see the module docstring): its
-    points' offsets along the view, from the middle of their span, shrunk to the width
-    across; as it was otherwise (seen all round, carved, joined from an outline, or not
-    deeper than wide)."""
+    """``cluster`` bounded where it was seen from one side only and has no carved
+    footprint (see the module docstring), as it was otherwise (seen all round, carved,
+    joined from an outline):
+
+    - **across the view**, its points within the band its hull's base spans (the
+      columns it fills up to its points' core, seen against the table: a shadow may
+      widen it, the clutter behind does not), where that keeps at least half of them;
+    - **along the view**, its points' offsets from the middle of their span shrunk so
+      that it is no deeper than it is wide across."""
     along_view = evidence.looked_along
     if (
         along_view is None
@@ -168,21 +174,30 @@ def bound_depth(
     ):
         return cluster
     across_view = np.array([-along_view[1], along_view[0]])
-    xy = cluster.points[:, :2]
+    points, colours = cluster.points, cluster.point_colors
+    if hull is not None and hull.base is not None and len(hull.base):
+        band = hull.base @ across_view
+        across = points[:, :2] @ across_view
+        inside = (across >= band.min() - VOXEL) & (across <= band.max() + VOXEL)
+        if inside.mean() >= 0.5:
+            points = points[inside]
+            colours = None if colours is None else colours[inside]
+    xy = points[:, :2]
     trimmed = [FOOTPRINT_TRIM, 100 - FOOTPRINT_TRIM]
     near, far = np.percentile(xy @ along_view, trimmed)
     depth, width = far - near, float(np.ptp(np.percentile(xy @ across_view, trimmed)))
-    if depth <= width:
+    if depth <= width and len(points) == len(cluster.points):
         return cluster
-    middle = (near + far) / 2  # the footprint's centre stays where it was
-    points = cluster.points.copy()
-    points[:, :2] -= np.outer((xy @ along_view - middle) * (1 - width / depth), along_view)
+    if depth > width:
+        middle = (near + far) / 2  # the footprint's centre stays where it was
+        points = points.copy()
+        points[:, :2] -= np.outer((xy @ along_view - middle) * (1 - width / depth), along_view)
     from_silhouettes = cluster.top_from == "silhouettes"
     return describe_cluster(
         points,
         cluster.color,
         table,
-        point_colors=cluster.point_colors,
+        point_colors=colours,
         hull_top=float(cluster.size[2]) if from_silhouettes else None,
         top_seen=cluster.top_seen,
     )

@@ -32,7 +32,7 @@ from twinrl_sim.reconstruct.align import (
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
 from twinrl_sim.reconstruct.evidence import (
     ObjectEvidence,
-    bound_depth,
+    bound_one_sided,
     judge_candidates,
     weigh_evidence,
 )
@@ -266,9 +266,15 @@ def build_twin(
         )
         clusters, hulls = join_parts(clusters, hulls, table)
         chosen, dropped = judge_candidates(clusters, hulls)
-        clusters = [_with_hull(clusters[k], hulls[k], table) for k in chosen]
+        hulls = [hulls[k] for k in chosen]
+        clusters = [
+            _with_hull(clusters[k], hull, table) for k, hull in zip(chosen, hulls, strict=True)
+        ]
         evidence = [weigh_evidence(cluster, model, to_cell) for cluster in clusters]
-        clusters = [bound_depth(c, e, table) for c, e in zip(clusters, evidence, strict=True)]
+        clusters = [
+            bound_one_sided(c, e, h, table)
+            for c, e, h in zip(clusters, evidence, hulls, strict=True)
+        ]
         objects, ratio = _objects(clusters, evidence, table, task_scene, meshes, settings)
         stage("cameras")
         cameras = {

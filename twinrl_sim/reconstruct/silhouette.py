@@ -33,6 +33,11 @@ the background has the object's colour and few points, the hull grows instead.
   of the lowest view's elevation over it; the hull's top is taken where that bound is
   within :data:`TOP_TOLERANCE` of the height, the points' top otherwise. Where no view
   saw the space just above the top (it left every frame), the top is a lower bound.
+- **Base**: the columns the hull fills up to its points' core, seen against the table
+  from a camera above it, hence its outline across the view even where the walk saw it
+  from one side only; higher up a busy background or the view's slant widens the hull
+  (:func:`~twinrl_sim.reconstruct.evidence.bound_one_sided` takes the object's width
+  across the view from there).
 - **Support**: an object whose colour stands apart from the table's but whose hull is
   empty is not there (:func:`~twinrl_sim.reconstruct.evidence.judge_candidates`).
 
@@ -85,6 +90,7 @@ class Hull:
     overshoot: float  # m, bound on how far the hull's top may lie above the object's
     chromatic: bool = False  # told by chroma, which shading does not wear: points outside
     # its footprint are strays
+    base: np.ndarray | None = None  # (B, 2) xy of the columns it fills up to its points' core
 
     def holds(self, xy: np.ndarray) -> np.ndarray:
         """(N,) whether each of ``xy`` (N, 2) lies within a voxel of the footprint."""
@@ -182,23 +188,25 @@ class _Carving:
         if self.free is not None:  # above its points' core, seen through: empty
             kept[:, :, high + 1 :] &= (self.free < FREE_RAYS).reshape(self.shape)[:, :, high + 1 :]
         area = kept.sum(axis=(0, 1))
-        base = np.median(area[low : high + 1])
-        if base == 0:
+        core_area = np.median(area[low : high + 1])
+        if core_area == 0:
             return Hull(None, False, None, False, 0.0)
         # Its body: layers as wide as its core within a factor TOP_AREA either way (wider,
         # what stands behind spills in).
-        body = (area >= TOP_AREA * base) & (area <= base / TOP_AREA)
+        body = (area >= TOP_AREA * core_area) & (area <= core_area / TOP_AREA)
         top = high
         while top + 1 < len(area) and body[top + 1]:
             top += 1
         columns = kept[:, :, : top + 1].any(axis=2)
-        xy = self.grid.reshape(*self.shape, 3)[:, :, 0, :2][columns]
+        cells = self.grid.reshape(*self.shape, 3)[:, :, 0, :2]
+        xy = cells[columns]
         jittered = xy + rng.uniform(-VOXEL / 10, VOXEL / 10, xy.shape)
+        base = cells[kept[:, :, : low + 1].any(axis=2)]
         azimuth = np.arctan2(*(cameras[:, :2] - xy.mean(axis=0)).T[::-1])
         chromatic = bool(self.chromatic.any())
         outlines = chromatic and arc_deg(azimuth) >= ALL_ROUND_DEG
-        if top + 1 == len(area) or area[top + 1] >= TOP_AREA * base:  # no end seen
-            return Hull(jittered, outlines, None, False, 0.0, chromatic)
+        if top + 1 == len(area) or area[top + 1] >= TOP_AREA * core_area:  # no end seen
+            return Hull(jittered, outlines, None, False, 0.0, chromatic, base)
         table_height = self.grid[0, 2] - LAYER / 2
         height = (top + 1) * LAYER
         width = float(np.ptp(xy, axis=0).max()) + VOXEL
@@ -206,7 +214,7 @@ class _Carving:
         reach = np.linalg.norm(cameras[:, :2] - xy.mean(axis=0), axis=1)
         overshoot = width / 2 * float(np.tan(np.arctan2(rise, reach).min()))
         top_seen = judged[:, :, top + 1][columns].mean() >= 0.5
-        return Hull(jittered, outlines, float(height), bool(top_seen), overshoot, chromatic)
+        return Hull(jittered, outlines, float(height), bool(top_seen), overshoot, chromatic, base)
 
 
 def join_parts(
@@ -256,7 +264,15 @@ def _union(a: Hull, b: Hull) -> Hull:
         taller.top_seen,
         max(a.overshoot, b.overshoot),
         a.chromatic and b.chromatic,
+        _stacked(a.base, b.base),
     )
+
+
+def _stacked(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """Two sets of columns as one (either may be missing)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return np.vstack([a, b])
 
 
 def _carving(
