@@ -226,7 +226,8 @@ def real_rl(settings: dict[str, Any], operator: bool, resume: bool) -> None:
 
     # A resumed run keeps the RL settings it started with (RealRL.resume loads them).
     rl = settings.pop("rl")
-    rule = OperatorRule(**settings.pop("operator")) if operator else None
+    rule_values = settings.pop("operator")  # the rule's options, given with or without it
+    rule = OperatorRule(**rule_values) if operator else None
     config = RealRLSettings(**settings, operator=rule, rl=RLConfig() if resume else rl_settings(rl))
     # Small networks: one thread each for the actor and the learner.
     torch.set_num_threads(1)
