@@ -150,6 +150,9 @@ def test_train_and_eval_commands(tmp_path):
     assert "30 steps" in resumed.stdout
 
 
+STARTED = ["--task", "pick_place", "--init", "p", "--out", "x"]  # a run's first options
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -227,34 +230,11 @@ def test_train_and_eval_commands(tmp_path):
         ),
         (["train", "real-rl", "--task", "pick_place", "--out", "x"], "--init is needed"),
         (
-            [
-                "train",
-                "real-rl",
-                "--task",
-                "pick_place",
-                "--init",
-                "p",
-                "--out",
-                "x",
-                "--no-operator",
-                "--operator-sees",
-                "est",
-            ],
+            ["train", "real-rl", *STARTED, "--no-operator", "--operator-sees", "e"],
             "--operator-sees is the simulated operator's eyes",
         ),
         (
-            [
-                "train",
-                "twin-rl",
-                "--task",
-                "pick_place",
-                "--init",
-                "p",
-                "--out",
-                "x",
-                "--workers",
-                "0",
-            ],
+            ["train", "twin-rl", *STARTED, "--workers", "0"],
             "--workers must be at least 1, got 0",
         ),
         (
