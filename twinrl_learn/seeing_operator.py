@@ -20,7 +20,7 @@ import torch
 
 from twinrl_data.schema import ENVIRONMENT_STATE, STATE, image_field
 from twinrl_learn.errors import LearnError
-from twinrl_learn.perception.estimator import PoseEstimator
+from twinrl_learn.perception.estimator import PoseEstimator, rotation_from_code
 from twinrl_robot.operator import OperatorRule, SimulatedOperator
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -38,21 +38,12 @@ def world_poses(estimates: np.ndarray, state: np.ndarray, tcp_index: int) -> np.
     tool = np.empty(9)
     mujoco.mju_quat2Mat(tool, np.asarray(state[tcp_index + 3 : tcp_index + 7], float))
     poses = np.empty((count, 7))
+    codes = torch.as_tensor(np.asarray(estimates[3 * count :], np.float64).reshape(count, 6))
+    relative = rotation_from_code(codes).numpy()  # each object's rotation in the tool frame
     for k in range(count):
         poses[k, :3] = tcp + estimates[3 * k : 3 * k + 3] / 10.0
-        code = np.asarray(estimates[3 * count + 6 * k : 3 * count + 6 * k + 6], float)
-        relative = _rotation(code[0::2], code[1::2])  # the matrix's first two columns
-        mujoco.mju_mat2Quat(poses[k, 3:], (tool.reshape(3, 3) @ relative).ravel())
+        mujoco.mju_mat2Quat(poses[k, 3:], (tool.reshape(3, 3) @ relative[k]).ravel())
     return poses
-
-
-def _rotation(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """The rotation whose first two columns are nearest ``first`` and ``second``
-    (Gram-Schmidt)."""
-    x = first / max(np.linalg.norm(first), 1e-9)
-    y = second - np.dot(x, second) * x
-    y /= max(np.linalg.norm(y), 1e-9)
-    return np.column_stack([x, y, np.cross(x, y)])
 
 
 class SeeingOperator(SimulatedOperator):
@@ -70,6 +61,7 @@ class SeeingOperator(SimulatedOperator):
         self._tracker: Tracker | None = None
         self._scene_of: Task | None = None
         self._tcp_index = estimator.config.state_names.index("tcp.x")
+        self._row_of = {name: k for k, name in enumerate(estimator.config.objects)}
 
     def reset(self, task: Task, config: TaskConfig) -> None:
         super().reset(task, config)
@@ -100,14 +92,16 @@ class SeeingOperator(SimulatedOperator):
         with torch.no_grad():
             estimates = self.estimator.estimate(images, state[None])[0].numpy()
         poses = world_poses(estimates, state, self._tcp_index)
-        order = {name: k for k, name in enumerate(self.estimator.config.objects)}
-        names = self.task.scene.object_names
+        seen = poses[[self._row_of[name] for name in self.task.scene.object_names]]
         self._cell.pose(
             state[: len(self._cell.arm_qpos)],
             float(state[-1]),  # the gripper's measured opening
-            {name: (poses[order[name], :3], poses[order[name], 3:]) for name in names},
+            {
+                name: (pose[:3], pose[3:])
+                for name, pose in zip(self.task.scene.object_names, seen, strict=True)
+            },
         )
-        environment = np.concatenate([poses[order[n]] for n in names])
+        environment = seen.ravel()
         return {**observation, ENVIRONMENT_STATE: environment.astype(np.float32)}, (
             self._tracker.update()
         )

@@ -199,16 +199,18 @@ class PoseEstimator(nn.Module):
         return estimator.to(resolve_device(device))
 
 
+def rotation_from_code(code: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (B, 3, 3) of 6-number codes (B, 6): the matrices' first two
+    columns, row by row, orthonormalised (Gram-Schmidt)."""
+    a, b = code.reshape(-1, 3, 2).unbind(-1)
+    x = F.normalize(a, dim=-1)
+    y = F.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
+    return torch.stack([x, y, torch.cross(x, y, dim=-1)], dim=-1)
+
+
 def rotation_error_deg(predicted: torch.Tensor, true: torch.Tensor) -> torch.Tensor:
     """Angles (degrees) between rotations given as 6-number codes (two matrix columns;
     the predicted ones orthonormalised first), one per row of (B, 6)."""
-
-    def matrix(code: torch.Tensor) -> torch.Tensor:
-        a, b = code.view(-1, 3, 2).unbind(-1)
-        x = F.normalize(a, dim=-1)
-        y = F.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
-        return torch.stack([x, y, torch.cross(x, y, dim=-1)], dim=-1)
-
-    relative = matrix(predicted).transpose(1, 2) @ matrix(true)
+    relative = rotation_from_code(predicted).transpose(1, 2) @ rotation_from_code(true)
     cosine = ((relative.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)
     return torch.rad2deg(torch.arccos(cosine))
