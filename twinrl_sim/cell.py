@@ -26,7 +26,7 @@ from twinrl_data.schema import ACTION, ENVIRONMENT_STATE, JOINT_TARGET, STATE
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.control import EndEffectorController
 from twinrl_sim.effects import torque_offset
-from twinrl_sim.robots.gripper import STROKE, opening_from_joint
+from twinrl_sim.robots.gripper import joint_from_opening, opening_from_joint
 from twinrl_sim.servo import servo_lead, tracking_setpoints
 
 
@@ -137,7 +137,7 @@ class Cell:
         progress can then be judged on it)."""
         self.data.qpos[self.arm_qpos] = arm_q
         if self.gripper_qpos is not None:
-            self.data.qpos[self.gripper_qpos] = np.clip(STROKE - opening / 2.0, 0.0, STROKE)
+            self.data.qpos[self.gripper_qpos] = joint_from_opening(opening)
         for name, (pos, quat) in objects.items():
             self.place_object(name, pos, quat)
         mujoco.mj_kinematics(self.model, self.data)

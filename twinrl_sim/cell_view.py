@@ -28,7 +28,7 @@ from twinrl_data.mcap_log import pose_groups
 from twinrl_data.view import CameraMount, CellSteps, Pose
 from twinrl_sim.build import CompiledScene
 from twinrl_sim.errors import TwinError
-from twinrl_sim.robots.gripper import STROKE
+from twinrl_sim.robots.gripper import joint_from_opening
 
 PLANE_EXTENT = 1.5  # m: half-size drawn for an infinite plane (the floor)
 PLANE_THICKNESS = 0.001  # m
@@ -325,8 +325,7 @@ class TwinCell:
         mocap_quat = np.repeat(before.mocap_quat[None], steps, axis=0)
         qpos[:, self._arm_addresses] = states[:, self._arm_columns]
         if self._opening is not None:
-            # The pads' distance to the driven finger's travel (the gripper's own mapping).
-            finger = np.clip(STROKE - states[:, self._opening] / 2.0, 0.0, STROKE)
+            finger = joint_from_opening(states[:, self._opening])
             qpos[:, self._finger_addresses] = (
                 self._finger_offsets + self._finger_gains * finger[:, None]
             )

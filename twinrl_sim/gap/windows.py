@@ -330,7 +330,7 @@ def place_measured(
             data.qpos[adr : adr + 7] = pose
     if layout.gripper_joint:
         fingers = [model.joint(j).qposadr[0] for j in (gripper_lib.JOINT, gripper_lib.MIRROR_JOINT)]
-        data.qpos[fingers] = np.clip(gripper_lib.STROKE - opening / 2, 0, gripper_lib.STROKE)
+        data.qpos[fingers] = gripper_lib.joint_from_opening(opening)
 
 
 def measured_starts(model: mujoco.MjModel, layout: CellLayout, windows: Windows) -> Starts:

@@ -9,6 +9,7 @@ a closed gripper squeezes an object with a bounded force like a real one.
 from __future__ import annotations
 
 import mujoco
+import numpy as np
 
 STROKE = 0.04  # per finger (m): opening goes from 2 * STROKE to 0
 MAX_FORCE = 60.0  # N, closing force limit
@@ -103,3 +104,9 @@ def add_parallel_gripper(flange: mujoco.MjsBody, spec: mujoco.MjSpec) -> None:
 def opening_from_joint(finger_qpos: float) -> float:
     """Distance between the finger pads (m) for the driven finger's joint position."""
     return 2.0 * (STROKE - finger_qpos)
+
+
+def joint_from_opening(opening: float | np.ndarray) -> float | np.ndarray:
+    """The driven finger's joint position for a distance between the pads (m), within
+    its stroke (the inverse of :func:`opening_from_joint`)."""
+    return np.clip(STROKE - np.asarray(opening) / 2.0, 0.0, STROKE)
