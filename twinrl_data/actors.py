@@ -38,7 +38,8 @@ class Actors(Protocol):
         ...
 
 
-def _checked(count: int, args: Sequence[tuple]) -> None:
+def check_arguments(count: int, args: Sequence[tuple]) -> None:
+    """Refuse a call whose argument tuples are not one per actor."""
     if len(args) != count:
         raise TwinrlError(
             f"a call to {count} actors needs {count} argument tuples, got {len(args)}"
@@ -52,7 +53,7 @@ class LocalActors:
         self.objects = [cls(**init) for init in inits]
 
     def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
-        _checked(len(self.objects), args)
+        check_arguments(len(self.objects), args)
         return [getattr(o, method)(*a) for o, a in zip(self.objects, args, strict=True)]
 
     def close(self) -> None:
@@ -113,7 +114,7 @@ class ProcessActors:
         return [value for _, value in answers]
 
     def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
-        _checked(len(self._pipes), args)
+        check_arguments(len(self._pipes), args)
         for pipe, a in zip(self._pipes, args, strict=True):
             pipe.send((method, tuple(a)))
         return self._answers()

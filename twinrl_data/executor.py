@@ -220,3 +220,15 @@ def make_executor(
         return RayExecutor(workers, address=None if embedded else address, initializer=initializer)
     workers = workers or os.cpu_count() or 1
     return InlineExecutor() if workers == 1 else ProcessExecutor(workers, initializer=initializer)
+
+
+def spreading_executor(
+    workers: int | None, cluster: str = "", *, initializer: Callable[[], None] | None = None
+) -> Executor | None:
+    """The executor of work that runs in the caller unless asked to spread: ``None`` for
+    one worker, or ``workers`` unset, without a cluster (the caller runs it as it
+    would alone); else :func:`make_executor`'s, ``workers`` unset meaning one per CPU
+    of the cluster."""
+    if cluster_address(cluster) is None and workers in (None, 1):
+        return None
+    return make_executor(workers, initializer=initializer, cluster=cluster)

@@ -33,6 +33,7 @@ from ray._private import ray_constants
 from ray.exceptions import AuthenticationError, RayActorError, RayTaskError
 from ray.util.queue import Queue
 
+from twinrl_data.actors import check_arguments
 from twinrl_data.errors import TwinrlError
 
 Job = TypeVar("Job")
@@ -200,11 +201,7 @@ class RayActors:
         self._handles = [remote.remote(**init) for init in inits]
 
     def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
-        if len(args) != len(self._handles):
-            raise TwinrlError(
-                f"a call to {len(self._handles)} actors needs as many argument tuples, "
-                f"got {len(args)}"
-            )
+        check_arguments(len(self._handles), args)
         refs = [getattr(h, method).remote(*a) for h, a in zip(self._handles, args, strict=True)]
         try:
             return ray.get(refs)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_data.errors import SettingError
-from twinrl_data.executor import Executor, cluster_address, make_executor
+from twinrl_data.executor import spreading_executor
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
@@ -94,14 +94,11 @@ def _environments(
 ) -> BatchEnv | ShardedBatchEnv:
     """The run's ``envs`` environments: here, or in shards on the executor that
     ``workers`` and ``cluster`` ask for (closed with ``stack``)."""
-    executor: Executor | None = None
-    if cluster_address(settings.cluster) is not None:
-        executor = stack.enter_context(make_executor(settings.workers, cluster=settings.cluster))
-    elif settings.workers not in (None, 1):
-        executor = stack.enter_context(make_executor(settings.workers))
+    executor = spreading_executor(settings.workers, settings.cluster)
     if executor is None:
         env: BatchEnv | ShardedBatchEnv = BatchEnv(task, settings.envs, cameras=cameras)
     else:
+        stack.enter_context(executor)
         env = ShardedBatchEnv(task, settings.envs, executor, cameras=cameras)
     stack.callback(env.close)
     return env

@@ -32,7 +32,7 @@ import numpy as np
 
 from twinrl_data.atomic import write_text_atomic
 from twinrl_data.errors import SettingError
-from twinrl_data.executor import Send, cluster_address, make_executor
+from twinrl_data.executor import InlineExecutor, Send, spreading_executor
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate, single_threaded
 from twinrl_learn.policy import Policy
@@ -131,9 +131,8 @@ def measure_stages(
             on_evaluation(started, len(jobs), label)
         started += 1
 
-    # One at a time here unless asked; on a cluster, one per CPU unless asked.
-    workers = s.workers or (None if cluster_address(s.cluster) is not None else 1)
-    with make_executor(workers, initializer=single_threaded, cluster=s.cluster) as executor:
+    spread = spreading_executor(s.workers, s.cluster, initializer=single_threaded)
+    with spread or InlineExecutor() as executor:
         measured = executor.run(_evaluated, jobs, starting)
     rates: dict[str, list[dict[str, float]]] = {c.label: [] for c in candidates}
     for job, (rate, _) in zip(jobs, measured, strict=True):

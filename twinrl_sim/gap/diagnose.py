@@ -42,7 +42,7 @@ from mujoco.rollout import Rollout
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import SettingError
-from twinrl_data.executor import Executor, cluster_address, make_executor
+from twinrl_data.executor import cluster_address, spreading_executor
 from twinrl_sim.build import build_mjspec, compile_scene
 from twinrl_sim.effects import EFFECTS
 from twinrl_sim.errors import TwinError
@@ -290,7 +290,7 @@ def diagnose(
     run."""
     started = time.perf_counter()
     noise = noise or NoiseFloor()
-    on_cluster = cluster_address(cluster) is not None  # a bad address stops it here
+    cluster_address(cluster)  # a bad address stops it here, before any work
     if not 0 < heldout < 1:
         raise SettingError("heldout", f"must be a fraction between 0 and 1, got {heldout}")
     if fitted_per_round is not None and fitted_per_round < 1:
@@ -323,11 +323,7 @@ def diagnose(
     cameras = logged if wanted["camera_pose"] else []
     log(f"{split.describe()}; {len(fit_on)} windows fitted; candidates: {', '.join(pool)}")
     rollout = Rollout(nthread=2)
-    executor: Executor | None = None
-    if on_cluster:
-        executor = make_executor(workers, cluster=cluster)
-    elif workers not in (None, 1):
-        executor = make_executor(workers)
+    executor = spreading_executor(workers, cluster)
     try:
         fixed: dict[str, dict] = {}
         baseline = score(scene, fit_on, held, noise, fixed, rollout)
