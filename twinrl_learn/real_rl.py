@@ -497,7 +497,7 @@ class RealRL:
                 tau=s.tau,
                 k=s.k,
                 seed=s.rl.seed + episode_index,
-                twin=self.cell.twin if self.cell is not None else None,  # the cell's own
+                twin=self.cell.twin if self.cell is not None else s.twin,  # the cell's own
             )
         self.resets.targets = load_targets(path)
         self.run_state.extra["targets"] = str(path)

@@ -17,7 +17,8 @@ from twinrl_learn.compute import check_device
 from twinrl_learn.errors import LearnError
 from twinrl_learn.replay import RewardSettings
 from twinrl_robot.operator import OperatorRule
-from twinrl_sim.tasks import REGION_NAMES, task_class
+from twinrl_sim.spec import SpecError
+from twinrl_sim.tasks import REGION_NAMES, task_class, task_on_twin
 
 INPUTS = ("absolute", "relative")
 
@@ -301,6 +302,10 @@ class TwinRLSettings:
     """Twin environment steps in all."""
     regions: tuple[str, ...] = REGION_NAMES
     """Regions the configurations are drawn from."""
+    twin: str | None = None
+    """The twin to run in: a built-in cell or a scene spec file (e.g. the look `twinrl gap
+    diagnose` fitted to the real demos' images, where an image policy's twin demos were
+    made; default: the task's scene)."""
     failures: int = 0
     """Failed rollouts to add to the exported twin buffer (at most)."""
     device: str = "auto"
@@ -325,6 +330,17 @@ class TwinRLSettings:
                 raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")
         if self.failures < 0:
             raise SettingError("failures", f"must be >= 0, got {self.failures}")
+        if self.twin is not None:
+            check_twin(self.task, self.twin)
+
+
+def check_twin(task: str, twin: str) -> None:
+    """A run's ``twin`` must be a cell that holds ``task``'s objects: a missing or wrong
+    one stops the run before anything starts, naming the setting."""
+    try:
+        task_on_twin(task, twin)
+    except SpecError as err:
+        raise SettingError("twin", err.args[0]) from None
 
 
 LEARNING_ROBOTS = ("plant", "ur")  # real RL learns on these (not the ideal twin)
@@ -376,6 +392,9 @@ class RealRLSettings:
     the resets stay uniform and nothing is mined)."""
     mining_grid: tuple[int, int] = (4, 4)
     """Grid of configurations the targets are mined over."""
+    twin: str | None = None
+    """The twin the targets are mined again in (plant only: a built-in cell or a scene spec
+    file; default: the task's scene; a UR cell mines in its cell file's twin)."""
     mining_episodes: int = 1
     """Twin episodes per mining grid cell."""
     tau: float = 0.8
@@ -428,6 +447,10 @@ class RealRLSettings:
             raise SettingError("cell", "a UR arm needs its cell file")
         if self.robot == "plant" and (self.cell is not None or self.emulated):
             raise SettingError("cell", "describes a UR arm; learn on it with `robot` ur")
+        if self.robot == "ur" and self.twin is not None:
+            raise SettingError("twin", "a UR cell is mined in its cell file's twin; leave it out")
+        if self.twin is not None:
+            check_twin(self.task, self.twin)
         if self.robot == "ur" and self.effects is not None:
             raise SettingError("effects", "apply to the plant only; a UR cell has its own physics")
         if self.success not in SUCCESS_JUDGES:

@@ -40,7 +40,7 @@ from twinrl_learn.settings import RLConfig, TwinRLSettings
 from twinrl_robot.wrappers import HoldRule
 from twinrl_sim.batch import BatchEnv
 from twinrl_sim.sharded import ShardedBatchEnv
-from twinrl_sim.tasks import Progress, Task, make_task
+from twinrl_sim.tasks import Progress, Task, make_task, task_on_twin
 
 
 def load_demo_buffer(demos: list[str], policy: Policy, rl: RLConfig) -> ReplayBuffer:
@@ -56,7 +56,8 @@ def run_twin_rl(
 ) -> OnlineRun:
     """Run (or continue) Stage II; returns the finished :class:`OnlineRun`."""
     device = resolve_device(settings.device)
-    task = make_task(settings.task)
+    twin = None if settings.twin is None else task_on_twin(settings.task, settings.twin)
+    task = make_task(settings.task, twin)
     for region in settings.regions:
         task.region(region)
     if resume:

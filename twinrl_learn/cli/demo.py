@@ -24,9 +24,11 @@ def demo_command(
     preset: Annotated[
         str,
         typer.Option(
-            help="smoke (every stage, minutes), quick (state policy, ~16 min) or paper "
-            "(image policy; about 12 hours of RL updates on 2 cores, 5 on an H100: meant for "
-            "a GPU, see --device)."
+            help="smoke (every stage, minutes), quick (state policy, ~16 min), quick-vision "
+            "(nothing privileged: the image policy through a pose estimator, success from a "
+            "classifier, the simulated person judging from what it sees) or paper (image "
+            "policy; about 12 hours of RL updates on 2 cores, 5 on an H100: meant for a GPU, "
+            "see --device)."
         ),
     ] = "quick",
     out: Annotated[Path, typer.Option(help="Folder for the report, logs and policies.")] = Path(

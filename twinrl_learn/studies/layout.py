@@ -12,6 +12,9 @@ def stage1_paths(folder: Path, policy: str) -> dict[str, Path]:
         "twin": folder / "twin" / "dataset",
         "sft_real": folder / f"{policy}_real",
         "sft_twin": folder / f"{policy}_real_twin",
+        "look": folder / "twin_fitted.yaml",  # presets that fit the twin's look
+        "estimator": folder / "estimator",  # presets whose image policy sees through one
+        "classifier": folder / "success_classifier",  # presets that judge success by it
     }
 
 

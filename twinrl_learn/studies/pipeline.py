@@ -69,7 +69,12 @@ from twinrl_learn.studies.presets import (
     twin_rl_config,
 )
 from twinrl_learn.studies.report import write_report
-from twinrl_learn.studies.table1 import record_real_demos
+from twinrl_learn.studies.table1 import (
+    fit_look,
+    record_real_demos,
+    train_task_estimator,
+    train_twin_classifier,
+)
 from twinrl_learn.twin_rl import TwinRLSettings, run_twin_rl
 from twinrl_robot.operator import OperatorRule
 from twinrl_sim.expand import expand
@@ -127,7 +132,7 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     stage1 = _stage1(task, p, out / "stage1", log, device, cluster)
     stage2 = _stage2(task, p, out, stage1, log, device, cluster)
-    targets = _mining(task, p, out, stage2, log, device, cluster)
+    targets = _mining(task, p, out, stage1, stage2, log, device, cluster)
     runs: dict[str, dict[int, Path]] = {}
     jobs = []
     for method in METHOD_TABLE:
@@ -195,6 +200,10 @@ def _stage1(
     _fresh(folder).mkdir(parents=True)
     log(f"Stage I: recording {p.real_demos} teleop-like demos in the plant (ID)")
     kept, recorded = record_real_demos(task, p.real_demos, folder)
+    scene = None
+    if p.fit_look:
+        scene = fit_look(task, paths["real"], paths["look"])
+        log(f"Stage I: the twin's look fitted to the real demos: {scene.effects['appearance']}")
     log(f"Stage I: kept {kept} of {recorded}; synthesizing {p.twin_id} ID + {p.twin_ood} OOD")
     expand(
         task,
@@ -202,9 +211,16 @@ def _stage1(
         ood_count=p.twin_ood,
         out=folder / "twin",
         seed=1,
+        scene=scene,
         images=p.policy == "vla",  # a state policy never reads them
         cluster=cluster,
     )
+    if p.perception:
+        log(f"Stage I: a pose estimator from {p.perception} twin episodes per region")
+        train_task_estimator(task, folder, scene, p.perception, seed=0, device=device)
+    if p.classifier_episodes:
+        log(f"Stage I: a success classifier from {p.classifier_episodes} twin episodes per region")
+        train_twin_classifier(task, folder, scene, p.classifier_episodes, seed=0, device=device)
     for name, datasets in (
         ("sft_real", [paths["real"]]),
         ("sft_twin", [paths["real"], paths["twin"]]),
@@ -217,6 +233,7 @@ def _stage1(
                 policy=p.policy,
                 steps=p.sft_steps,
                 inputs=p.inputs,
+                perception=str(paths["estimator"]) if p.perception else None,
                 device=device,
             )
         )
@@ -236,6 +253,12 @@ def _plant_eval(checkpoint: Path, task: str, p: Preset, out: Path, device: str) 
         seed=10_000,
         out=_fresh(out),
     )
+
+
+def _look(p: Preset, stage1: dict[str, Path]) -> str | None:
+    """The twin that Stage II and the mining run in: the fitted look, where the preset
+    fits one (the look its image policy's twin data were made in)."""
+    return str(stage1["look"]) if p.fit_look else None
 
 
 def _demos(stage1: dict[str, Path], *, twin: bool) -> list[str]:
@@ -259,6 +282,7 @@ def _stage2(
                 demos=_demos(stage1, twin=True),
                 envs=p.twin_envs,
                 steps=p.twin_rl_steps,
+                twin=_look(p, stage1),
                 device=device,
                 cluster=cluster,  # none: the envs in this process
                 rl=twin_rl_config(p),
@@ -272,7 +296,14 @@ def _stage2(
 
 
 def _mining(
-    task: str, p: Preset, out: Path, stage2: Path, log: Log, device: str, cluster: str
+    task: str,
+    p: Preset,
+    out: Path,
+    stage1: dict[str, Path],
+    stage2: Path,
+    log: Log,
+    device: str,
+    cluster: str,
 ) -> Path:
     path = out / "targets.json"
     if not path.is_file():
@@ -285,6 +316,7 @@ def _mining(
             grid=p.mining_grid,
             episodes=p.mining_episodes,
             workers=None if cluster_address(cluster) is not None else 1,  # a cluster's CPUs
+            twin=_look(p, stage1),
             cluster=cluster,
         )
     return path
@@ -368,7 +400,11 @@ def real_rl_settings(job: RealRLJob) -> RealRLSettings:
         eval_every=p.eval_every,
         eval_grid=p.eval_grid,
         eval_episodes=p.eval_episodes,
+        twin=_look(p, stage1),
         operator=OperatorRule(),
+        operator_sees=str(stage1["estimator"]) if p.operator_sees else None,
+        success="classifier" if p.classifier_episodes else "truth",
+        classifier=str(stage1["classifier"]) if p.classifier_episodes else None,
         device=job.device,
         rl=real_rl_config(method, p, seed),
     )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from twinrl_data.errors import SettingError
 from twinrl_learn.settings import RLConfig
 
 
@@ -32,6 +33,26 @@ class Preset:
     seeds: tuple[int, ...]
     sft_steps: int | None = None  # None: the SFT defaults of the policy kind
     inputs: str = "absolute"  # the state policy's inputs (twinrl_learn.policy)
+    # What a real cell has instead of the plant's privileged state (all off: the plant's
+    # truth judges success and drives the simulated person):
+    fit_look: bool = False  # twin work in the look fitted to the real demos' images
+    perception: int = 0  # vla: twin episodes per region a pose estimator learns from
+    classifier_episodes: int = 0  # twin episodes per region a success classifier learns from
+    operator_sees: bool = False  # the simulated person decides from the estimator's view
+
+    def __post_init__(self) -> None:
+        if self.policy != "vla" and (self.perception or self.operator_sees):
+            raise SettingError("perception", "serves the vla policy (the state policy reads poses)")
+        if self.operator_sees and not self.perception:
+            raise SettingError(
+                "operator_sees", "is the pose estimator's view: give `perception` episodes"
+            )
+
+    @property
+    def privileged(self) -> bool:
+        """Whether anything of the run reads state only the plant knows (the state policy's
+        object poses, success from the plant's truth, the person's judgement from it)."""
+        return self.policy == "state" or not (self.classifier_episodes and self.operator_sees)
 
 
 PRESETS = {
@@ -75,6 +96,31 @@ PRESETS = {
         offline_steps=200,
         refresh_every=8,
         seeds=(0, 1, 2),
+    ),
+    # Nothing privileged: the image policy through a pose estimator trained on twin
+    # renders, success from a classifier trained on twin episodes, the simulated person
+    # judging from the estimator's view (docs/results/pipeline-quick-vision.md).
+    "quick-vision": Preset(
+        policy="vla",
+        real_demos=30,
+        # Table I's best image row (docs/results/image-policy.md).
+        twin_id=30,
+        twin_ood=60,
+        fit_look=True,
+        perception=100,
+        classifier_episodes=20,
+        operator_sees=True,
+        twin_rl_steps=2400,
+        twin_envs=8,
+        mining_grid=(4, 4),
+        mining_episodes=1,
+        plant_steps=2400,
+        eval_every=1200,
+        eval_grid=(8, 8),
+        eval_episodes=1,
+        offline_steps=200,
+        refresh_every=8,
+        seeds=(0,),
     ),
     "paper": Preset(
         policy="vla",

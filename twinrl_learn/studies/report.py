@@ -185,6 +185,8 @@ def write_report(
         f"{' / '.join(REGION_NAMES)}) in a separate plant (not counted as interaction). "
         "Values are medians over seeds.",
         "",
+        _what_it_reads(p),
+        "",
         "## The starting policies (plant evaluation, same grid)",
         "",
         "HiL-SERL and ConRFT-style start from the real-only SFT policy, both TwinRL "
@@ -232,6 +234,28 @@ def write_report(
     build_index([out], out / "catalog.parquet")
     _representative(runs[METHOD_TABLE[0].name], out / "representative.rrd")
     return report
+
+
+def _what_it_reads(p: Preset) -> str:
+    """Whether the runs read state only the plant knows, and what stands in for it."""
+    if not p.privileged:
+        return (
+            "**Nothing privileged**: the image policy acts through a pose estimator trained "
+            f"on twin renders ({p.perception} twin episodes per region), a classifier trained "
+            f"on twin episodes ({p.classifier_episodes} per region) judges each real-RL "
+            "episode's success, and the simulated person decides from the estimator's view; "
+            "the plant's truth only scores the evaluations."
+        )
+    readers = [
+        "the policy reads the true object poses" if p.policy == "state" else "",
+        "success is the plant's truth" if not p.classifier_episodes else "",
+        "the simulated person judges from the plant's progress" if not p.operator_sees else "",
+    ]
+    return (
+        "**Privileged reference** (a real cell has none of this): "
+        + "; ".join(r for r in readers if r)
+        + "."
+    )
 
 
 def _representative(folders: dict[int, Path], path: Path) -> None:

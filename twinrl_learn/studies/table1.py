@@ -43,6 +43,7 @@ from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.perception.training import train_estimator
+from twinrl_learn.reward_classifier import ClassifierSettings, train_reward_classifier
 from twinrl_learn.runners import TwinrlRunner
 from twinrl_learn.settings import PerceptionSettings, SFTConfig
 from twinrl_learn.sft import train_sft
@@ -58,6 +59,9 @@ TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operato
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
 POLICY_LABELS = {"state": "state (privileged)", "vla": "vla (images)"}
 PERCEPTION_DETOURS = 0.5  # share of the perception episodes that stray: off-path views
+# The success classifier's twin episodes: the recipe that met precision and recall of
+# 0.9 on unseen plant episodes of pick_place (docs/results/reward-classifier.md).
+CLASSIFIER_NOISE, CLASSIFIER_SETTLE, CLASSIFIER_NEAR_MISSES, CLASSIFIER_STEPS = 0.004, 3, 0.3, 3000
 PAPER_TABLE1 = {(0, 0): (40, 0), (30, 30): (70, 30), (60, 30): (80, 40), (30, 60): (70, 70)}
 
 
@@ -111,7 +115,7 @@ def fit_look(task: str, real: Path, path: Path) -> SceneSpec:
 
 
 def train_task_estimator(
-    task: str, base: Path, scene: SceneSpec | None, per_region: int, settings: Stage1Settings
+    task: str, base: Path, scene: SceneSpec | None, per_region: int, *, seed: int, device: str
 ) -> Path:
     """Synthesize ``per_region`` twin episodes per region for perception (half of them
     straying first, under varied light) and train the pose estimator on them; returns
@@ -122,7 +126,7 @@ def train_task_estimator(
         ood_count=per_region,
         out=base / "perception",
         scene=scene,
-        seed=settings.seed + 2,
+        seed=seed + 2,
         export=False,
         detours=PERCEPTION_DETOURS,
         randomize=("lighting",),
@@ -132,9 +136,44 @@ def train_task_estimator(
         PerceptionSettings(
             datasets=[str(base / "perception" / "session")],
             out=str(folder),
-            seed=settings.seed,
-            device=settings.device,
+            seed=seed,
+            device=device,
         )
+    )
+    return folder
+
+
+def train_twin_classifier(
+    task: str,
+    base: Path,
+    scene: SceneSpec | None,
+    per_region: int,
+    *,
+    seed: int,
+    device: str,
+    steps: int = CLASSIFIER_STEPS,
+) -> Path:
+    """Record ``per_region`` scripted-expert episodes per region in the twin (a share of
+    them near misses, each success held for a few steps: labels are free there) and train
+    the task's success classifier on them; returns its folder."""
+    session = Session.create(base / "success_session")
+    run_scripted_expert(
+        task,
+        world="twin",
+        episodes=per_region,
+        scene=scene,
+        seed=seed + 3,
+        session=session,
+        action_noise=CLASSIFIER_NOISE,
+        settle=CLASSIFIER_SETTLE,
+        near_misses=CLASSIFIER_NEAR_MISSES,
+    )
+    folder = base / "success_classifier"
+    train_reward_classifier(
+        [read_episode(path) for path in session.episode_paths()],
+        folder,
+        ClassifierSettings(cameras=("front", "wrist"), steps=steps, seed=seed),
+        device=device,
     )
     return folder
 
@@ -185,7 +224,14 @@ def run_stage1(
         )
         estimator = None
         if settings.perception and "vla" in settings.policies:
-            estimator = train_task_estimator(task, base, scene, n(settings.perception), settings)
+            estimator = train_task_estimator(
+                task,
+                base,
+                scene,
+                n(settings.perception),
+                seed=settings.seed,
+                device=settings.device,
+            )
             log(f"{task}: pose estimator {estimator} (twinrl locate it on any episodes)")
         twin_id = Session(base / "twin_id" / "session").episode_paths()
         twin_ood = Session(base / "twin_ood" / "session").episode_paths()
