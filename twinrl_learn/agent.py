@@ -25,13 +25,15 @@ on the CPU, so a seed draws the same batches and noise on every device.
 
 Three settings (``RLConfig.method``) give the methods compared in TwinRL:
 ``twinrl`` / ``conrft`` (the objective above, offline Cal-QL then online) and
-``hil-serl`` (SAC with entropy, no imitation term, no offline phase).
+``hil-serl`` (SAC with entropy and no imitation term; its offline phase warms the
+critic only, and the actor steps every ``critic_per_actor`` updates).
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import math
 from dataclasses import asdict
 from pathlib import Path
 
@@ -85,7 +87,9 @@ class Agent:
             policy.critic_input_dim, c.chunk * c.action_dim, config.critics, config.hidden
         ).to(self.device)
         self.target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.log_alpha = torch.zeros((), device=self.device, requires_grad=True)
+        self.log_alpha = torch.tensor(
+            math.log(config.temperature_init), device=self.device, requires_grad=True
+        )
         self.actor_opt = torch.optim.Adam(policy.parameters(), lr=config.actor_lr)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=config.critic_lr)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=config.actor_lr)
@@ -109,6 +113,15 @@ class Agent:
         if self.online() and self.config.beta_online is not None:
             beta = self.config.beta_online
         return beta, self.config.eta
+
+    def actor_moves(self) -> bool:
+        """Whether this update steps the actor: not while the critic warms up, then once
+        every ``critic_per_actor`` updates."""
+        c = self.config
+        return (
+            self.updates >= c.critic_warmup
+            and (self.updates - c.critic_warmup) % (c.critic_per_actor) == 0
+        )
 
     def actor_reads_q(self) -> bool:
         """Whether the actor's loss has the Q term (and so needs the critic's view)."""
@@ -226,14 +239,16 @@ class Agent:
         critic_loss.backward()
         nn.utils.clip_grad_norm_(self.critic.parameters(), 10.0)
         self.critic_opt.step()
-        with mixed_precision(self.device):
-            demo_rows = self._on_device(torch.from_numpy(batch.demo))
-            actor_loss, actor_metrics = self.actor_loss(t, demo_rows)
-        if actor_loss.requires_grad:
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)
-            self.actor_opt.step()
+        actor_metrics: dict[str, float] = {}
+        if self.actor_moves():
+            with mixed_precision(self.device):
+                demo_rows = self._on_device(torch.from_numpy(batch.demo))
+                actor_loss, actor_metrics = self.actor_loss(t, demo_rows)
+            if actor_loss.requires_grad:
+                self.actor_opt.zero_grad(set_to_none=True)
+                actor_loss.backward()
+                nn.utils.clip_grad_norm_(self.policy.parameters(), 10.0)
+                self.actor_opt.step()
         with torch.no_grad():
             for target, source in zip(
                 self.target.parameters(), self.critic.parameters(), strict=True

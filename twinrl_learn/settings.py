@@ -228,6 +228,13 @@ class RLConfig:
     """SAC's temperature term in the actor and the TD target."""
     target_entropy_per_dim: float = -1.0
     """SAC's target entropy per action dimension."""
+    temperature_init: float = 1.0
+    """SAC's temperature at the start (with ``entropy``)."""
+    critic_warmup: int = 0
+    """Updates at the start in which only the critic learns: the actor moves once the
+    critic has learnt something (HiL-SERL's recipe for a policy that starts good)."""
+    critic_per_actor: int = 1
+    """Critic updates per actor update (HiL-SERL's critic-to-actor ratio)."""
     demo_ratio: float = 0.5
     """Share of each batch from demos and interventions (RLPD)."""
     exploration: float = 0.3
@@ -258,6 +265,14 @@ class RLConfig:
                 raise SettingError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.offline_steps < 0:
             raise SettingError("offline_steps", f"must be >= 0, got {self.offline_steps}")
+        if self.critic_warmup < 0:
+            raise SettingError("critic_warmup", f"must be >= 0, got {self.critic_warmup}")
+        if self.critic_per_actor < 1:
+            raise SettingError(
+                "critic_per_actor", f"must be at least 1, got {self.critic_per_actor}"
+            )
+        if not self.temperature_init > 0:
+            raise SettingError("temperature_init", f"must be > 0, got {self.temperature_init}")
 
     @classmethod
     def load(cls, folder: str | Path) -> RLConfig:
@@ -269,18 +284,27 @@ class RLConfig:
 
     @classmethod
     def for_method(cls, method: str, **overrides) -> RLConfig:
-        """The settings that define each compared method."""
+        """The settings that define each compared method. HiL-SERL's follow its authors'
+        recipe: SAC with RLPD's half-demo batches, no imitation term, the temperature
+        starting at 0.01, two critic updates per actor update and per robot step, and
+        the critic warmed on the demos (the offline phase, actor still) before the actor
+        moves (docs/results/real-rl.md)."""
         base: dict = {"method": method}
         if method == "hil-serl":
             base |= {
                 "beta": 0.0,
                 "eta": 1.0,
                 "entropy": True,
-                "offline_steps": 0,
+                "temperature_init": 0.01,
                 "cql_alpha": 0.0,
                 "exploration": 1.0,
                 "actor_lr": 3e-4,
+                "utd": 2.0,
+                "critic_per_actor": 2,
             }
+            merged = base | overrides
+            merged.setdefault("critic_warmup", merged.get("offline_steps", cls.offline_steps))
+            return cls(**merged)
         return cls(**(base | overrides))
 
 

@@ -147,6 +147,40 @@ def test_actor_objective_reduces_to_bc_and_to_pure_q(demos):
     assert loss.item() == pytest.approx((-(q / q.abs().mean())).mean().item(), rel=1e-5)
 
 
+def test_hil_serl_warms_its_critic_before_the_actor_moves_and_then_moves_it_every_other_update(
+    demos,
+):
+    """HiL-SERL's recipe: the critic alone learns through the offline phase, then the
+    actor steps once per ``critic_per_actor`` updates, from a temperature of 0.01."""
+    dataset, sft = demos
+    config = RLConfig.for_method("hil-serl", offline_steps=2, batch_size=16, seed=1)
+    assert (config.critic_warmup, config.critic_per_actor, config.utd) == (2, 2, 2.0)
+    assert config.beta == 0 and config.cql_alpha == 0
+    agent = Agent(Policy.from_pretrained(sft), config)
+    assert agent.alpha.item() == pytest.approx(0.01)
+    buffer = ReplayBuffer.from_datasets([dataset])
+    rng = np.random.default_rng(0)
+    moved, critic_moved = [], []
+
+    def changed(before, module):
+        return any(not torch.equal(b, p) for b, p in zip(before, module.parameters(), strict=True))
+
+    for _ in range(6):
+        actor = [p.detach().clone() for p in agent.policy.parameters()]
+        critic = [p.detach().clone() for p in agent.critic.parameters()]
+        agent.update(buffer.sample(16, rng, chunk=4, gamma=0.98))
+        moved.append(changed(actor, agent.policy))
+        critic_moved.append(changed(critic, agent.critic))
+    assert moved == [False, False, True, False, True, False]
+    assert all(critic_moved)
+    # An explicit warm-up wins over the offline phase's length; bad values are refused.
+    assert RLConfig.for_method("hil-serl", offline_steps=5, critic_warmup=1).critic_warmup == 1
+    with pytest.raises(ValueError, match="critic_per_actor"):
+        RLConfig(critic_per_actor=0)
+    with pytest.raises(ValueError, match="temperature_init"):
+        RLConfig(temperature_init=0)
+
+
 def test_twin_rl_logs_rollouts_and_resumes_exactly(demos, tmp_path):
     dataset, sft = demos
     torch.set_num_threads(1)

@@ -38,7 +38,10 @@ RESUME = inspect.Parameter(
 )
 # The agent's settings a run's command line may change; the rest are the method's (None:
 # the method's own value, see RLConfig.for_method).
-RL_OPTIONS = ("method", "beta", "eta", "utd", "offline_steps", "exploration", "actor_lr")
+RL_OPTIONS = (
+    "method", "beta", "eta", "utd", "offline_steps", "exploration", "actor_lr", "critic_warmup",
+    "critic_per_actor",
+)  # fmt: skip
 RL_DEFAULTS = {name: None for name in RL_OPTIONS if name != "method"}
 
 
@@ -188,7 +191,8 @@ def twin_rl(settings: dict[str, Any], resume: bool) -> None:
 
 
 TWIN_RL_FIELDS = (
-    "task", "out", "init", "demos", "envs", "steps", "failures", "device", "workers", "cluster",
+    "task", "out", "init", "demos", "envs", "steps", "twin", "failures", "device", "workers",
+    "cluster",
 )  # fmt: skip
 settings_command(
     app,
@@ -293,7 +297,7 @@ def _real_rl(config: RealRLSettings, resume: bool, terminal: Any) -> None:
 REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
     "classifier", "effects", "demos", "twin_buffer",
-    "targets", "target_ratio", "refresh_every", "plant_steps", "eval_every", "eval_grid",
+    "targets", "target_ratio", "refresh_every", "twin", "plant_steps", "eval_every", "eval_grid",
     "eval_episodes", "learner_sync", "show_resets", "view", "device", "operator_sees",
 )  # fmt: skip
 settings_command(

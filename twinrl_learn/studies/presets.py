@@ -169,6 +169,5 @@ def twin_rl_config(p: Preset) -> RLConfig:
 
 def real_rl_config(method: Method, p: Preset, seed: int) -> RLConfig:
     """The RL settings of one real-RL run: the method's, with the preset's offline phase
-    (HiL-SERL has none: RLConfig.for_method)."""
-    offline = {} if method.rl_method == "hil-serl" else {"offline_steps": p.offline_steps}
-    return RLConfig.for_method(method.rl_method, seed=seed, **offline)
+    (HiL-SERL's warms its critic only: RLConfig.for_method)."""
+    return RLConfig.for_method(method.rl_method, seed=seed, offline_steps=p.offline_steps)
