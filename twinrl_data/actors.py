@@ -12,8 +12,8 @@ one method on every object at once and returns their results in order:
 - :class:`~twinrl_data.ray_executor.RayActors`: each a Ray actor, on a cluster or Ray
   embedded here.
 
-An object's error is raised in the caller as it was raised in the worker. Classes and
-arguments must be picklable, as jobs are.
+An object's error is raised in the caller as it was raised in the worker; a worker that
+is gone raises :class:`ActorLost`. Classes and arguments must be picklable, as jobs are.
 """
 
 from __future__ import annotations
@@ -36,6 +36,11 @@ class Actors(Protocol):
     def close(self) -> None:
         """Close every object (its ``close`` method, if it has one) and stop its worker."""
         ...
+
+
+class ActorLost(TwinrlError):
+    """An actor's worker is gone (its process died, its node left): the object and its
+    state in memory with it. Errors the object itself raised are raised as they were."""
 
 
 def check_arguments(count: int, args: Sequence[tuple]) -> None:
@@ -106,8 +111,8 @@ class ProcessActors:
         for pipe, process in zip(self._pipes, self._processes, strict=True):
             try:
                 answers.append(pipe.recv())
-            except EOFError:
-                answers.append(("error", TwinrlError(f"actor process {process.pid} died")))
+            except (EOFError, OSError):
+                answers.append(("error", ActorLost(f"actor process {process.pid} died")))
         for status, value in answers:
             if status == "error":
                 raise value
@@ -115,8 +120,11 @@ class ProcessActors:
 
     def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
         check_arguments(len(self._pipes), args)
-        for pipe, a in zip(self._pipes, args, strict=True):
-            pipe.send((method, tuple(a)))
+        for pipe, a, process in zip(self._pipes, args, self._processes, strict=True):
+            try:
+                pipe.send((method, tuple(a)))
+            except (BrokenPipeError, OSError):
+                raise ActorLost(f"actor process {process.pid} died") from None
         return self._answers()
 
     def close(self) -> None:

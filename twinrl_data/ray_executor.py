@@ -33,7 +33,7 @@ from ray._private import ray_constants
 from ray.exceptions import AuthenticationError, RayActorError, RayTaskError
 from ray.util.queue import Queue
 
-from twinrl_data.actors import check_arguments
+from twinrl_data.actors import ActorLost, check_arguments
 from twinrl_data.errors import TwinrlError
 
 Job = TypeVar("Job")
@@ -208,7 +208,7 @@ class RayActors:
         except RayTaskError as err:  # as the object raised it
             raise err.cause from err
         except RayActorError as err:  # it died, or its class could not make it
-            raise TwinrlError(f"a Ray actor of {method} stopped: {err}") from err
+            raise ActorLost(f"a Ray actor of {method} stopped: {err}") from err
 
     def close(self) -> None:
         for handle in self._handles:

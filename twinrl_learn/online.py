@@ -146,6 +146,11 @@ class OnlineRun:
         self.agent.env_steps += env_steps
         self._pending_updates += self.agent.config.utd * env_steps
 
+    @property
+    def pending_updates(self) -> float:
+        """Updates the counted steps bought and not yet run."""
+        return self._pending_updates
+
     def updates_due(self) -> bool:
         """Whether the steps counted so far have bought an update not yet run."""
         return self._pending_updates >= 1

@@ -77,6 +77,7 @@ from twinrl_learn.real_rl_progress import (
     loop_timing,
     plot_evaluations,
 )
+from twinrl_learn.remote_learner import LearnerSpec, RemoteLearner, learning_buffers
 from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.reward_classifier import RewardClassifier
 from twinrl_learn.runners import TwinrlRunner
@@ -120,10 +121,23 @@ class ResetPlanner:
 
 
 def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, ReplayBuffer]:
-    views, rewards = policy.replay_views(), settings.rl.rewards
-    demo = ReplayBuffer.from_datasets(settings.demos, rewards=rewards, **views)
-    twin = [settings.twin_buffer] if settings.twin_buffer else []
-    return demo, ReplayBuffer.from_datasets(twin, rewards=rewards, **views)
+    return learning_buffers(settings.demos, settings.twin_buffer, settings.rl, policy)
+
+
+def learner_spec(settings: RealRLSettings) -> LearnerSpec:
+    """What a learner apart from the actor starts (or starts again) from."""
+    out = Path(settings.out)
+    return LearnerSpec(
+        folder=settings.learner_folder or str(out / "learner"),
+        # A run that has begun: from the weights the actor had (a learner whose folder is
+        # gone starts again from them; one with its folder resumes from its own).
+        init=str(out / "agent") if (out / RUN_FILE).is_file() else settings.init,
+        rl=settings.rl,
+        demos=list(settings.demos),
+        twin_buffer=settings.twin_buffer,
+        keep_critic=settings.keep_critic,
+        device=settings.device,
+    )
 
 
 class PolicySource:
@@ -169,6 +183,7 @@ class RealRL:
         terminal: TerminalKeys | None = None,
         on_wait: Callable[[str], None] | None = None,
         classifier: RewardClassifier | None = None,
+        on_notice: Callable[[str], None] | None = None,
     ):
         self.settings, self.run_state = settings, run
         self.cell = load_cell(settings.cell) if settings.cell is not None else None
@@ -178,6 +193,7 @@ class RealRL:
         self.classifier = classifier
         policy = run.agent.policy
         self.person: PersonInLoop | None = None
+        self._say = on_notice
         self.robot = self._open_robot(policy, operator, terminal, on_wait)
         self.judge = self._judge()
         seed = settings.rl.seed
@@ -197,7 +213,7 @@ class RealRL:
         self.resets = ResetPlanner(self.task, targets, settings.target_ratio)
         self.evaluations = [EvalPoint(**p) for p in extra.get("evaluations", [])]
         self.periods: list[float] = []  # the control loop's, this session (s)
-        self._learner: Learner | None = None
+        self._learner: Learner | RemoteLearner | None = None
         self.view: LiveView | None = None
         if settings.show_resets:
             self.view = LiveView(
@@ -285,9 +301,12 @@ class RealRL:
         operator: Operator | None = None,
         terminal: TerminalKeys | None = None,
         on_wait: Callable[[str], None] | None = None,
+        on_notice: Callable[[str], None] | None = None,
     ) -> RealRL:
         """Start a run (``terminal``: the person's keys; ``on_wait``: told what the
-        person is waited for, on a real cell)."""
+        person is waited for, on a real cell; ``on_notice``: told when a learner apart
+        is lost, back or behind, else a :class:`~twinrl_learn.remote_learner.
+        LearnerWarning`)."""
         if not settings.init:
             raise SettingError(
                 "init", "is needed to start a run: a policy checkpoint to start from"
@@ -309,7 +328,8 @@ class RealRL:
             shutil.copyfile(settings.targets, kept)
             run.extra["targets"] = str(kept)
         write_text_atomic(run.out / "settings.json", json.dumps(asdict(settings), indent=1))
-        return cls(settings, run, _operator(settings, operator), terminal, on_wait, classifier)
+        operator = _operator(settings, operator)
+        return cls(settings, run, operator, terminal, on_wait, classifier, on_notice)
 
     @classmethod
     def resume(
@@ -318,6 +338,7 @@ class RealRL:
         operator: Operator | None = None,
         terminal: TerminalKeys | None = None,
         on_wait: Callable[[str], None] | None = None,
+        on_notice: Callable[[str], None] | None = None,
     ) -> RealRL:
         """Continue the run in ``settings.out`` with the RL settings it started with."""
         out = Path(settings.out)
@@ -329,7 +350,8 @@ class RealRL:
         demo, twin = _buffers(settings, policy)
         classifier = checked_classifier(settings, terminal)
         run = OnlineRun.resume(out, demo, twin, device)
-        return cls(settings, run, _operator(settings, operator), terminal, on_wait, classifier)
+        operator = _operator(settings, operator)
+        return cls(settings, run, operator, terminal, on_wait, classifier, on_notice)
 
     def checkpoint(self) -> None:
         """Save everything :meth:`resume` needs (between episodes, no update running)."""
@@ -353,11 +375,19 @@ class RealRL:
         """Run until ``plant_steps`` robot steps; returns the :class:`OnlineRun`."""
         run, settings = self.run_state, self.settings
         try:
-            if run.agent.updates < run.agent.config.offline_steps and not run.history:
-                run.pretrain(on_update)
+            if settings.learner:  # apart: it pretrains, or resumes, in its own folder
+                self._learner = RemoteLearner(
+                    run, learner_spec(settings), settings.learner,
+                    sync=settings.learner_sync, say=self._say,
+                )  # fmt: skip
                 self.actor.load_state_dict(run.agent.policy.state_dict())
                 self.checkpoint()
-            self._learner = Learner(run)
+            else:
+                if run.agent.updates < run.agent.config.offline_steps and not run.history:
+                    run.pretrain(on_update)
+                    self.actor.load_state_dict(run.agent.policy.state_dict())
+                    self.checkpoint()
+                self._learner = Learner(run)
             if not self.evaluations:
                 self.evaluate()
                 self.checkpoint()
@@ -393,6 +423,11 @@ class RealRL:
             self.evaluations, self.out / "curve.png", title=f"real RL: {self.task.name}"
         )
         return run
+
+    @property
+    def learner(self) -> Learner | RemoteLearner | None:
+        """The learner of a running run: a thread here, or apart (``settings.learner``)."""
+        return self._learner
 
     @property
     def paused(self) -> bool:

@@ -445,6 +445,14 @@ class RealRLSettings:
     """Between episodes, wait for the learner (its own thread) to run every update the
     episode bought, so a seed gives the same run; off, take the weights it has reached.
     The robot loop never waits for an update either way."""
+    learner: str = ""
+    """Where the learner (buffers and updates) runs: empty, a thread of this process;
+    ``process``, a process of its own on this machine; or a Ray cluster as `cluster`
+    settings name one (local, auto, HOST:PORT, ray://HOST:PORT), e.g. a machine with a
+    GPU. Apart, it is sent each episode and sends the weights back; when it is lost the
+    robot goes on with the last weights (docs/guides/scale-out.md)."""
+    learner_folder: str | None = None
+    """The learner's own run folder, on its machine (default: ``learner/`` in ``out``)."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
     operator_sees: str | None = None
@@ -462,6 +470,16 @@ class RealRLSettings:
                 "operator_sees", "is the simulated operator's eyes: not with a person's "
                 "device (teleop) or without an operator"
             )  # fmt: skip
+        if self.learner not in ("", "process"):
+            try:
+                cluster_address(self.learner)
+            except SettingError:
+                raise SettingError(
+                    "learner", "must be empty (a thread here), process, or a Ray cluster: "
+                    f"local, auto, HOST:PORT or ray://HOST:PORT; got '{self.learner}'"
+                ) from None  # fmt: skip
+        if self.learner_folder is not None and not self.learner:
+            raise SettingError("learner_folder", "is the folder of a learner apart; set `learner`")
         if self.robot not in LEARNING_ROBOTS:
             raise SettingError(
                 "robot",

@@ -255,7 +255,7 @@ def _real_rl(config: RealRLSettings, resume: bool, terminal: Any) -> None:
             bar.update(waiting, description=message, visible=True)
 
         start = RealRL.resume if resume else RealRL.start
-        job_run = start(config, terminal=terminal, on_wait=on_wait)
+        job_run = start(config, terminal=terminal, on_wait=on_wait, on_notice=bar.console.print)
         offline = bar.add_task(
             "offline updates",
             total=job_run.run_state.agent.config.offline_steps,
@@ -298,7 +298,8 @@ REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
     "classifier", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "twin", "plant_steps", "eval_every", "eval_grid",
-    "eval_episodes", "learner_sync", "show_resets", "view", "device", "operator_sees",
+    "eval_episodes", "learner", "learner_folder", "learner_sync", "show_resets", "view", "device",
+    "operator_sees",
 )  # fmt: skip
 settings_command(
     app,

@@ -1,0 +1,92 @@
+"""Real RL's actor–learner split: the learner in a process of its own, killed mid-run."""
+
+import json
+import os
+import shutil
+import signal
+
+import pytest
+
+from tests.conftest import tiny_state_policy
+from twinrl_data.errors import SettingError
+from twinrl_data.session import Session
+from twinrl_learn.real_rl import RealRL
+from twinrl_learn.remote_learner import RemoteLearner
+from twinrl_learn.settings import RealRLSettings, RLConfig
+
+
+@pytest.fixture(scope="module")
+def demos(tmp_path_factory):
+    return tiny_state_policy(tmp_path_factory.mktemp("split"), seed=4, steps=20)
+
+
+def _settings(demos, out, **changes) -> RealRLSettings:
+    dataset, sft = demos
+    fields = dict(
+        task="pick_place", init=str(sft), out=str(out), demos=[str(dataset)],
+        plant_steps=400, eval_every=0, eval_grid=(1, 1), refresh_every=0, show_resets=False,
+        operator=None, learner="process",
+        rl=RLConfig.for_method("twinrl", offline_steps=3, batch_size=16, seed=2),
+    )  # fmt: skip
+    return RealRLSettings(**(fields | changes))
+
+
+def test_a_killed_learner_loses_no_episode_and_the_robot_never_stops(demos, tmp_path):
+    said = []
+    real = RealRL.start(_settings(demos, tmp_path / "run"), on_notice=said.append)
+    updates_seen = []
+
+    def on_episode(record, real: RealRL) -> None:
+        updates_seen.append(real.run_state.agent.updates)
+        if len(real.run_state.history) == 2:  # the learner dies after the second episode
+            assert isinstance(real.learner, RemoteLearner)
+            os.kill(real.learner.learner_pid(), signal.SIGKILL)
+
+    run = real.run(on_episode=on_episode)
+    episodes = Session(tmp_path / "run" / "session").episode_paths()
+    assert len(episodes) == len(run.history) >= 4 and run.agent.env_steps >= 400
+    # The robot went on: the third episode was acted with the weights of before.
+    assert any("the learner is lost" in m for m in said)
+    assert any("a learner is back" in m for m in said)
+    assert updates_seen[2] == updates_seen[1]
+    # The learner that came back holds every episode, in order, and was granted every
+    # robot step: its updates went on from its checkpoint.
+    learner = tmp_path / "run" / "learner"
+    assert [p.name for p in Session(learner / "session").episode_paths()] == [
+        p.name for p in episodes
+    ]
+    state = json.loads((learner / "run.json").read_text())
+    assert state["episodes_logged"] == len(episodes)
+    assert updates_seen[-1] > updates_seen[2]
+    assert run.agent.updates == updates_seen[-1]
+
+
+def test_a_learner_on_a_new_machine_is_sent_every_episode_when_the_actor_resumes(demos, tmp_path):
+    """The learner's folder is gone (another machine): the resumed actor's learner starts
+    from the actor's last weights and is sent every episode before the run goes on."""
+    RealRL.start(_settings(demos, tmp_path / "run", plant_steps=200)).run()
+    shutil.rmtree(tmp_path / "run" / "learner")
+    RealRL.resume(_settings(demos, tmp_path / "run", plant_steps=300)).run()
+    actor = [p.name for p in Session(tmp_path / "run" / "session").episode_paths()]
+    learner = Session(tmp_path / "run" / "learner" / "session")
+    assert len(actor) >= 3 and [p.name for p in learner.episode_paths()] == actor
+
+
+def test_a_learner_apart_is_named_where_it_runs(demos, tmp_path):
+    with pytest.raises(SettingError, match="learner_folder"):
+        _settings(demos, tmp_path, learner="", learner_folder=str(tmp_path / "l"))
+    with pytest.raises(SettingError, match="learner must be empty .* got 'ray://no port'"):
+        _settings(demos, tmp_path, learner="ray://no port")
+
+
+def test_the_command_refuses_a_learner_it_cannot_reach_in_one_line(demos, tmp_path):
+    from tests.test_cli import twinrl as run_cli
+
+    dataset, sft = demos
+    out = tmp_path / "run"
+    result = run_cli(
+        "train", "real-rl", "--task", "pick_place", "--init", str(sft), "--out", str(out),
+        "--demos", str(dataset), "--learner", "ray://no port",
+    )  # fmt: skip
+    assert result.returncode == 2 and "learner must be empty" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not out.exists()
