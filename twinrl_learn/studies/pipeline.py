@@ -23,7 +23,8 @@ HiL-SERL               real-only SFT (none)      no          uniform     SAC (no
 ====================== ============= =========== =========== =========== ================
 
 "Imitates" is the demo buffer (interventions join it in every method; HiL-SERL keeps
-it as RLPD's demo half but has no imitation term).
+it as RLPD's demo half but has no imitation term; its offline phase warms the critic
+alone, as its authors' recipe has it: ``RLConfig.for_method``).
 
 Outputs: ``report.md`` (curves, tables), ``report.json``, ``curves.png``, every
 episode log (each stage's ``session/`` folders), ``catalog.parquet`` over all of them
