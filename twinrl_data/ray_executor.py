@@ -178,8 +178,19 @@ class RayExecutor:
             if messages is not None:
                 messages.shutdown()
 
-    def actors(self, cls: type, inits: list[dict[str, Any]]) -> RayActors:
-        return RayActors(cls, inits)
+    def actors(self, cls: type, inits: list[dict[str, Any]], *, gpus: float = 0) -> RayActors:
+        """Actors of one CPU each, and ``gpus`` GPUs each (Ray shows an actor only the GPUs
+        it reserved); refused when the cluster has fewer GPUs than one actor needs."""
+        if gpus > ray.cluster_resources().get("GPU", 0):
+            raise TwinrlError(
+                f"the cluster has no node with {gpus:g} GPU(s) free for an actor; add a node "
+                "with a GPU (ray start --num-gpus=1) or run it on the CPU (--device cpu)"
+            )
+        return RayActors(cls, inits, gpus=gpus)
+
+    def gpus(self) -> float:
+        """The GPUs of the cluster, all nodes together."""
+        return float(ray.cluster_resources().get("GPU", 0))
 
     def close(self) -> None:
         if self._owns_ray:
@@ -196,8 +207,8 @@ class RayActors:
     """Each object a Ray actor of one CPU (:mod:`twinrl_data.actors`), anywhere on the
     cluster; an object's error is raised as it was raised."""
 
-    def __init__(self, cls: type, inits: list[dict[str, Any]]) -> None:
-        remote = ray.remote(num_cpus=1, max_restarts=0)(cls)
+    def __init__(self, cls: type, inits: list[dict[str, Any]], *, gpus: float = 0) -> None:
+        remote = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=0)(cls)
         self._handles = [remote.remote(**init) for init in inits]
 
     def call(self, method: str, args: Sequence[tuple]) -> list[Any]:

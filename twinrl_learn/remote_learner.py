@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 
 from twinrl_data.actors import ActorLost, Actors, ProcessActors
+from twinrl_data.executor import LOCAL, cluster_address
 from twinrl_data.mcap_log import read_episode, read_meta, read_summary
 from twinrl_data.schema import Episode
 from twinrl_learn.agent import Agent
@@ -212,11 +213,16 @@ class RemoteLearner:
         if self.where == PROCESS:
             self._actors = ProcessActors(LearnerService, [{"spec": self.spec}])
         else:
-            from twinrl_data.executor import make_executor
+            from twinrl_data.ray_executor import RayExecutor
 
-            executor = make_executor(1, cluster=self.where)
+            address = cluster_address(self.where)
+            executor = RayExecutor(1, address=None if address == LOCAL else address)
             self._closers.append(executor.close)
-            self._actors = executor.actors(LearnerService, [{"spec": self.spec}])
+            # Ray shows an actor only the GPUs it reserves: one for a learner on cuda, or
+            # on auto where the cluster has one.
+            device = self.spec.device
+            gpus = 1 if device.startswith("cuda") or (device == "auto" and executor.gpus()) else 0
+            self._actors = executor.actors(LearnerService, [{"spec": self.spec}], gpus=gpus)
         self._adopt(self._actors.call("status", [()])[0])
 
     def _deliver(self) -> None:

@@ -241,3 +241,12 @@ def test_real_rl_with_its_learner_on_a_node_loses_no_episode_when_the_learner_di
     assert len(actor) >= 4 and [p.name for p in learner] == actor
     assert any("the learner is lost" in m for m in said)
     assert any("a learner is back" in m for m in said)
+
+
+def test_an_actor_that_needs_a_gpu_the_cluster_lacks_is_refused_not_left_waiting(cluster):
+    from twinrl_data.errors import TwinrlError
+
+    with RayExecutor(1, address=cluster.address) as executor:
+        assert executor.gpus() == 0
+        with pytest.raises(TwinrlError, match="no node with 1 GPU"):
+            executor.actors(dict, [{}], gpus=1)
