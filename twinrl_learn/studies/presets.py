@@ -6,7 +6,7 @@ Why each preset is set as it is, with the measurements behind it, is in the docs
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from twinrl_data.errors import SettingError
 from twinrl_learn.settings import RLConfig
@@ -55,6 +55,30 @@ class Preset:
         return self.policy == "state" or not (self.classifier_episodes and self.operator_sees)
 
 
+_QUICK = Preset(
+    policy="state",
+    # Objects seen from the TCP: better at every stage (docs/results/defaults.md).
+    inputs="relative",
+    real_demos=30,
+    # More twin demos made a better SFT policy (docs/results/defaults.md).
+    twin_id=105,
+    twin_ood=105,
+    # Twin RL is where RL is cheap: more steps kept climbing (docs/results/defaults.md).
+    twin_rl_steps=9600,
+    twin_envs=8,
+    mining_grid=(4, 4),
+    mining_episodes=2,
+    plant_steps=2400,
+    # 32 episodes per region, every 2 plant minutes (docs/results/defaults.md).
+    eval_every=1200,
+    eval_grid=(8, 8),
+    eval_episodes=1,
+    offline_steps=200,
+    refresh_every=8,
+    seeds=(0, 1, 2),
+)
+
+
 PRESETS = {
     # A few minutes: checks that every stage runs (no learning to speak of).
     "smoke": Preset(
@@ -75,52 +99,25 @@ PRESETS = {
         seeds=(0,),
         sft_steps=30,
     ),
-    "quick": Preset(
-        policy="state",
-        # Objects seen from the TCP: better at every stage (docs/results/defaults.md).
-        inputs="relative",
-        real_demos=30,
-        # More twin demos made a better SFT policy (docs/results/defaults.md).
-        twin_id=105,
-        twin_ood=105,
-        # Twin RL is where RL is cheap: more steps kept climbing (docs/results/defaults.md).
-        twin_rl_steps=9600,
-        twin_envs=8,
-        mining_grid=(4, 4),
-        mining_episodes=2,
-        plant_steps=2400,
-        # 32 episodes per region, every 2 plant minutes (docs/results/defaults.md).
-        eval_every=1200,
-        eval_grid=(8, 8),
-        eval_episodes=1,
-        offline_steps=200,
-        refresh_every=8,
-        seeds=(0, 1, 2),
-    ),
+    "quick": _QUICK,
     # Nothing privileged: the image policy through a pose estimator trained on twin
     # renders, success from a classifier trained on twin episodes, the simulated person
-    # judging from the estimator's view (docs/results/pipeline-quick-vision.md).
-    "quick-vision": Preset(
+    # judging from the estimator's view; real RL as in quick, one seed
+    # (docs/results/pipeline-quick.md#nothing-privileged-the-quick-vision-preset).
+    "quick-vision": replace(
+        _QUICK,
         policy="vla",
-        real_demos=30,
+        inputs="absolute",
         # Table I's best image row (docs/results/image-policy.md).
         twin_id=30,
         twin_ood=60,
+        twin_rl_steps=2400,
+        mining_episodes=1,
+        seeds=(0,),
         fit_look=True,
         perception=100,
         classifier_episodes=20,
         operator_sees=True,
-        twin_rl_steps=2400,
-        twin_envs=8,
-        mining_grid=(4, 4),
-        mining_episodes=1,
-        plant_steps=2400,
-        eval_every=1200,
-        eval_grid=(8, 8),
-        eval_episodes=1,
-        offline_steps=200,
-        refresh_every=8,
-        seeds=(0,),
     ),
     "paper": Preset(
         policy="vla",
