@@ -183,7 +183,7 @@ class RayExecutor:
         it reserved); refused when the cluster has fewer GPUs than one actor needs."""
         if gpus > ray.cluster_resources().get("GPU", 0):
             raise TwinrlError(
-                f"the cluster has no node with {gpus:g} GPU(s) free for an actor; add a node "
+                f"the cluster has fewer than {gpus:g} GPU(s) for an actor; add a node "
                 "with a GPU (ray start --num-gpus=1) or run it on the CPU (--device cpu)"
             )
         return RayActors(cls, inits, gpus=gpus)
@@ -204,8 +204,9 @@ class RayExecutor:
 
 
 class RayActors:
-    """Each object a Ray actor of one CPU (:mod:`twinrl_data.actors`), anywhere on the
-    cluster; an object's error is raised as it was raised."""
+    """Each object a Ray actor of one CPU and ``gpus`` GPUs (:mod:`twinrl_data.actors`),
+    anywhere on the cluster that has them; an object's error is raised as it was raised,
+    a gone actor as :class:`~twinrl_data.actors.ActorLost`."""
 
     def __init__(self, cls: type, inits: list[dict[str, Any]], *, gpus: float = 0) -> None:
         remote = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=0)(cls)

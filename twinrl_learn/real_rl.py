@@ -124,14 +124,16 @@ def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, Re
     return learning_buffers(settings.demos, settings.twin_buffer, settings.rl, policy)
 
 
-def learner_spec(settings: RealRLSettings) -> LearnerSpec:
-    """What a learner apart from the actor starts (or starts again) from."""
+def learner_spec(settings: RealRLSettings, run: OnlineRun) -> LearnerSpec:
+    """What a learner apart from the actor starts (or starts again) from: a run that has
+    begun gives the weights and counters the actor has (a learner whose folder is gone
+    starts again from them; one with its folder resumes from its own)."""
     out = Path(settings.out)
+    begun = (out / RUN_FILE).is_file() and bool(run.history)
     return LearnerSpec(
         folder=settings.learner_folder or str(out / "learner"),
-        # A run that has begun: from the weights the actor had (a learner whose folder is
-        # gone starts again from them; one with its folder resumes from its own).
-        init=str(out / "agent") if (out / RUN_FILE).is_file() else settings.init,
+        init=str(out / "agent") if begun else settings.init,
+        counters=(run.agent.env_steps, run.agent.updates) if begun else None,
         rl=settings.rl,
         demos=list(settings.demos),
         twin_buffer=settings.twin_buffer,
@@ -377,7 +379,7 @@ class RealRL:
         try:
             if settings.learner:  # apart: it pretrains, or resumes, in its own folder
                 self._learner = RemoteLearner(
-                    run, learner_spec(settings), settings.learner,
+                    run, learner_spec(settings, run), settings.learner,
                     sync=settings.learner_sync, say=self._say,
                 )  # fmt: skip
                 self.actor.load_state_dict(run.agent.policy.state_dict())
@@ -404,9 +406,10 @@ class RealRL:
                     record = self.episode(config, region, origin)
                 except RunPaused:
                     break  # nothing of the episode was recorded; its reset is drawn again
+                self.checkpoint()  # before an evaluation: a learner apart already holds it
                 if self._evaluation_due():
                     self.evaluate()
-                self.checkpoint()
+                    self.checkpoint()
                 if on_episode is not None:
                     on_episode(record, self)
             if self.paused:

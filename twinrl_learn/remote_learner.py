@@ -15,12 +15,15 @@ that is killed starts again from its folder holding every episode it acknowledge
 actor's session keeps every episode whatever happens. While the learner is gone the
 actor acts with the last weights it got and says so; at the end of each later episode
 it starts a learner again, which is sent the episodes it lacks, in order, before the
-run goes on: no episode is lost to learning.
+run goes on. A learner whose folder is gone starts from the actor's last weights with
+a new critic. The actor still reads the demos and its episodes as an in-process run
+does (its own buffers are not sampled); that the learner alone holds them is not done.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -43,6 +46,8 @@ from twinrl_learn.replay import ReplayBuffer
 from twinrl_learn.settings import RLConfig
 
 PROCESS = "process"  # RealRLSettings.learner: a spawned process on this machine
+PREPAID = "prepaid_steps"  # run.extra: steps of re-sent episodes already counted
+BEHIND_STEPS = 600  # robot steps of updates owed before the actor says the learner lags
 
 
 class LearnerWarning(UserWarning):
@@ -56,6 +61,9 @@ class LearnerSpec:
     folder: str  # its own run folder, on its machine
     init: str  # the policy checkpoint the run starts from
     rl: RLConfig
+    # (env steps, updates) of a run that has begun: a learner without its folder starts
+    # from the actor's last weights there, with a new critic and no second offline phase
+    counters: tuple[int, int] | None = None
     demos: list[str] = field(default_factory=list)
     twin_buffer: str | None = None
     keep_critic: bool = False
@@ -89,6 +97,8 @@ class LearnerService:
 
     def __init__(self, spec: LearnerSpec) -> None:
         folder, device = Path(spec.folder), resolve_device(spec.device)
+        if folder.exists() and not (folder / RUN_FILE).is_file():
+            shutil.rmtree(folder)  # stopped before its first checkpoint: nothing acknowledged
         if (folder / RUN_FILE).is_file():  # a learner that stopped: from its checkpoint
             policy = Policy.from_pretrained(folder / "agent", device)
             rl = RLConfig.load(folder / "agent")
@@ -98,9 +108,13 @@ class LearnerService:
             policy = Policy.from_pretrained(spec.init, device)
             demo, twin = learning_buffers(spec.demos, spec.twin_buffer, spec.rl, policy)
             agent = Agent(policy, spec.rl)
-            if spec.keep_critic and not agent.adopt_critic(spec.init):
+            if spec.counters is not None:  # the actor's run goes on: no offline phase again
+                agent.env_steps, agent.updates = spec.counters
+            elif spec.keep_critic and not agent.adopt_critic(spec.init):
                 raise LearnError(f"keep_critic needs an RL agent as init; {spec.init} has none")
             run = OnlineRun.start(folder, agent, demo, twin)
+            # The episodes it is sent again bought their updates from the learner before.
+            run.extra[PREPAID] = spec.counters[0] if spec.counters is not None else 0
             run.pretrain()
             run.checkpoint()
         self.run = run
@@ -123,7 +137,11 @@ class LearnerService:
 
     def episode(self, name: str, data: bytes, steps: int, sync: bool) -> LearnerReply:
         """Take one episode the actor recorded (``steps`` robot steps), then answer."""
-        self.learner.grant(steps)
+        with self.learner.paused() as run:
+            prepaid = min(run.extra.get(PREPAID, 0), steps)
+            run.extra[PREPAID] = run.extra.get(PREPAID, 0) - prepaid
+        if steps > prepaid:
+            self.learner.grant(steps - prepaid)
         if sync:
             self.learner.wait()
         with self.learner.paused() as run:
@@ -168,13 +186,25 @@ class RemoteLearner:
         self._closers: list[Callable[[], None]] = []
         self._held: set[str] = set()
         self._weights: dict[str, torch.Tensor] | None = None
-        self._connect()  # the first learner must start: there is nothing to act with else
+        try:
+            self._connect()  # the first learner must start: there is nothing to act with else
+        except BaseException:
+            self.close()
+            raise
+        ours = {p.name for p in run.session.episode_paths()}
+        extra = len(self._held - ours)
+        if extra:  # the actor stopped between the learner's checkpoint and its own
+            self.say(
+                f"the learner learnt from {extra} episode(s) this run no longer holds (the "
+                "actor stopped before saving them; they are in its session's discarded/)"
+            )
         self._deliver()  # a resumed actor's episodes the learner lacks
 
     # ------------------------------------------------------------------ actor side
     def grant(self, env_steps: int) -> None:
-        """Count the actor's steps; they are sent with the episode at its end."""
-        self.run.count_steps(env_steps)
+        """Count the actor's steps (the updates they buy are the learner's); they are sent
+        with the episode at its end."""
+        self.run.agent.env_steps += env_steps
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """The episode's round trip waits (with ``sync``); nothing to wait for here."""
@@ -232,8 +262,8 @@ class RemoteLearner:
             if self._actors is None:
                 self._connect()
                 self.say(
-                    f"a learner is back (from its checkpoint at update {self.run.agent.updates}); "
-                    "sending it the episodes it lacks"
+                    f"a learner is back at update {self.run.agent.updates}; sending it the "
+                    "episodes it lacks"
                 )
             for path in self.run.session.episode_paths():
                 if path.name not in self._held:
@@ -257,5 +287,5 @@ class RemoteLearner:
         self.run.agent.updates = reply.updates
         self.run.agent.policy.load_state_dict(reply.weights)  # what the actor checkpoints
         behind = reply.behind
-        if not self.sync and behind > self.run.agent.config.utd * 600:  # a plant minute
+        if not self.sync and behind > BEHIND_STEPS * self.run.agent.config.utd:
             self.say(f"the learner is {behind:.0f} updates behind the robot")

@@ -10,6 +10,7 @@ import pytest
 from tests.conftest import tiny_state_policy
 from twinrl_data.errors import SettingError
 from twinrl_data.session import Session
+from twinrl_learn.agent import Agent
 from twinrl_learn.real_rl import RealRL
 from twinrl_learn.remote_learner import RemoteLearner
 from twinrl_learn.settings import RealRLSettings, RLConfig
@@ -64,12 +65,22 @@ def test_a_killed_learner_loses_no_episode_and_the_robot_never_stops(demos, tmp_
 def test_a_learner_on_a_new_machine_is_sent_every_episode_when_the_actor_resumes(demos, tmp_path):
     """The learner's folder is gone (another machine): the resumed actor's learner starts
     from the actor's last weights and is sent every episode before the run goes on."""
-    RealRL.start(_settings(demos, tmp_path / "run", plant_steps=200)).run()
+    first = RealRL.start(_settings(demos, tmp_path / "run", plant_steps=200)).run()
+    steps, updates = first.agent.env_steps, first.agent.updates
     shutil.rmtree(tmp_path / "run" / "learner")
-    RealRL.resume(_settings(demos, tmp_path / "run", plant_steps=300)).run()
+    said, seen = [], []
+    resumed = RealRL.resume(
+        _settings(demos, tmp_path / "run", plant_steps=300), on_notice=said.append
+    )
+    run = resumed.run(on_episode=lambda record, real: seen.append(record.updates))
     actor = [p.name for p in Session(tmp_path / "run" / "session").episode_paths()]
     learner = Session(tmp_path / "run" / "learner" / "session")
     assert len(actor) >= 3 and [p.name for p in learner.episode_paths()] == actor
+    # Its counters go on from the actor's: no second offline phase, no step paid twice.
+    assert seen and seen[0] > updates and seen == sorted(seen)
+    learnt = Agent.load(tmp_path / "run" / "learner" / "agent")
+    assert learnt.env_steps == run.agent.env_steps > steps
+    assert learnt.updates == run.agent.updates == updates + (run.agent.env_steps - steps)
 
 
 def test_a_learner_apart_is_named_where_it_runs(demos, tmp_path):

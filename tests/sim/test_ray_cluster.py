@@ -248,5 +248,5 @@ def test_an_actor_that_needs_a_gpu_the_cluster_lacks_is_refused_not_left_waiting
 
     with RayExecutor(1, address=cluster.address) as executor:
         assert executor.gpus() == 0
-        with pytest.raises(TwinrlError, match="no node with 1 GPU"):
+        with pytest.raises(TwinrlError, match="fewer than 1 GPU"):
             executor.actors(dict, [{}], gpus=1)
