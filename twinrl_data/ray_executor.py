@@ -184,7 +184,7 @@ class RayExecutor:
         if gpus > ray.cluster_resources().get("GPU", 0):
             raise TwinrlError(
                 f"the cluster has fewer than {gpus:g} GPU(s) for an actor; add a node "
-                "with a GPU (ray start --num-gpus=1) or run it on the CPU (--device cpu)"
+                "with a GPU to the cluster, or run it on the CPU (device cpu)"
             )
         return RayActors(cls, inits, gpus=gpus)
 
