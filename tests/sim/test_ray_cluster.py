@@ -211,7 +211,7 @@ def test_a_bad_cluster_is_one_line_and_leaves_nothing(tmp_path, value, monkeypat
 def test_real_rl_with_its_learner_on_a_node_loses_no_episode_when_the_learner_dies(
     cluster, tmp_path
 ):
-    """The learner as a Ray actor on the cluster: killed after the second episode, the
+    """The learner as a Ray actor on the cluster: killed after the first episode, the
     robot goes on, a learner comes back and holds every episode of the actor."""
     import os
     import signal
@@ -224,7 +224,7 @@ def test_real_rl_with_its_learner_on_a_node_loses_no_episode_when_the_learner_di
     real = RealRL.start(
         RealRLSettings(
             task="pick_place", init=str(sft), out=str(tmp_path / "run"), demos=[str(dataset)],
-            plant_steps=400, eval_every=0, eval_grid=(1, 1), refresh_every=0,
+            plant_steps=300, eval_every=0, eval_grid=(1, 1), refresh_every=0,
             show_resets=False, operator=None, learner=cluster.address,
             rl=RLConfig.for_method("twinrl", offline_steps=3, batch_size=16, seed=2),
         ),
@@ -232,13 +232,13 @@ def test_real_rl_with_its_learner_on_a_node_loses_no_episode_when_the_learner_di
     )  # fmt: skip
 
     def on_episode(record, real) -> None:
-        if len(real.run_state.history) == 2:
+        if len(real.run_state.history) == 1:
             os.kill(real.learner.learner_pid(), signal.SIGKILL)
 
     real.run(on_episode=on_episode)
     actor = [p.name for p in Session(tmp_path / "run" / "session").episode_paths()]
     learner = Session(tmp_path / "run" / "learner" / "session").episode_paths()
-    assert len(actor) >= 4 and [p.name for p in learner] == actor
+    assert len(actor) >= 3 and [p.name for p in learner] == actor
     assert any("the learner is lost" in m for m in said)
     assert any("a learner is back" in m for m in said)
 
