@@ -123,7 +123,7 @@ class ProcessActors:
         for pipe, a, process in zip(self._pipes, args, self._processes, strict=True):
             try:
                 pipe.send((method, tuple(a)))
-            except (BrokenPipeError, OSError):
+            except OSError:
                 raise ActorLost(f"actor process {process.pid} died") from None
         return self._answers()
 

@@ -181,7 +181,7 @@ class RayExecutor:
     def actors(self, cls: type, inits: list[dict[str, Any]], *, gpus: float = 0) -> RayActors:
         """Actors of one CPU each, and ``gpus`` GPUs each (Ray shows an actor only the GPUs
         it reserved); refused when the cluster has fewer GPUs than one actor needs."""
-        if gpus > ray.cluster_resources().get("GPU", 0):
+        if gpus > self.gpus():
             raise TwinrlError(
                 f"the cluster has fewer than {gpus:g} GPU(s) for an actor; add a node "
                 "with a GPU to the cluster, or run it on the CPU (device cpu)"

@@ -128,8 +128,7 @@ def learner_spec(settings: RealRLSettings, run: OnlineRun) -> LearnerSpec:
     """What a learner apart from the actor starts (or starts again) from: a run that has
     begun gives the weights and counters the actor has (a learner whose folder is gone
     starts again from them; one with its folder resumes from its own)."""
-    out = Path(settings.out)
-    begun = (out / RUN_FILE).is_file() and bool(run.history)
+    out, begun = Path(settings.out), bool(run.history)
     return LearnerSpec(
         folder=settings.learner_folder or str(out / "learner"),
         init=str(out / "agent") if begun else settings.init,

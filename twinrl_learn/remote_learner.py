@@ -138,8 +138,9 @@ class LearnerService:
     def episode(self, name: str, data: bytes, steps: int, sync: bool) -> LearnerReply:
         """Take one episode the actor recorded (``steps`` robot steps), then answer."""
         with self.learner.paused() as run:
-            prepaid = min(run.extra.get(PREPAID, 0), steps)
-            run.extra[PREPAID] = run.extra.get(PREPAID, 0) - prepaid
+            owed = run.extra.get(PREPAID, 0)
+            prepaid = min(owed, steps)
+            run.extra[PREPAID] = owed - prepaid
         if steps > prepaid:
             self.learner.grant(steps - prepaid)
         if sync:
@@ -181,7 +182,6 @@ class RemoteLearner:
         self.run, self.spec, self.where, self.sync = run, spec, where, sync
         self.say = say or (lambda message: warnings.warn(message, LearnerWarning, stacklevel=3))
         self.metrics: dict[str, float] = {}
-        self.lost = False
         self._actors: Actors | None = None
         self._closers: list[Callable[[], None]] = []
         self._held: set[str] = set()
@@ -271,14 +271,12 @@ class RemoteLearner:
                         "episode", [(path.name, path.read_bytes(), _episode_steps(path), self.sync)]
                     )[0]
                     self._adopt(reply)
-            self.lost = False
         except ActorLost as err:
             waiting = sum(p.name not in self._held for p in self.run.session.episode_paths())
             self.say(
                 f"the learner is lost ({err}); acting with the weights of update "
                 f"{self.run.agent.updates}, {waiting} episode(s) kept for it"
             )
-            self.lost = True
             self.close()
 
     def _adopt(self, reply: LearnerReply) -> None:

@@ -133,7 +133,7 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     stage1 = _stage1(task, p, out / "stage1", log, device, cluster)
     stage2 = _stage2(task, p, out, stage1, log, device, cluster)
-    targets = _mining(task, p, out, stage1, stage2, log, device, cluster)
+    targets = _mining(task, p, out, stage2, _look(p, stage1), log, device, cluster)
     runs: dict[str, dict[int, Path]] = {}
     jobs = []
     for method in METHOD_TABLE:
@@ -300,8 +300,8 @@ def _mining(
     task: str,
     p: Preset,
     out: Path,
-    stage1: dict[str, Path],
     stage2: Path,
+    twin: str | None,
     log: Log,
     device: str,
     cluster: str,
@@ -317,7 +317,7 @@ def _mining(
             grid=p.mining_grid,
             episodes=p.mining_episodes,
             workers=None if cluster_address(cluster) is not None else 1,  # a cluster's CPUs
-            twin=_look(p, stage1),
+            twin=twin,
             cluster=cluster,
         )
     return path

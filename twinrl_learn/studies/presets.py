@@ -48,11 +48,19 @@ class Preset:
                 "operator_sees", "is the pose estimator's view: give `perception` episodes"
             )
 
+    def privileged_reads(self) -> list[str]:
+        """What of the run reads state only the plant knows (none: a real cell's run)."""
+        reads = {
+            "the policy reads the true object poses": self.policy == "state",
+            "success is the plant's truth": not self.classifier_episodes,
+            "the simulated person judges from the plant's progress": not self.operator_sees,
+        }
+        return [what for what, read in reads.items() if read]
+
     @property
     def privileged(self) -> bool:
-        """Whether anything of the run reads state only the plant knows (the state policy's
-        object poses, success from the plant's truth, the person's judgement from it)."""
-        return self.policy == "state" or not (self.classifier_episodes and self.operator_sees)
+        """Whether anything of the run reads state only the plant knows."""
+        return bool(self.privileged_reads())
 
 
 _QUICK = Preset(

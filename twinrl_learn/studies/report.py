@@ -246,14 +246,9 @@ def _what_it_reads(p: Preset) -> str:
             "episode's success, and the simulated person decides from the estimator's view; "
             "the plant's truth only scores the evaluations."
         )
-    readers = [
-        "the policy reads the true object poses" if p.policy == "state" else "",
-        "success is the plant's truth" if not p.classifier_episodes else "",
-        "the simulated person judges from the plant's progress" if not p.operator_sees else "",
-    ]
     return (
         "**Privileged reference** (a real cell has none of this): "
-        + "; ".join(r for r in readers if r)
+        + "; ".join(p.privileged_reads())
         + "."
     )
 
