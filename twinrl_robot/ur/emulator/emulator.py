@@ -39,6 +39,7 @@ from twinrl_robot.ur.gripper import STROKES
 from twinrl_sim.tasks import Task
 
 STOP_TIMEOUT = 5.0  # s for the emulator to close its ports when told to stop
+CATCH_UP_LIMIT = 0.25  # s behind the wall clock past which the emulated arm skips ahead
 SLIDER_PERCENTS = (0, 20, 100)  # the pendant's speed slider settings the harness can set
 
 
@@ -165,18 +166,23 @@ class Emulator:
 
     # ---------------------------------------------------------------- physics
     def _run_physics(self) -> None:
+        """Tick the arm each servo period. A real controller never loses a period: after
+        a stall of this process the periods it missed run back to back, so the arm's time
+        keeps to the wall clock (a lagging arm would look slower than its effects, a 30 ms
+        delay as 36 ms); only a stall longer than :data:`CATCH_UP_LIMIT` is given up."""
         period = self.arm.period
         next_tick = time.monotonic()
         while self._running:
             self.program.cycle(next_tick)
             self.arm.tick()
             next_tick += period
-            delay = next_tick - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -period:
+            late = time.monotonic() - next_tick
+            if late < 0:
+                time.sleep(-late)
+            elif late > period:
                 self.overruns += 1
-                next_tick = time.monotonic()
+                if late > CATCH_UP_LIMIT:
+                    next_tick = time.monotonic()
 
     # ----------------------------------------------------------------- faults
     def _remote(self) -> bool:
