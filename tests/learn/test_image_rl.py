@@ -58,7 +58,11 @@ def test_an_update_encodes_each_image_batch_once(image_demos, method, offline, p
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("perceiving", [False, True], ids=["own encoders", "estimator"])
+@pytest.mark.parametrize(
+    "perceiving",
+    [False, pytest.param(True, marks=pytest.mark.long)],  # the estimator's beyond CI's time
+    ids=["own encoders", "estimator"],
+)
 def test_the_image_policy_runs_through_twin_rl_mining_and_real_rl(
     image_demos, tmp_path, perceiving
 ):

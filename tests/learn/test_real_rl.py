@@ -329,6 +329,7 @@ def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
         run_demo("pick_place", custom, out, resume=True)
 
 
+@pytest.mark.long  # ~80 s, beyond CI's time (make test-long)
 def test_the_stages_are_measured_on_shared_configurations(smoke_run, tmp_path):
     out, _ = smoke_run
     run = tmp_path / "run"

@@ -551,7 +551,7 @@ TRAINER = """
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.long)])
 def test_training_killed_at_a_random_step_resumes(dataset, tmp_path, seed):
     """SIGKILL at a seeded random step (possibly mid-checkpoint): the run resumes from its
     last whole checkpoint and finishes."""

@@ -160,6 +160,7 @@ def test_a_window_is_two_seconds_of_the_log_at_any_rate(tmp_path):
         assert cut_windows([episode], layout, [], window=7).measured.shape[1] == 7  # as given
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow  # six 10 s episodes at 125 Hz, three candidates on 2 s windows: ~2 min
 def test_a_125_hz_log_names_its_delay_and_payload_not_a_servo_gain(tmp_path):
     """At 125 Hz, windows of 20 rows (0.16 s) took a hidden delay and payload for a

@@ -147,6 +147,7 @@ def _diagnose_images(tmp_path, hidden: dict, effect: str):
     return result, out
 
 
+@pytest.mark.long  # ~40 s, beyond CI's time (make test-long)
 def test_names_a_hidden_camera_tilt_from_images(tmp_path):
     tilt = [0.0, 0.03, -0.02]
     hidden = {"camera_pose": {"camera": "front", "xyz": [0, 0, 0], "rpy": tilt}}
@@ -317,6 +318,7 @@ def test_names_a_hidden_effect_on_a_custom_robot_mjcf(tmp_path):
 SEVEN_JOINT_CELL = Path(__file__).resolve().parents[2] / "docs/examples/seven_joint_arm/cell.yaml"
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow  # two effects of 7 joints each, refit together in the second round: ~45 s
 def test_names_friction_and_rotor_inertia_of_a_seven_joint_arm_from_its_torques(tmp_path):
     """The 7-joint example arm (written from published parameters) logs its joint
@@ -442,6 +444,7 @@ HIDDEN = [
 ]
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow
 @pytest.mark.parametrize(("effect", "param", "truth"), HIDDEN, ids=[h[0] for h in HIDDEN])
 def test_names_each_hidden_arm_effect_among_all_candidates(tmp_path, effect, param, truth):
@@ -450,6 +453,7 @@ def test_names_each_hidden_arm_effect_among_all_candidates(tmp_path, effect, par
     _assert_named(diagnosis, effect, param, truth)
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow
 def test_names_two_hidden_effects(tmp_path):
     hidden = {"actuator_delay": {"seconds": 0.03}, "payload": {"mass": 2.0}}
@@ -462,6 +466,7 @@ def test_names_two_hidden_effects(tmp_path):
     assert yaml.safe_dump(diagnosis.effects)  # an effects file as written to twin_fitted.yaml
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow
 def test_names_a_hidden_object_mass_from_task_episodes(tmp_path):
     episodes = _record_teleop(tmp_path / "s", {"object_mass": {"scale": 4.0}})
@@ -470,6 +475,7 @@ def test_names_a_hidden_object_mass_from_task_episodes(tmp_path):
     assert [s["effect"] for s in diagnosis.selected] == ["object_mass"]
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow
 def test_two_modest_effects_at_once_are_both_named(tmp_path):
     """Magnitudes below those the workflow was tuned on: a 25 ms delay masks a 0.7 kg

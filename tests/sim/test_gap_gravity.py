@@ -75,6 +75,7 @@ def test_the_tool_and_the_arm_masses_are_fitted_together_from_torques(tmp_path):
     assert np.isinf(np.array(interval["link_mass"]["scale"])[[0, 3, 4, 5]]).all()
 
 
+@pytest.mark.long  # beyond CI's time (make test-long)
 @pytest.mark.slow  # four 8 s episodes and a diagnosis at each UR rate: ~2 min each
 @pytest.mark.parametrize("rate", [125.0, 500.0], ids=["CB3 125 Hz", "e-Series 500 Hz"])
 def test_a_hidden_tool_and_gravity_error_are_named_at_ur_rates(tmp_path, rate):

@@ -283,6 +283,7 @@ def test_the_built_scene_is_a_twin_the_expert_succeeds_in(built):
         assert (built.scene_path.parent / name).stat().st_size > 1000
 
 
+@pytest.mark.long  # ~30 s, beyond CI's time (make test-long)
 def test_a_supplied_mesh_is_registered_to_its_points_by_icp(clip, tmp_path):
     walk, _ = clip
     mesh_file = tmp_path / "banana.stl"
