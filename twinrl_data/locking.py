@@ -29,13 +29,22 @@ class FolderLock:
     """``with FolderLock(folder):`` holds ``folder``'s lock for the block.
 
     Raises :class:`~twinrl_data.errors.DataError` naming the holder when the lock stays
-    taken for ``wait`` seconds.
+    taken for ``wait`` seconds. ``file`` names the lock file in ``folder`` (one folder
+    may hold locks on several things) and ``what`` the thing locked, in the error.
     """
 
-    def __init__(self, folder: str | Path, *, wait: float = WAIT_SECONDS) -> None:
+    def __init__(
+        self,
+        folder: str | Path,
+        *,
+        wait: float = WAIT_SECONDS,
+        file: str = LOCK_FILE,
+        what: str | None = None,
+    ) -> None:
         self.folder = Path(folder)
-        self.path = self.folder / LOCK_FILE
+        self.path = self.folder / file
         self.wait = wait
+        self.what = what or str(self.folder)
         self._fd: int | None = None
 
     def __enter__(self) -> FolderLock:
@@ -59,7 +68,7 @@ class FolderLock:
                     holder = _holder(fd)
                     os.close(fd)
                     raise DataError(
-                        f"{self.folder} is locked by {holder}; wait for it to finish or stop "
+                        f"{self.what} is locked by {holder}; wait for it to finish or stop "
                         "that process"
                     ) from None
                 time.sleep(POLL_SECONDS)

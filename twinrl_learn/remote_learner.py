@@ -16,7 +16,8 @@ actor's session keeps every episode whatever happens. While the learner is gone 
 actor acts with the last weights it got and says so; at the end of each later episode
 it starts a learner again, which is sent the episodes it lacks, in order, before the
 run goes on. A learner whose folder is gone starts from the actor's last weights with
-a new critic. The actor still reads the demos and its episodes as an in-process run
+a new critic. One learner at a time holds a folder: another pointed at it is refused.
+The actor still reads the demos and its episodes as an in-process run
 does (its own buffers are not sampled); that the learner alone holds them is not done.
 """
 
@@ -33,7 +34,9 @@ from pathlib import Path
 import torch
 
 from twinrl_data.actors import ActorLost, Actors, ProcessActors
+from twinrl_data.errors import DataError
 from twinrl_data.executor import LOCAL, cluster_address
+from twinrl_data.locking import FolderLock
 from twinrl_data.mcap_log import read_episode, read_meta, read_summary
 from twinrl_data.schema import Episode
 from twinrl_learn.agent import Agent
@@ -97,6 +100,14 @@ class LearnerService:
 
     def __init__(self, spec: LearnerSpec) -> None:
         folder, device = Path(spec.folder), resolve_device(spec.device)
+        self._lock = hold_learner_folder(folder)
+        try:
+            self._open(spec, folder, device)
+        except BaseException:
+            self._lock.__exit__(None, None, None)
+            raise
+
+    def _open(self, spec: LearnerSpec, folder: Path, device: torch.device) -> None:
         if folder.exists() and not (folder / RUN_FILE).is_file():
             shutil.rmtree(folder)  # stopped before its first checkpoint: nothing acknowledged
         if (folder / RUN_FILE).is_file():  # a learner that stopped: from its checkpoint
@@ -156,6 +167,26 @@ class LearnerService:
 
     def close(self) -> None:
         self.learner.close()
+        self._lock.__exit__(None, None, None)
+
+
+def hold_learner_folder(folder: Path) -> FolderLock:
+    """Hold the lock that keeps a second learner out of ``folder`` while this one lives
+    (a second run given the same folder, or a learner started again while the one it
+    replaces still runs): two would write one run's checkpoints over each other. The
+    lock file lies beside the folder, which a run starts empty; the kernel frees it when
+    its process dies."""
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    lock = FolderLock(
+        folder.parent,
+        wait=0.0,
+        file=f".{folder.name}.lock",
+        what=f"the learner folder {folder}",
+    )
+    try:
+        return lock.__enter__()
+    except DataError as err:
+        raise LearnError(str(err)) from None
 
 
 def _episode_steps(path: Path) -> int:

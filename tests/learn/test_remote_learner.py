@@ -101,3 +101,30 @@ def test_the_command_refuses_a_learner_it_cannot_reach_in_one_line(demos, tmp_pa
     )  # fmt: skip
     assert result.returncode == 2 and "learner must be empty" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_a_second_learner_is_kept_out_of_a_folder_a_learner_holds(demos, tmp_path):
+    """Two learners on one folder would write one run's checkpoints over each other: a
+    second run's learner is refused, naming the holder, until the first is gone."""
+    from twinrl_data.actors import ProcessActors
+    from twinrl_learn.errors import LearnError
+    from twinrl_learn.real_rl import learner_spec
+    from twinrl_learn.remote_learner import LearnerService
+
+    folder = str(tmp_path / "shared_learner")
+    first = RealRL.start(_settings(demos, tmp_path / "a", learner_folder=folder))
+    spec = learner_spec(first.settings, first.run_state)
+    holder = ProcessActors(LearnerService, [{"spec": spec}])  # the first run's learner
+    second = RealRL.start(_settings(demos, tmp_path / "b", learner_folder=folder))
+    try:
+        with pytest.raises(LearnError, match=r"the learner folder .* is locked by process \d+"):
+            second.run()
+        assert second.run_state.agent.env_steps == 0  # the robot never moved
+    finally:
+        second.close()
+        holder.close()
+        first.close()
+    # Once the first learner has stopped, its folder is taken up again, from its checkpoint.
+    again = LearnerService(spec)
+    assert again.status().updates == spec.rl.offline_steps
+    again.close()
