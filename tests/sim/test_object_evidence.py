@@ -181,7 +181,8 @@ def test_an_object_seen_from_one_side_is_no_wider_across_the_view_than_its_hulls
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "seed", [0, pytest.param(1, marks=pytest.mark.long)]  # seed 1 beyond CI's time
+    "seed",
+    [0, pytest.param(1, marks=pytest.mark.long)],  # seed 1 beyond CI's time
 )
 def test_a_dark_bottle_and_a_box_taller_than_the_phone_are_built_whole(tmp_path, seed):
     """Filmed low over a glossy table with clutter behind (issue 52): a dark bottle in a
