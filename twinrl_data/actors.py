@@ -13,24 +13,30 @@ one method on every object at once and returns their results in order:
   embedded here.
 
 An object's error is raised in the caller as it was raised in the worker; a worker that
-is gone raises :class:`ActorLost`. Classes and arguments must be picklable, as jobs are.
+is gone, or that does not answer within a call's ``timeout_s`` (it is then stopped, as a
+worker out of step with its caller is no use), raises :class:`ActorLost`. Classes and
+arguments must be picklable, as jobs are.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import time
 from collections.abc import Sequence
 from typing import Any, Protocol
 
 from twinrl_data.errors import TwinrlError
 
+CLOSE_S = 30.0  # s an object's close may take before its worker is stopped regardless
+
 
 class Actors(Protocol):
     """One object per worker; see the module docstring."""
 
-    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+    def call(self, method: str, args: Sequence[tuple], timeout_s: float | None = None) -> list[Any]:
         """``method`` of every object at once, object ``i`` with ``args[i]``; the results
-        in order."""
+        in order. Without an answer from every worker within ``timeout_s`` (None: no
+        limit) the workers are stopped and :class:`ActorLost` raised."""
         ...
 
     def close(self) -> None:
@@ -52,12 +58,13 @@ def check_arguments(count: int, args: Sequence[tuple]) -> None:
 
 
 class LocalActors:
-    """The objects in this process, called one after another."""
+    """The objects in this process, called one after another (a call here cannot be
+    timed out: it is this process's own work)."""
 
     def __init__(self, cls: type, inits: Sequence[dict[str, Any]]) -> None:
         self.objects = [cls(**init) for init in inits]
 
-    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+    def call(self, method: str, args: Sequence[tuple], timeout_s: float | None = None) -> list[Any]:
         check_arguments(len(self.objects), args)
         return [getattr(o, method)(*a) for o, a in zip(self.objects, args, strict=True)]
 
@@ -104,11 +111,19 @@ class ProcessActors:
             self.close()
             raise
 
-    def _answers(self) -> list[Any]:
+    def _answers(self, method: str = "", timeout_s: float | None = None) -> list[Any]:
         """One answer from every worker (all read, so the pipes stay in step); the first
-        error is raised."""
+        error is raised. Past ``timeout_s`` every worker is stopped."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         answers = []
         for pipe, process in zip(self._pipes, self._processes, strict=True):
+            if deadline is not None and not pipe.poll(max(0.0, deadline - time.monotonic())):
+                pid = process.pid
+                self._stop()  # out of step with its caller: of no more use
+                raise ActorLost(
+                    f"actor process {pid} did not answer {method} within {timeout_s:g} s; "
+                    "it was stopped"
+                )
             try:
                 answers.append(pipe.recv())
             except (EOFError, OSError):
@@ -118,25 +133,34 @@ class ProcessActors:
                 raise value
         return [value for _, value in answers]
 
-    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+    def call(self, method: str, args: Sequence[tuple], timeout_s: float | None = None) -> list[Any]:
+        if not self._processes:
+            raise ActorLost("these actors' processes were stopped; start new ones")
         check_arguments(len(self._pipes), args)
         for pipe, a, process in zip(self._pipes, args, self._processes, strict=True):
             try:
                 pipe.send((method, tuple(a)))
             except OSError:
                 raise ActorLost(f"actor process {process.pid} died") from None
-        return self._answers()
+        return self._answers(method, timeout_s)
 
     def close(self) -> None:
         for pipe, process in zip(self._pipes, self._processes, strict=True):
             if process.is_alive():
                 try:
                     pipe.send(None)
-                    pipe.recv()
+                    if pipe.poll(CLOSE_S):
+                        pipe.recv()
                 except (EOFError, BrokenPipeError, OSError):
                     pass
-            process.join(timeout=10)
+        self._stop(wait=10.0)
+
+    def _stop(self, wait: float = 0.0) -> None:
+        """End every worker, killed when it has not ended within ``wait`` s, and its pipe."""
+        for pipe, process in zip(self._pipes, self._processes, strict=True):
+            process.join(timeout=wait)
             if process.is_alive():
                 process.kill()
+                process.join(timeout=10)
             pipe.close()
         self._pipes, self._processes = [], []

@@ -30,10 +30,10 @@ from typing import Any, TypeVar
 
 import ray
 from ray._private import ray_constants
-from ray.exceptions import AuthenticationError, RayActorError, RayTaskError
+from ray.exceptions import AuthenticationError, GetTimeoutError, RayActorError, RayTaskError
 from ray.util.queue import Queue
 
-from twinrl_data.actors import ActorLost, check_arguments
+from twinrl_data.actors import CLOSE_S, ActorLost, check_arguments
 from twinrl_data.errors import TwinrlError
 
 Job = TypeVar("Job")
@@ -212,22 +212,31 @@ class RayActors:
         remote = ray.remote(num_cpus=1, num_gpus=gpus, max_restarts=0)(cls)
         self._handles = [remote.remote(**init) for init in inits]
 
-    def call(self, method: str, args: Sequence[tuple]) -> list[Any]:
+    def call(self, method: str, args: Sequence[tuple], timeout_s: float | None = None) -> list[Any]:
+        if not self._handles:
+            raise ActorLost("these Ray actors were stopped; start new ones")
         check_arguments(len(self._handles), args)
         refs = [getattr(h, method).remote(*a) for h, a in zip(self._handles, args, strict=True)]
         try:
-            return ray.get(refs)
+            return ray.get(refs, timeout=timeout_s)
         except RayTaskError as err:  # as the object raised it
             raise err.cause from err
         except RayActorError as err:  # it died, or its class could not make it
             raise ActorLost(f"a Ray actor of {method} stopped: {err}") from err
+        except GetTimeoutError:  # out of step with its caller: of no more use
+            for handle in self._handles:
+                ray.kill(handle)
+            self._handles = []
+            raise ActorLost(
+                f"a Ray actor did not answer {method} within {timeout_s:g} s; it was stopped"
+            ) from None
 
     def close(self) -> None:
         for handle in self._handles:
             try:
                 if hasattr(handle, "close"):
-                    ray.get(handle.close.remote())
-            except (RayTaskError, RayActorError):
+                    ray.get(handle.close.remote(), timeout=CLOSE_S)
+            except (RayTaskError, RayActorError, GetTimeoutError):
                 pass
             ray.kill(handle)
         self._handles = []

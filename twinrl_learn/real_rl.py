@@ -379,7 +379,7 @@ class RealRL:
             if settings.learner:  # apart: it pretrains, or resumes, in its own folder
                 self._learner = RemoteLearner(
                     run, learner_spec(settings, run), settings.learner,
-                    sync=settings.learner_sync, say=self._say,
+                    sync=settings.learner_sync, timeout_s=settings.learner_timeout, say=self._say,
                 )  # fmt: skip
                 self.actor.load_state_dict(run.agent.policy.state_dict())
                 self.checkpoint()

@@ -208,9 +208,11 @@ class RemoteLearner:
         where: str,
         *,
         sync: bool = True,
+        timeout_s: float | None = None,
         say: Callable[[str], None] | None = None,
     ) -> None:
         self.run, self.spec, self.where, self.sync = run, spec, where, sync
+        self.timeout_s = timeout_s  # for an episode's answer (a start may pretrain: none)
         self.say = say or (lambda message: warnings.warn(message, LearnerWarning, stacklevel=3))
         self.metrics: dict[str, float] = {}
         self._actors: Actors | None = None
@@ -299,7 +301,9 @@ class RemoteLearner:
             for path in self.run.session.episode_paths():
                 if path.name not in self._held:
                     reply = self._actors.call(  # type: ignore[union-attr]
-                        "episode", [(path.name, path.read_bytes(), _episode_steps(path), self.sync)]
+                        "episode",
+                        [(path.name, path.read_bytes(), _episode_steps(path), self.sync)],
+                        self.timeout_s,
                     )[0]
                     self._adopt(reply)
         except ActorLost as err:

@@ -453,6 +453,10 @@ class RealRLSettings:
     robot goes on with the last weights (docs/guides/scale-out.md)."""
     learner_folder: str | None = None
     """The learner's own run folder, on its machine (default: ``learner/`` in ``out``)."""
+    learner_timeout: float = 600.0
+    """Seconds a learner apart may take to answer an episode (with ``learner_sync``, the
+    updates it bought included) before it is taken for lost: it is stopped, the robot
+    goes on with the last weights, and a learner starts again from its folder."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
     operator_sees: str | None = None
@@ -478,6 +482,8 @@ class RealRLSettings:
                     "learner", "must be empty (a thread here), process, or a Ray cluster: "
                     f"local, auto, HOST:PORT or ray://HOST:PORT; got '{self.learner}'"
                 ) from None  # fmt: skip
+        if self.learner_timeout <= 0:
+            raise SettingError("learner_timeout", f"must be positive, got {self.learner_timeout}")
         if self.learner_folder is not None and not self.learner:
             raise SettingError("learner_folder", "is the folder of a learner apart; set `learner`")
         if self.robot not in LEARNING_ROBOTS:

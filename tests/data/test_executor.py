@@ -1,6 +1,7 @@
 """The executor: jobs in order, messages as they come, the first failure raised."""
 
 import os
+import time
 
 import pytest
 
@@ -95,3 +96,29 @@ def test_actors_keep_their_state_between_calls_and_raise_as_raised(workers):
         actors.close()
         with pytest.raises(ArithmeticError, match="cannot start at -1"):
             executor.actors(Counter, [{"start": 1}, {"start": -1}])
+
+
+class Sleeper:
+    """An actor whose calls take as long as they are told."""
+
+    def nap(self, seconds: float) -> float:
+        time.sleep(seconds)
+        return seconds
+
+
+def test_an_actor_that_does_not_answer_in_time_is_stopped_and_taken_for_lost():
+    from twinrl_data.actors import ActorLost, ProcessActors
+
+    actors = ProcessActors(Sleeper, [{}, {}])
+    try:
+        assert actors.call("nap", [(0.0,), (0.1,)], timeout_s=30) == [0.0, 0.1]
+        processes = list(actors._processes)
+        started = time.monotonic()
+        with pytest.raises(ActorLost, match=r"did not answer nap within 0.5 s; it was stopped"):
+            actors.call("nap", [(0.0,), (60.0,)], timeout_s=0.5)
+        assert time.monotonic() - started < 30  # not the minute the call would have taken
+        assert not any(p.is_alive() for p in processes)
+        with pytest.raises(ActorLost):  # nothing left to call
+            actors.call("nap", [], timeout_s=1)
+    finally:
+        actors.close()

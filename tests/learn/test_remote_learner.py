@@ -128,3 +128,27 @@ def test_a_second_learner_is_kept_out_of_a_folder_a_learner_holds(demos, tmp_pat
     again = LearnerService(spec)
     assert again.status().updates == spec.rl.offline_steps
     again.close()
+
+
+def test_a_learner_that_does_not_answer_in_time_is_stopped_and_the_robot_goes_on(demos, tmp_path):
+    """A learner that takes longer than ``learner_timeout`` to answer an episode is
+    stopped and taken for lost: the robot acts on with the weights it has, and every
+    episode stays in the actor's session for the learner that starts next."""
+    said = []
+    real = RealRL.start(
+        _settings(demos, tmp_path / "run", plant_steps=101, learner_timeout=0.01),
+        on_notice=said.append,
+    )
+    run = real.run()
+    episodes = Session(tmp_path / "run" / "session").episode_paths()
+    assert len(episodes) == len(run.history) >= 2 and run.agent.env_steps >= 101
+    assert any("did not answer episode within 0.01 s" in m for m in said)
+    assert run.agent.updates == RLConfig.for_method("twinrl", offline_steps=3).offline_steps
+    # The stopped learner freed its folder: one starts there again, from its checkpoint.
+    from twinrl_learn.real_rl import learner_spec
+    from twinrl_learn.remote_learner import LearnerService
+
+    again = LearnerService(learner_spec(real.settings, run))
+    again.close()
+    with pytest.raises(SettingError, match="learner_timeout"):
+        _settings(demos, tmp_path, learner_timeout=0)

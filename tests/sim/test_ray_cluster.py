@@ -250,3 +250,19 @@ def test_an_actor_that_needs_a_gpu_the_cluster_lacks_is_refused_not_left_waiting
         assert executor.gpus() == 0
         with pytest.raises(TwinrlError, match="fewer than 1 GPU"):
             executor.actors(dict, [{}], gpus=1)
+
+
+def test_a_ray_actor_that_does_not_answer_in_time_is_stopped_and_taken_for_lost(cluster):
+    from tests.data.test_executor import Sleeper
+    from twinrl_data.actors import ActorLost
+
+    with RayExecutor(1, address=cluster.address) as executor:
+        actors = executor.actors(Sleeper, [{}])
+        assert actors.call("nap", [(0.1,)], timeout_s=60) == [0.1]
+        started = time.monotonic()
+        with pytest.raises(ActorLost, match=r"did not answer nap within 1 s; it was stopped"):
+            actors.call("nap", [(120.0,)], timeout_s=1)
+        assert time.monotonic() - started < 60
+        with pytest.raises(ActorLost, match="stopped"):
+            actors.call("nap", [(0.0,)])
+        actors.close()

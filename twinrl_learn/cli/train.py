@@ -298,8 +298,8 @@ REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
     "classifier", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "twin", "plant_steps", "eval_every", "eval_grid",
-    "eval_episodes", "learner", "learner_folder", "learner_sync", "show_resets", "view", "device",
-    "operator_sees",
+    "eval_episodes", "learner", "learner_folder", "learner_sync", "learner_timeout",
+    "show_resets", "view", "device", "operator_sees",
 )  # fmt: skip
 settings_command(
     app,
