@@ -75,9 +75,11 @@ def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Pa
     assert [s["effect"] for s in tracking.selected] == ["actuator_delay"]
     # The named delay is the arm's plus the command link's lag (the host's timing, RTDE,
     # the controller's servo period), which the log measures from the echoed targets:
-    # 2.0-2.2 ms in runs here. Set apart, the arm's own delay is named within 15 %
-    # (31.9-32.2 ms in runs here, on a host doing nothing else).
-    assert 0.0 < tracking.command_lag < 0.01
+    # 2.0-2.2 ms in runs here; with another process busy beside it, -0.4 to +0.4 ms (the
+    # host's reads come late). Set apart, the arm's own delay is named within 15 %
+    # (31.9-32.2 ms in runs here, on a host doing nothing else; 31.9 ms beside a niced
+    # busy process, where an emulator that dropped the periods it missed gave 37.3 ms).
+    assert abs(tracking.command_lag) < 0.01
     named = tracking.effects["actuator_delay"]["seconds"]
     assert tracking.arm_delay == pytest.approx(named - tracking.command_lag)
     assert tracking.arm_delay == pytest.approx(HIDDEN_DELAY, rel=0.15)
