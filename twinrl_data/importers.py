@@ -340,8 +340,10 @@ def _without_repeats(
     repeats the one before exactly (stamp and values) when no new package came in
     between, and a row read while the next package arrived mixes the two (a stamp shared
     with a neighbour, each value either that neighbour's or the row's on its other
-    side). Neither is a new sample; a clock coarser than the rows (every row's values
-    new) is neither, and is left to :func:`_clock`."""
+    side). Neither is a new sample. A row read as a package arrived may also carry the
+    last package's stamp with every value new, the next row two periods on: it is the
+    package between, and takes its stamp back. A clock coarser than the rows (every row's
+    values new, the stamps not skipping) is none of these, and is left to :func:`_clock`."""
     table = np.column_stack([times, *values.values()])
     exact = np.flatnonzero(np.all(table[1:] == table[:-1], axis=1)) + 1
     keep = np.ones(len(times), bool)
@@ -355,20 +357,30 @@ def _without_repeats(
             np.all((values_of[row] == values_of[a]) | (values_of[row] == values_of[b]))
         )
 
-    torn = []
-    for i in np.flatnonzero(table[1:, 0] == table[:-1, 0]):  # rows i and i+1 share a stamp
+    steps = np.diff(table[:, 0])
+    tick = float(np.median(steps[steps > 0])) if (steps > 0).any() else 0.0
+    torn, restamped = [], {}
+    for i in np.flatnonzero(steps == 0):  # rows i and i+1 share a stamp
         if mixes(i + 1, i, i + 2):
             torn.append(i + 1)  # this stamp, partly the next package's values
         elif mixes(i, i - 1, i + 1):
             torn.append(i)  # the next stamp, partly the last package's values
-    if not len(exact) and not torn:
+        elif i + 2 < len(table) and abs(table[i + 2, 0] - table[i, 0] - 2 * tick) < tick / 100:
+            # Every value new and the next row two periods on: the package between, whose
+            # stamp is the last one's; it takes the stamp it lacks.
+            restamped[i + 1] = table[i, 0] + tick
+    if not len(exact) and not torn and not restamped:
         return times, values
     rows = np.flatnonzero(keep)
+    times = times.copy()
+    for row, stamp in restamped.items():
+        times[rows[row]] = stamp
     keep[rows[torn]] = False
     warnings.warn(
         f"{path}: dropped {len(exact)} of {len(times)} rows that repeat the row before "
-        f"exactly and {len(torn)} that mix two packages under one stamp "
-        "(a file recorder writing on its own clock, as ur_rtde's does)",
+        f"exactly and {len(torn)} that mix two packages under one stamp, and gave "
+        f"{len(restamped)} the stamp between their neighbours' (the last package's "
+        "stamp with new values): a file recorder writing on its own clock, as ur_rtde's does",
         DataWarning,
         stacklevel=3,
     )
