@@ -74,7 +74,7 @@ test-slow: setup
 	$(PARALLEL) -q -m "slow and not realtime and not long"
 	$(BIN)/pytest -q -m "slow and realtime and not long"
 
-# The runs too long for CI (about 8 minutes on 2 cores): before a release, or when the
+# The runs too long for CI (about 9 minutes on 2 cores): before a release, or when the
 # gap workflow, the object builds or the image policy's RL change.
 test-long: setup
 	$(PARALLEL) -q -m "long and not realtime"
