@@ -30,7 +30,8 @@ class FolderLock:
 
     Raises :class:`~twinrl_data.errors.DataError` naming the holder when the lock stays
     taken for ``wait`` seconds. ``file`` names the lock file in ``folder`` (one folder
-    may hold locks on several things) and ``what`` the thing locked, in the error.
+    may hold locks on several things) and ``what`` the thing locked, in the error. A lock
+    held for an object's lifetime rather than a block: :meth:`acquire`, :meth:`release`.
     """
 
     def __init__(
@@ -47,7 +48,8 @@ class FolderLock:
         self.what = what or str(self.folder)
         self._fd: int | None = None
 
-    def __enter__(self) -> FolderLock:
+    def acquire(self) -> FolderLock:
+        """Take the lock (see the class docstring); returns the lock."""
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         except OSError as err:
@@ -82,16 +84,23 @@ class FolderLock:
         os.pwrite(fd, json.dumps(record).encode(), 0)
         return self
 
+    def release(self) -> None:
+        """Let the lock go (nothing when it is not held)."""
+        if self._fd is not None:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> FolderLock:
+        return self.acquire()
+
     def __exit__(
         self,
         kind: type[BaseException] | None,
         error: BaseException | None,
         trace: TracebackType | None,
     ) -> None:
-        if self._fd is not None:
-            fcntl.flock(self._fd, fcntl.LOCK_UN)
-            os.close(self._fd)
-            self._fd = None
+        self.release()
 
 
 def _holder(fd: int) -> str:

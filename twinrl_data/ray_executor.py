@@ -224,9 +224,7 @@ class RayActors:
         except RayActorError as err:  # it died, or its class could not make it
             raise ActorLost(f"a Ray actor of {method} stopped: {err}") from err
         except GetTimeoutError:  # out of step with its caller: of no more use
-            for handle in self._handles:
-                ray.kill(handle)
-            self._handles = []
+            self._kill()
             raise ActorLost(
                 f"a Ray actor did not answer {method} within {timeout_s:g} s; it was stopped"
             ) from None
@@ -238,6 +236,10 @@ class RayActors:
                     ray.get(handle.close.remote(), timeout=CLOSE_S)
             except (RayTaskError, RayActorError, GetTimeoutError):
                 pass
+        self._kill()
+
+    def _kill(self) -> None:
+        for handle in self._handles:
             ray.kill(handle)
         self._handles = []
 

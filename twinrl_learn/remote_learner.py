@@ -104,7 +104,7 @@ class LearnerService:
         try:
             self._open(spec, folder, device)
         except BaseException:
-            self._lock.__exit__(None, None, None)
+            self._lock.release()
             raise
 
     def _open(self, spec: LearnerSpec, folder: Path, device: torch.device) -> None:
@@ -167,7 +167,7 @@ class LearnerService:
 
     def close(self) -> None:
         self.learner.close()
-        self._lock.__exit__(None, None, None)
+        self._lock.release()
 
 
 def hold_learner_folder(folder: Path) -> FolderLock:
@@ -184,7 +184,7 @@ def hold_learner_folder(folder: Path) -> FolderLock:
         what=f"the learner folder {folder}",
     )
     try:
-        return lock.__enter__()
+        return lock.acquire()
     except DataError as err:
         raise LearnError(str(err)) from None
 

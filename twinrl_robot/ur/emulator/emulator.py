@@ -168,8 +168,8 @@ class Emulator:
     def _run_physics(self) -> None:
         """Tick the arm each servo period. A real controller never loses a period: after
         a stall of this process the periods it missed run back to back, so the arm's time
-        keeps to the wall clock (a lagging arm would look slower than its effects, a 30 ms
-        delay as 36 ms); only a stall longer than :data:`CATCH_UP_LIMIT` is given up."""
+        keeps to the wall clock rather than falling behind it; only a stall longer than
+        :data:`CATCH_UP_LIMIT` is given up."""
         period = self.arm.period
         next_tick = time.monotonic()
         while self._running:
