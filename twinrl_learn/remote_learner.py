@@ -15,10 +15,12 @@ that is killed starts again from its folder holding every episode it acknowledge
 actor's session keeps every episode whatever happens. While the learner is gone the
 actor acts with the last weights it got and says so; at the end of each later episode
 it starts a learner again, which is sent the episodes it lacks, in order, before the
-run goes on. A learner whose folder is gone starts from the actor's last weights with
-a new critic. One learner at a time holds a folder: another pointed at it is refused.
-The actor still reads the demos and its episodes as an in-process run
-does (its own buffers are not sampled); that the learner alone holds them is not done.
+run goes on; a learner that fails to start (its folder unreadable, the cluster gone) is
+said and tried again after the next episode. A learner whose folder is gone starts from
+the actor's last weights with a new critic. One learner at a time holds a folder:
+another pointed at it is refused. The actor still reads the demos and its episodes as an
+in-process run does (its own buffers are not sampled); that the learner alone holds them
+is not done.
 """
 
 from __future__ import annotations
@@ -292,12 +294,8 @@ class RemoteLearner:
         """Send the episodes the learner lacks, oldest first; on the learner's loss, go
         on with the weights there are, and start a learner again next time."""
         try:
-            if self._actors is None:
-                self._connect()
-                self.say(
-                    f"a learner is back at update {self.run.agent.updates}; sending it the "
-                    "episodes it lacks"
-                )
+            if self._actors is None and not self._start_again():
+                return
             for path in self.run.session.episode_paths():
                 if path.name not in self._held:
                     reply = self._actors.call(  # type: ignore[union-attr]
@@ -307,12 +305,34 @@ class RemoteLearner:
                     )[0]
                     self._adopt(reply)
         except ActorLost as err:
-            waiting = sum(p.name not in self._held for p in self.run.session.episode_paths())
-            self.say(
-                f"the learner is lost ({err}); acting with the weights of update "
-                f"{self.run.agent.updates}, {waiting} episode(s) kept for it"
-            )
+            self.say(f"the learner is lost ({err}); {self._going_on()}")
             self.close()
+
+    def _start_again(self) -> bool:
+        """Start a learner in place of a lost one. One that fails to start, for whatever
+        reason (its folder unreadable, the cluster gone, no memory), is said and tried
+        again after the next episode: the robot session never stops for the learner."""
+        try:
+            self._connect()
+        except Exception as err:  # any failure: the robot goes on
+            self.close()
+            self.say(
+                f"a learner could not start again ({type(err).__name__}: {err}); "
+                f"{self._going_on()}; trying again after the next episode"
+            )
+            return False
+        self.say(
+            f"a learner is back at update {self.run.agent.updates}; sending it the "
+            "episodes it lacks"
+        )
+        return True
+
+    def _going_on(self) -> str:
+        waiting = sum(p.name not in self._held for p in self.run.session.episode_paths())
+        return (
+            f"acting with the weights of update {self.run.agent.updates}, "
+            f"{waiting} episode(s) kept for it"
+        )
 
     def _adopt(self, reply: LearnerReply) -> None:
         self._weights, self._held = reply.weights, set(reply.held)

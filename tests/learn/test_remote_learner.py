@@ -62,6 +62,36 @@ def test_a_killed_learner_loses_no_episode_and_the_robot_never_stops(demos, tmp_
     assert run.agent.updates == updates_seen[-1]
 
 
+def test_a_learner_that_cannot_start_again_is_tried_after_each_episode(demos, tmp_path):
+    """A learner whose restart fails (here its checkpoint is unreadable) is said and tried
+    again after the next episode; the robot goes on, and once the folder is gone a
+    learner starts from the actor's weights and is sent every episode."""
+    said = []
+    real = RealRL.start(_settings(demos, tmp_path / "run", plant_steps=700), on_notice=said.append)
+    learner = tmp_path / "run" / "learner"
+
+    def on_episode(record, real: RealRL) -> None:
+        episodes = len(real.run_state.history)
+        if episodes == 2:  # killed, and its checkpoint spoilt: it cannot resume
+            assert isinstance(real.learner, RemoteLearner)
+            os.kill(real.learner.learner_pid(), signal.SIGKILL)
+            (learner / "run.json").write_text("{ not json")
+        elif episodes == 4:  # a person clears the folder: the next learner starts anew
+            assert any("a learner could not start again" in m for m in said)
+            shutil.rmtree(learner)
+
+    run = real.run(on_episode=on_episode)
+    failed = [m for m in said if "a learner could not start again" in m]
+    assert len(failed) == 1 and "JSONDecodeError" in failed[0]
+    assert "trying again after the next episode" in failed[0]
+    assert said.index(failed[0]) < max(i for i, m in enumerate(said) if "a learner is back" in m)
+    episodes = Session(tmp_path / "run" / "session").episode_paths()
+    assert len(episodes) == len(run.history) >= 5 and run.agent.env_steps >= 700
+    assert [p.name for p in Session(learner / "session").episode_paths()] == [
+        p.name for p in episodes
+    ]
+
+
 def test_a_learner_on_a_new_machine_is_sent_every_episode_when_the_actor_resumes(demos, tmp_path):
     """The learner's folder is gone (another machine): the resumed actor's learner starts
     from the actor's last weights and is sent every episode before the run goes on."""
