@@ -91,10 +91,13 @@ class OnlineRun:
         demo: ReplayBuffer,
         online: ReplayBuffer | None = None,
         device: str | torch.device = "cpu",
+        *,
+        fill: bool = True,
     ) -> OnlineRun:
         """Continue the run in ``out`` from its last checkpoint (between two rounds), its
         agent on ``device``; ``online`` is the same pre-filled buffer the run started
-        with, if any."""
+        with, if any. ``fill`` reads the run's episodes back into the buffers (not for an
+        actor whose learner runs apart and holds them)."""
         out = Path(out)
         if not (out / RUN_FILE).is_file():
             raise LearnError(f"{out / RUN_FILE} does not exist: there is no run to resume")
@@ -111,7 +114,8 @@ class OnlineRun:
         rng.bit_generator.state = state["rng"]
         history = [RoundRecord(**r) for r in state["history"]]
         run = cls(out, agent, demo, online, session, rng, history)
-        run.add_episodes(session.episode_paths())
+        if fill:
+            run.add_episodes(session.episode_paths())
         run._pending_updates = state["pending_updates"]
         run.extra = state.get("extra", {})
         return run

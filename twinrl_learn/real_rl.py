@@ -121,6 +121,12 @@ class ResetPlanner:
 
 
 def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, ReplayBuffer]:
+    """The demo and online buffers the run learns from; empty where the learner runs
+    apart, which reads the demos and the twin buffer itself, as its machine sees them."""
+    if settings.learner:
+        views = policy.replay_views()
+        demo = ReplayBuffer(rewards=settings.rl.rewards, **views)
+        return demo, ReplayBuffer(rewards=settings.rl.rewards, **views)
     return learning_buffers(settings.demos, settings.twin_buffer, settings.rl, policy)
 
 
@@ -350,7 +356,8 @@ class RealRL:
         settings.rl = RLConfig.load(out / "agent")
         demo, twin = _buffers(settings, policy)
         classifier = checked_classifier(settings, terminal)
-        run = OnlineRun.resume(out, demo, twin, device)
+        # A learner apart holds the episodes: the actor keeps them in its session only.
+        run = OnlineRun.resume(out, demo, twin, device, fill=not settings.learner)
         operator = _operator(settings, operator)
         return cls(settings, run, operator, terminal, on_wait, classifier, on_notice)
 

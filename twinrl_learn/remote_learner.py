@@ -18,9 +18,9 @@ it starts a learner again, which is sent the episodes it lacks, in order, before
 run goes on; a learner that fails to start (its folder unreadable, the cluster gone) is
 said and tried again after the next episode. A learner whose folder is gone starts from
 the actor's last weights with a new critic. One learner at a time holds a folder:
-another pointed at it is refused. The actor still reads the demos and its episodes as an
-in-process run does (its own buffers are not sampled); that the learner alone holds them
-is not done.
+another pointed at it is refused. The learner alone holds the buffers: it reads the
+demos and the twin buffer as its machine sees those paths, and the actor, started or
+resumed, reads neither them nor its episodes back (they stay in its session).
 """
 
 from __future__ import annotations

@@ -404,9 +404,11 @@ class RealRLSettings:
     effects: str | None = None
     """The plant's hidden effects (YAML; default: the built-in plant)."""
     demos: list[str] = field(default_factory=list)
-    """LeRobotDataset(s) of real demos: the demo buffer; repeatable."""
+    """LeRobotDataset(s) of real demos: the demo buffer; repeatable (with a learner
+    apart, paths as the learner's machine sees them: it alone reads them)."""
     twin_buffer: str | None = None
-    """Stage II's twin buffer (twin-rl's twin_buffer/): the replay buffer's start."""
+    """Stage II's twin buffer (twin-rl's twin_buffer/): the replay buffer's start (read
+    by the learner, as demos are)."""
     targets: str | None = None
     """targets.json from `twinrl mine` (default: uniform resets over the regions)."""
     target_ratio: float = 0.7

@@ -46,6 +46,8 @@ def test_a_killed_learner_loses_no_episode_and_the_robot_never_stops(demos, tmp_
     run = real.run(on_episode=on_episode)
     episodes = Session(tmp_path / "run" / "session").episode_paths()
     assert len(episodes) == len(run.history) >= 4 and run.agent.env_steps >= 400
+    # The learner alone holds the buffers: the actor read no demo and keeps no episode.
+    assert len(run.demo) == len(run.online) == 0
     # The robot went on: the third episode was acted with the weights of before.
     assert any("the learner is lost" in m for m in said)
     assert any("a learner is back" in m for m in said)
@@ -102,6 +104,7 @@ def test_a_learner_on_a_new_machine_is_sent_every_episode_when_the_actor_resumes
     resumed = RealRL.resume(
         _settings(demos, tmp_path / "run", plant_steps=300), on_notice=said.append
     )
+    assert len(resumed.run_state.demo) == len(resumed.run_state.online) == 0  # not read back
     run = resumed.run(on_episode=lambda record, real: seen.append(record.updates))
     actor = [p.name for p in Session(tmp_path / "run" / "session").episode_paths()]
     learner = Session(tmp_path / "run" / "learner" / "session")
