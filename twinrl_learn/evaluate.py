@@ -69,6 +69,11 @@ class EvalReport:
     def episodes(self) -> int:
         return sum(c.episodes for c in self.cells)
 
+    def region_episodes(self) -> dict[str, int]:
+        """Episodes per region (what each success rate is over)."""
+        counts = {r: sum(c.episodes for c in self.cells if c.region == r) for r in REGION_NAMES}
+        return {r: n for r, n in counts.items() if n}
+
     def to_json(self) -> dict[str, Any]:
         return {
             "task": self.task,

@@ -221,15 +221,19 @@ class OnlineRun:
         return region_success(taken)
 
 
-def region_success(records: Iterable[RoundRecord]) -> dict[str, float]:
-    """Success per region over the episodes of ``records``."""
-    totals: dict[str, list[int]] = {}
+def region_counts(records: Iterable[RoundRecord]) -> dict[str, tuple[int, int]]:
+    """(successes, episodes) per region over the episodes of ``records``."""
+    totals: dict[str, tuple[int, int]] = {}
     for record in records:
         for region, (wins, count) in record.successes.items():
-            pair = totals.setdefault(region, [0, 0])
-            pair[0] += wins
-            pair[1] += count
-    return {region: wins / count for region, (wins, count) in totals.items() if count}
+            before = totals.get(region, (0, 0))
+            totals[region] = (before[0] + wins, before[1] + count)
+    return totals
+
+
+def region_success(records: Iterable[RoundRecord]) -> dict[str, float]:
+    """Success per region over the episodes of ``records``."""
+    return {r: wins / count for r, (wins, count) in region_counts(records).items() if count}
 
 
 def _has_interventions(episode: Episode) -> bool:

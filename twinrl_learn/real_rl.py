@@ -68,7 +68,13 @@ from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
-from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord, region_success
+from twinrl_learn.online import (
+    RUN_FILE,
+    OnlineRun,
+    RoundRecord,
+    region_counts,
+    region_success,
+)
 from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl_progress import (
@@ -569,7 +575,8 @@ class RealRL:
         if s.robot == "ur":
             last = self.evaluations[-1].plant_steps if self.evaluations else -1
             since = [r for r in self.run_state.history if r.env_steps > last]
-            return self._add_point(steps, region_success(since), 0)
+            counts = {region: n for region, (_, n) in region_counts(since).items()}
+            return self._add_point(steps, region_success(since), 0, counts)
         folder = self.out / "evaluations" / f"{steps:06d}"
         shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
         runner = TwinrlRunner(self.actor, name=f"rl@{steps}")
@@ -584,14 +591,19 @@ class RealRL:
                 seed=10_000 + s.rl.seed,
                 out=folder,
             )
-        return self._add_point(steps, report.success_rate(), report.episodes)
+        return self._add_point(
+            steps, report.success_rate(), report.episodes, report.region_episodes()
+        )
 
-    def _add_point(self, steps: int, rates: dict[str, float], episodes: int) -> EvalPoint:
+    def _add_point(
+        self, steps: int, rates: dict[str, float], episodes: int, per_region: dict[str, int]
+    ) -> EvalPoint:
         point = EvalPoint(
             plant_steps=steps,
             plant_minutes=steps / self.robot.control_hz / 60,
             success_rate=rates,
             episodes=episodes,
+            region_episodes=per_region,
         )
         self.evaluations.append(point)
         evaluations = [asdict(p) for p in self.evaluations]

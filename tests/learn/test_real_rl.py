@@ -2,6 +2,7 @@
 real-RL resume, and the whole pipeline at smoke scale."""
 
 import json
+import re
 import shutil
 from dataclasses import replace
 
@@ -282,8 +283,10 @@ def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
             "final_success",
             "interventions",
             "plant_steps",
+            "seeds_kept_start",
         }
         assert set(summary["final_success"]) == {"ID", "OOD"}
+        assert all(n in (0, 1) for n in summary["seeds_kept_start"].values())
         assert summary["plant_steps"] >= 100
     for name in ("report.md", "curves.png", "catalog.parquet", "representative.rrd"):
         assert (out / name).is_file(), name
@@ -310,7 +313,9 @@ def test_the_whole_pipeline_runs_at_smoke_scale(smoke_run):
     assert "![success against plant minutes](curves.png)" in text
     assert "| Stage II: twin RL (40 twin steps) |" in text
     for method in METHOD_TABLE:  # each run's evaluations, one row per method and seed
-        assert sum(line.startswith(f"| {method.name} | 0 |") for line in text.splitlines()) == 1
+        rows = [line for line in text.splitlines() if line.startswith(f"| {method.name} | 0 |")]
+        assert len(rows) == 1
+        assert re.search(r"\d+ % \(\d+–\d+\) / \d+ % \(\d+–\d+\)", rows[0]), rows[0]
     # A run made before Stage II was evaluated gets the evaluation when resumed.
     shutil.rmtree(out / "stage2" / "plant_eval")
     assert (

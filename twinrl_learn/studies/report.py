@@ -17,7 +17,7 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_data.view import save_rrd
 from twinrl_learn.evaluate import grid_cells
-from twinrl_learn.real_rl_progress import EvalPoint, load_evaluations, minutes_to
+from twinrl_learn.real_rl_progress import EvalPoint, kept_start, load_evaluations, minutes_to
 from twinrl_learn.studies.layout import eval_folder
 from twinrl_learn.studies.presets import METHOD_TABLE, Preset
 from twinrl_sim.tasks import REGION_NAMES
@@ -42,6 +42,7 @@ def method_summary(folders: dict[int, Path]) -> dict[str, Any]:
                 "final": evaluations[-1].success_rate,
                 "interventions": sum(h["interventions"] for h in history),
                 "plant_steps": history[-1]["env_steps"] if history else 0,
+                "kept": {r: kept_start(evaluations, r) for r in REGION_NAMES},
             }
         )
     return {
@@ -51,6 +52,8 @@ def method_summary(folders: dict[int, Path]) -> dict[str, Any]:
         },
         "interventions": int(np.median([s["interventions"] for s in per_seed])),
         "plant_steps": int(np.median([s["plant_steps"] for s in per_seed])),
+        # seeds that ended at least where they started, the last within noise of the best
+        "seeds_kept_start": {r: sum(s["kept"][r] for s in per_seed) for r in REGION_NAMES},
     }
 
 
@@ -102,6 +105,15 @@ def _pct(rate: float) -> str:
     return f"{100 * rate:.0f} %"
 
 
+def _with_interval(point: EvalPoint, region: str) -> str:
+    """``94 % (85–98)``: the rate and its 95 % interval, where the episodes are known."""
+    rate = point.success_rate.get(region, 0.0)
+    interval = point.interval(region)
+    if interval is None:
+        return _pct(rate)
+    return f"{_pct(rate)} ({100 * interval[0]:.0f}–{100 * interval[1]:.0f})"
+
+
 def _per_seed_table(runs: dict[str, dict[int, Path]]) -> list[str]:
     """Markdown rows: one per method and seed, one column per evaluation."""
     series = {
@@ -114,9 +126,7 @@ def _per_seed_table(runs: dict[str, dict[int, Path]]) -> list[str]:
     header = " | ".join(f"~{e.plant_minutes:.1f} min" for e in longest)
     rows = [f"| method | seed | {header} |", "|---|---|" + "---|" * columns]
     for (name, seed), evaluations in series.items():
-        cells = [
-            " / ".join(_pct(e.success_rate.get(r, 0.0)) for r in REGION_NAMES) for e in evaluations
-        ]
+        cells = [" / ".join(_with_interval(e, r) for r in REGION_NAMES) for e in evaluations]
         rows.append(
             f"| {name} | {seed} | " + " | ".join(cells + [""] * (columns - len(cells))) + " |"
         )
@@ -204,20 +214,25 @@ def write_report(
         "![success against plant minutes](curves.png)",
         "",
         "| method | minutes to 95 % ID | minutes to 95 % OOD | final ID | final OOD "
-        "| intervention steps | robot steps |",
-        "|---|---|---|---|---|---|---|",
+        "| seeds that kept their start, ID / OOD | intervention steps | robot steps |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, m in methods.items():
+        kept = " / ".join(f"{m['seeds_kept_start'][r]} of {len(seeds)}" for r in REGION_NAMES)
         lines.append(
             f"| {name} | {_fmt_minutes(m['plant_minutes_to_95']['ID'])} "
             f"| {_fmt_minutes(m['plant_minutes_to_95']['OOD'])} "
             f"| {100 * m['final_success']['ID']:.0f} % | {100 * m['final_success']['OOD']:.0f} % "
-            f"| {m['interventions']} | {m['plant_steps']} |"
+            f"| {kept} | {m['interventions']} | {m['plant_steps']} |"
         )
     lines += [
         "",
-        "Each run's evaluations, ID / OOD (an evaluation follows the episode that "
-        "crosses its step count, so the minutes differ a little between runs):",
+        "A seed kept its start when its last evaluation is at least its first and its best "
+        "lies within the last's 95 % interval (noise, not a loss).",
+        "",
+        "Each run's evaluations, ID / OOD, with each rate's 95 % Wilson interval in "
+        "brackets (an evaluation follows the episode that crosses its step count, so the "
+        "minutes differ a little between runs):",
         "",
     ]
     lines += _per_seed_table(runs)
