@@ -13,9 +13,15 @@ cores each, assuming jobs scale linearly (they share nothing but the output fold
 Twin RL's environments: ``envs`` pick-and-place envs stepped ``steps`` times with the
 same seeded actions, in this process (one worker) or in shards, with and without the
 two cameras; env-steps per second once the shards are up, and the observations of
-every variant checked equal. Usage::
+every variant checked equal.
 
-    python bench/bench_scale.py --demos 40 --envs 8 --steps 60
+The pipeline (``twinrl demo``, the ``--preset``'s whole run: Stage I, twin RL, mining
+and every method's real-RL run) end to end with 1 and 2 worker processes and with 2
+Ray workers: wall time, and its ratio to one worker; every run's report must hold the
+same results. Usage::
+
+    MUJOCO_GL=egl python bench/bench_scale.py --demos 40 --envs 8 --steps 60
+    MUJOCO_GL=egl python bench/bench_scale.py --preset none   # without the pipeline
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import numpy as np
 import typer
 
 from twinrl_data.executor import make_executor
+from twinrl_learn.studies.pipeline import run_demo
 from twinrl_sim.batch import BatchEnv
 from twinrl_sim.expand import ExpandReport, expand
 from twinrl_sim.sharded import ShardedBatchEnv
@@ -98,6 +105,9 @@ def main(
     cores: Annotated[int, typer.Option(help="Cores per machine of the estimate.")] = 16,
     envs: Annotated[int, typer.Option(help="Twin RL environments.")] = 8,
     steps: Annotated[int, typer.Option(help="Vector steps of the environments.")] = 60,
+    preset: Annotated[
+        str, typer.Option(help="Pipeline preset timed end to end (none: skip it).")
+    ] = "smoke",
 ) -> None:
     _environments(envs, steps, machines, cores)
     rows, reports = [], {}
@@ -132,6 +142,34 @@ def main(
         f"{per_worker:.2f} attempts/s per worker and a {100 * yield_rate:.0f} % yield: "
         f"{paper_demos / yield_rate / rate:.0f} s of synthesis (plus the cluster's start-up)"
     )
+    if preset != "none":
+        _pipeline(preset)
+
+
+def piped(preset: str, workers: int, cluster: str) -> tuple[float, dict]:
+    """(wall seconds, the report's results) of one whole pipeline run."""
+    out = Path(tempfile.mkdtemp(prefix="twinrl-scale-pipeline-")) / "run"
+    try:
+        start = time.perf_counter()
+        report = run_demo(
+            "pick_place", preset, out, workers=workers, cluster=cluster, device="cpu",
+            log=lambda message: None,
+        )  # fmt: skip
+        return time.perf_counter() - start, {k: report[k] for k in ("stages", "methods")}
+    finally:
+        shutil.rmtree(out.parent)
+
+
+def _pipeline(preset: str) -> None:
+    print(f"\nthe pipeline, preset {preset}, end to end\n")
+    print("| workers | backend | wall time (s) | ratio to one worker |")
+    print("|---|---|---|---|")
+    alone, results = piped(preset, 1, "")
+    print(f"| 1 | processes | {alone:.0f} | 1.00 |")
+    for name, cluster in BACKENDS.items():
+        seconds, theirs = piped(preset, 2, cluster)
+        assert theirs == results, f"{name}: other results with 2 workers"
+        print(f"| 2 | {name} | {seconds:.0f} | {seconds / alone:.2f} |")
 
 
 def _environments(envs: int, steps: int, machines: int, cores: int) -> None:
