@@ -1,6 +1,7 @@
 """The `quick-vision` pipeline preset: what each of its stages is given instead of the
 plant's privileged state, and the twin it runs its twin work in."""
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -55,7 +56,8 @@ def test_every_real_rl_run_of_the_vision_preset_sees_and_judges_as_a_cell_does(t
         )  # fmt: skip
         settings = real_rl_settings(job)
         assert settings.success == "classifier", method.name
-        assert settings.classifier == str(stage1["classifier"])
+        # Stage I's classifier trained again with Stage II's rollouts (the policy's own).
+        assert settings.classifier == str(tmp_path / "stage2" / "success_classifier")
         assert settings.operator_sees == str(stage1["estimator"])
         assert settings.twin == str(stage1["look"])  # re-mined in the fitted look
     # The privileged presets keep the plant's truth and an operator who reads it.
@@ -125,3 +127,16 @@ def test_the_twin_classifier_learns_success_from_labelled_twin_episodes(tmp_path
     assert any(e.meta.success for e in episodes)
     classifier = RewardClassifier.load(folder)
     assert classifier.task == "pick_place"
+    # After Stage II it learns again from those episodes and the twin-RL rollouts.
+    from twinrl_learn.studies.table1 import fit_twin_classifier
+
+    rollouts = Session.create(tmp_path / "rollouts")
+    for episode in episodes[:2]:
+        rollouts.add(episode)
+    again = fit_twin_classifier(
+        [tmp_path / "success_session", tmp_path / "rollouts"], tmp_path / "again", seed=0,
+        device="cpu", steps=20,
+    )  # fmt: skip
+    metrics = json.loads((again / "metrics.json").read_text())
+    assert metrics["fitted_episodes"] + metrics["heldout_episodes"] == 8
+    assert RewardClassifier.load(again).task == "pick_place"

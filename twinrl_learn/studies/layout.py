@@ -15,6 +15,7 @@ def stage1_paths(folder: Path, policy: str) -> dict[str, Path]:
         "look": folder / "twin_fitted.yaml",  # presets that fit the twin's look
         "estimator": folder / "estimator",  # presets whose image policy sees through one
         "classifier": folder / "success_classifier",  # presets that judge success by it
+        "classifier_episodes": folder / "success_session",  # the twin episodes it learnt from
     }
 
 

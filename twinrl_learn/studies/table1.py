@@ -169,8 +169,19 @@ def train_twin_classifier(
         near_misses=CLASSIFIER_NEAR_MISSES,
     )
     folder = base / "success_classifier"
+    fit_twin_classifier([session.path], folder, seed=seed, device=device, steps=steps)
+    return folder
+
+
+def fit_twin_classifier(
+    sessions: list[Path], folder: Path, *, seed: int, device: str, steps: int = CLASSIFIER_STEPS
+) -> Path:
+    """Train the success classifier on every episode of ``sessions`` (twin episodes,
+    labelled by the twin): the scripted ones of :func:`train_twin_classifier`, and the
+    pipeline adds Stage II's twin-RL rollouts, the policy's own successes and failures
+    (docs/results/pipeline-quick.md#the-whole-run-real-rl-without-privileged-state)."""
     train_reward_classifier(
-        [read_episode(path) for path in session.episode_paths()],
+        [read_episode(path) for session in sessions for path in Session(session).episode_paths()],
         folder,
         ClassifierSettings(cameras=("front", "wrist"), steps=steps, seed=seed),
         device=device,
