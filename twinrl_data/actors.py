@@ -95,7 +95,11 @@ class ProcessActors:
     """Each object in a spawned process of its own (spawned, as the executor's workers
     are, so MuJoCo's GL contexts and torch start clean)."""
 
-    def __init__(self, cls: type, inits: Sequence[dict[str, Any]]) -> None:
+    def __init__(
+        self, cls: type, inits: Sequence[dict[str, Any]], timeout_s: float | None = None
+    ) -> None:
+        """Start the objects; past ``timeout_s`` for any of them to be made, every worker
+        is stopped (:class:`ActorLost`)."""
         context = multiprocessing.get_context("spawn")
         self._pipes, self._processes = [], []
         for init in inits:
@@ -106,7 +110,7 @@ class ProcessActors:
             self._pipes.append(ours)
             self._processes.append(process)
         try:
-            self._answers()  # every object made, or the first error raised
+            self._answers("its start", timeout_s)  # every object made, or the first error
         except BaseException:
             self.close()
             raise

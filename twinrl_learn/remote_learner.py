@@ -214,7 +214,7 @@ class RemoteLearner:
         say: Callable[[str], None] | None = None,
     ) -> None:
         self.run, self.spec, self.where, self.sync = run, spec, where, sync
-        self.timeout_s = timeout_s  # for an episode's answer (a start may pretrain: none)
+        self.timeout_s = timeout_s  # an episode's answer, a start again (not the first's)
         self.say = say or (lambda message: warnings.warn(message, LearnerWarning, stacklevel=3))
         self.metrics: dict[str, float] = {}
         self._actors: Actors | None = None
@@ -274,9 +274,11 @@ class RemoteLearner:
         self._actors, self._closers = None, []
 
     # ---------------------------------------------------------------- the learner
-    def _connect(self) -> None:
+    def _connect(self, timeout_s: float | None = None) -> None:
+        """Start a learner; ``timeout_s`` limits its start (none for the first, which may
+        run the offline phase)."""
         if self.where == PROCESS:
-            self._actors = ProcessActors(LearnerService, [{"spec": self.spec}])
+            self._actors = ProcessActors(LearnerService, [{"spec": self.spec}], timeout_s)
         else:
             from twinrl_data.ray_executor import RayExecutor
 
@@ -288,7 +290,7 @@ class RemoteLearner:
             device = self.spec.device
             gpus = 1 if device.startswith("cuda") or (device == "auto" and executor.gpus()) else 0
             self._actors = executor.actors(LearnerService, [{"spec": self.spec}], gpus=gpus)
-        self._adopt(self._actors.call("status", [()])[0])
+        self._adopt(self._actors.call("status", [()], timeout_s)[0])  # Ray: after its start
 
     def _deliver(self) -> None:
         """Send the episodes the learner lacks, oldest first; on the learner's loss, go
@@ -310,10 +312,11 @@ class RemoteLearner:
 
     def _start_again(self) -> bool:
         """Start a learner in place of a lost one. One that fails to start, for whatever
-        reason (its folder unreadable, the cluster gone, no memory), is said and tried
-        again after the next episode: the robot session never stops for the learner."""
+        reason (its folder unreadable, the cluster gone, no memory, no answer within the
+        learner's time limit), is said and tried again after the next episode: the robot
+        session never stops for the learner."""
         try:
-            self._connect()
+            self._connect(self.timeout_s)  # a learner slow to start again is a lost one
         except Exception as err:  # any failure: the robot goes on
             self.close()
             self.say(

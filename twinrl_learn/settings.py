@@ -457,8 +457,9 @@ class RealRLSettings:
     """The learner's own run folder, on its machine (default: ``learner/`` in ``out``)."""
     learner_timeout: float = 600.0
     """Seconds a learner apart may take to answer an episode (with ``learner_sync``, the
-    updates it bought included) before it is taken for lost: it is stopped, the robot
-    goes on with the last weights, and a learner starts again from its folder."""
+    updates it bought included), or to start again, before it is taken for lost: it is
+    stopped, the robot goes on with the last weights, and a learner starts again from
+    its folder after the next episode."""
     device: str = "auto"
     """Where the networks run: auto (a GPU if torch sees one), cpu, cuda or cuda:N."""
     operator_sees: str | None = None

@@ -176,6 +176,11 @@ def test_a_learner_that_does_not_answer_in_time_is_stopped_and_the_robot_goes_on
     episodes = Session(tmp_path / "run" / "session").episode_paths()
     assert len(episodes) == len(run.history) >= 2 and run.agent.env_steps >= 101
     assert any("did not answer episode within 0.01 s" in m for m in said)
+    # A learner started again has the same time: none starts within 0.01 s, the robot goes on.
+    assert any(
+        "a learner could not start again" in m and "did not answer its start within 0.01 s" in m
+        for m in said
+    )
     assert run.agent.updates == RLConfig.for_method("twinrl", offline_steps=3).offline_steps
     # The stopped learner freed its folder: one starts there again, from its checkpoint.
     from twinrl_learn.real_rl import learner_spec
