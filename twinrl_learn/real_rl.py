@@ -68,13 +68,7 @@ from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.learner import Learner, actor_copy
 from twinrl_learn.mining import Target, load_targets, mine
-from twinrl_learn.online import (
-    RUN_FILE,
-    OnlineRun,
-    RoundRecord,
-    region_counts,
-    region_success,
-)
+from twinrl_learn.online import RUN_FILE, OnlineRun, RoundRecord, region_counts
 from twinrl_learn.perception.estimator import PoseEstimator
 from twinrl_learn.policy import Policy
 from twinrl_learn.real_rl_progress import (
@@ -130,9 +124,7 @@ def _buffers(settings: RealRLSettings, policy: Policy) -> tuple[ReplayBuffer, Re
     """The demo and online buffers the run learns from; empty where the learner runs
     apart, which reads the demos and the twin buffer itself, as its machine sees them."""
     if settings.learner:
-        views = policy.replay_views()
-        demo = ReplayBuffer(rewards=settings.rl.rewards, **views)
-        return demo, ReplayBuffer(rewards=settings.rl.rewards, **views)
+        return learning_buffers([], None, settings.rl, policy)
     return learning_buffers(settings.demos, settings.twin_buffer, settings.rl, policy)
 
 
@@ -575,8 +567,9 @@ class RealRL:
         if s.robot == "ur":
             last = self.evaluations[-1].plant_steps if self.evaluations else -1
             since = [r for r in self.run_state.history if r.env_steps > last]
-            counts = {region: n for region, (_, n) in region_counts(since).items()}
-            return self._add_point(steps, region_success(since), 0, counts)
+            totals = {r: (wins, n) for r, (wins, n) in region_counts(since).items() if n}
+            rates = {r: wins / n for r, (wins, n) in totals.items()}
+            return self._add_point(steps, rates, 0, {r: n for r, (_, n) in totals.items()})
         folder = self.out / "evaluations" / f"{steps:06d}"
         shutil.rmtree(folder, ignore_errors=True)  # an interrupted evaluation
         runner = TwinrlRunner(self.actor, name=f"rl@{steps}")
