@@ -10,6 +10,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
+from twinrl_data.session import Session
 from twinrl_data.settings_cli import options, settings_function
 from twinrl_robot.record_settings import RecordSettings
 
@@ -31,15 +32,23 @@ def _record(settings: dict[str, Any]) -> None:
     from twinrl_robot.recording import run_recording
 
     config = RecordSettings(**settings)
-    with Live(console=console, auto_refresh=False, transient=True) as live:
-        report = run_recording(
-            config,
-            on_status=lambda status: live.update(
-                Text.from_markup(_status_line(status)), refresh=True
-            ),
-            on_web=lambda url: console.print(f"live view: open {url} in a browser"),
-        )
     out = config.out
+    try:
+        with Live(console=console, auto_refresh=False, transient=True) as live:
+            report = run_recording(
+                config,
+                on_status=lambda status: live.update(
+                    Text.from_markup(_status_line(status)), refresh=True
+                ),
+                on_web=lambda url: console.print(f"live view: open {url} in a browser"),
+            )
+    except KeyboardInterrupt:  # an episode under way is kept, marked aborted (run_episode)
+        kept = len(Session(out).episode_paths()) if Path(out).is_dir() else 0
+        console.print(
+            f"stopped (Ctrl-C): {out} holds {kept} episode(s), one cut short marked aborted; "
+            "run the same command to continue the session"
+        )
+        raise SystemExit(130) from None
     table = Table("episode", "outcome", "steps", "note", title=f"recorded into {out}")
     for episode in report.episodes:
         table.add_row(

@@ -110,5 +110,6 @@ def test_the_page_follows_a_recording_session_live(tmp_path: Path) -> None:
         assert recorder.poll() is None, "the session ended before the page was seen following"
         assert len(seen) > 1 and seen[-1] > seen[0] + 100_000, ("not seen growing", seen)
     assert recorder.returncode == 130, recorder.stderr.read()  # stopped by Ctrl-C
+    assert "stopped (Ctrl-C): session holds" in recorder.stdout.read()
     assert Session(tmp_path / "session").episode_paths()
     assert not verify(tmp_path / "session").problems
