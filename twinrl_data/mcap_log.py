@@ -483,7 +483,8 @@ def _meta_from(path: Path, records: Mapping[str, dict[str, Any]]) -> contract.Ep
 
 
 def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
-    """Read a whole episode: metadata and every field in step order.
+    """Read a whole episode: metadata and every field in step order (a live episode's
+    sample streams too: :func:`twinrl_data.streams.read_live_episode`).
 
     Raises :class:`~twinrl_data.errors.McapError` for a missing, non-MCAP, truncated or
     foreign file (never another exception type).

@@ -168,17 +168,30 @@ class EpisodeMeta:
         return cls(**dict(data))
 
 
+@dataclass(frozen=True)
+class Samples:
+    """One sample stream of a live episode, at its source's own rate (a UR controller's
+    packages at 500 Hz: :mod:`twinrl_data.streams`)."""
+
+    names: list[str]
+    times: np.ndarray  # (n,) s from the episode's start, host clock
+    values: np.ndarray  # (n, len(names)) float32
+    clock: np.ndarray  # (n,) s, the source's own clock (a controller's timestamp)
+
+
 @dataclass
 class Episode:
     """A whole episode in memory: metadata plus one array per field (T rows).
 
     ``data`` holds the vector and scalar fields keyed by contract name; ``images`` maps
-    camera names to uint8 arrays of shape (T, H, W, 3).
+    camera names to uint8 arrays of shape (T, H, W, 3); ``samples``, when read with
+    them, a live episode's sample streams by name (none for an episode of steps only).
     """
 
     meta: EpisodeMeta
     data: dict[str, np.ndarray]
     images: dict[str, np.ndarray] = field(default_factory=dict)
+    samples: dict[str, Samples] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         missing = [f for f in REQUIRED_FIELDS if f not in self.data]

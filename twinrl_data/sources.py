@@ -24,6 +24,7 @@ from twinrl_data.live_export import LiveRows, read_for_export
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.schema import Episode
 from twinrl_data.session import Session, is_session
+from twinrl_data.streams import read_live_episode
 
 KINDS = "a session folder, an .mcap episode, a LeRobot dataset folder or a catalog .parquet"
 
@@ -89,11 +90,15 @@ def open_episode(spec: str | Path, default_index: int = 0) -> Episode:
     raise DataError(f"{path} is not an .mcap episode, a session or a LeRobot dataset")
 
 
-def discover_episodes(paths: Iterable[str | Path], *, images: bool = False) -> list[Episode]:
+def discover_episodes(
+    paths: Iterable[str | Path], *, images: bool = False, samples: bool = False
+) -> list[Episode]:
     """Every episode of the sessions, .mcap files and LeRobotDatasets found under
-    ``paths`` (folders are searched as the catalog searches them)."""
+    ``paths`` (folders are searched as the catalog searches them); ``samples``: with
+    live episodes' sample streams (a dataset has none)."""
     mcaps, datasets = catalog.discover(paths)
-    episodes = [read_episode(p, images=images) for p in mcaps]
+    read = read_live_episode if samples else read_episode
+    episodes = [read(p, images=images) for p in mcaps]
     for root in datasets:
         episodes += list(iter_dataset_episodes(root, cameras=None if images else []))
     if not episodes:

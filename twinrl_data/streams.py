@@ -29,7 +29,7 @@ import queue
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -47,23 +47,15 @@ from twinrl_data.mcap_log import (
     EpisodeWriter,
     _iso_to_ns,
     intact_records,
+    read_episode,
 )
 from twinrl_data.messages import FloatVector
+from twinrl_data.schema import Samples
 
 SAMPLES_PREFIX = "/samples/"
 VIDEO_ATTACHMENT = "video/{camera}.mp4"
 META_VIDEOS = "twinrl.videos"
 JPEG_QUALITY = 90
-
-
-@dataclass(frozen=True)
-class Samples:
-    """One sample stream of a live episode."""
-
-    names: list[str]
-    times: np.ndarray  # (n,) s from the episode's start, host clock
-    values: np.ndarray  # (n, len(names)) float32
-    clock: np.ndarray  # (n,) s, the source's own clock (a controller's timestamp)
 
 
 class LiveEpisode:
@@ -205,6 +197,13 @@ class LiveEpisode:
                 vector.timestamp.FromNanoseconds(round(float(source) * 1e9))
                 self.writer.write(topic, vector, time_ns, self.counts[stream])
                 self.counts[stream] += 1
+
+
+def read_live_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
+    """An episode with its sample streams (``Episode.samples``; none for an episode of
+    steps only)."""
+    episode = read_episode(path, images=images)
+    return replace(episode, samples=read_samples(path))
 
 
 def read_samples(path: str | Path) -> dict[str, Samples]:

@@ -10,7 +10,7 @@ import pytest
 
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.schema import EpisodeMeta, step_record
-from twinrl_data.streams import LiveEpisode, read_samples
+from twinrl_data.streams import LiveEpisode, read_live_episode, read_samples
 
 START = 1000.0  # s, the host's monotonic clock when the episode starts
 
@@ -51,6 +51,10 @@ def test_a_live_episode_keeps_every_frame_and_sample_on_the_steps_clock(tmp_path
     np.testing.assert_allclose(samples.times, np.arange(500) / 500, atol=1e-6)
     np.testing.assert_allclose(samples.clock, clock, atol=1e-6)
     np.testing.assert_allclose(samples.values[:, 0], clock, rtol=1e-6)
+    # Read as an episode, the streams come with it when asked (the gap workflow does).
+    assert not episode.samples
+    streams = read_live_episode(tmp_path / "live.mcap", images=False).samples
+    np.testing.assert_array_equal(streams["controller"].values, samples.values)
 
 
 def test_a_step_that_breaks_the_contract_is_refused_where_it_is_given(tmp_path: Path) -> None:

@@ -170,7 +170,7 @@ def diagnose_command(
     if out.exists() and any(out.iterdir()):
         raise UsageError(f"{out} exists and is not empty; choose another --out")
     images = allowed is None or any(e in allowed for e in IMAGE_EFFECTS)
-    episodes = discover_episodes(measured, images=images)
+    episodes = discover_episodes(measured, images=images, samples=True)
     with progress() as bar:
         job = bar.add_task("diagnose", total=None)
         diagnosis = diagnose(
