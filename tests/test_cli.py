@@ -1,13 +1,18 @@
 """The ``twinrl`` command line: help, the first commands, and one-line errors."""
 
+import contextlib
+import io
 import json
+import os
 import subprocess
 import sys
+import warnings
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
-from twinrl_learn.cli import app
+from twinrl_learn.cli import app, main
 
 runner = CliRunner()
 
@@ -22,6 +27,28 @@ def twinrl(*args: str, cwd=None, stdin: str = "") -> subprocess.CompletedProcess
         cwd=cwd,
         input=stdin,
     )
+
+
+def twinrl_in_process(*args: str, cwd: str | Path) -> subprocess.CompletedProcess:
+    """The entry point called in this process, as ``python -m twinrl_learn`` calls it
+    (the same ``main``: one-line errors, exit statuses), for the many bad-input cases
+    whose check costs less than a fresh interpreter's start-up. A bug's traceback is
+    raised here rather than printed."""
+    out, err = io.StringIO(), io.StringIO()
+    argv, here, show = sys.argv, os.getcwd(), warnings.showwarning
+    sys.argv = ["twinrl", *args]
+    os.chdir(cwd)
+    code: int | str | None = 0
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            main()
+    except SystemExit as stop:
+        code = stop.code
+    finally:
+        sys.argv, warnings.showwarning = argv, show
+        os.chdir(here)
+    status = code if isinstance(code, int) else (0 if code is None else 1)
+    return subprocess.CompletedProcess(list(args), status, out.getvalue(), err.getvalue())
 
 
 def test_help_lists_every_command():
@@ -244,7 +271,7 @@ STARTED = ["--task", "pick_place", "--init", "p", "--out", "x"]  # a run's first
     ],
 )
 def test_stage1_bad_input(args, message, tmp_path):
-    result = twinrl(*args, cwd=tmp_path)
+    result = twinrl_in_process(*args, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "x").exists()  # nothing written
