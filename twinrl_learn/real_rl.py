@@ -200,7 +200,6 @@ class RealRL:
         self.person: PersonInLoop | None = None
         self._say = on_notice
         self.robot = self._open_robot(policy, operator, terminal, on_wait)
-        self.judge = self._judge()
         seed = settings.rl.seed
         self.rng = np.random.default_rng([seed, 1])  # the actor's: resets
         self.actor = actor_copy(policy)
@@ -289,12 +288,15 @@ class RealRL:
         return robot
 
     def _judge(self) -> Judge:
-        """The episode's success: ground truth, the person's key, or the classifier."""
+        """One episode's judge of success: ground truth, the person's key, or the
+        classifier (over ``success_frames`` successive observations)."""
         if self.settings.success == "key":
             assert self.person is not None  # checked_classifier: a terminal or a device
             return self.person.key_judge
         judge = (
-            self.classifier.judge if self.classifier is not None else privileged_success(self.robot)
+            self.classifier.episode_judge(self.settings.success_frames)
+            if self.classifier is not None
+            else privileged_success(self.robot)
         )
         return self.person.watching(judge) if self.person is not None else judge
 
@@ -492,7 +494,7 @@ class RealRL:
             self.source,
             self.task,
             config,
-            judge=self.judge,
+            judge=self._judge(),
             recorder=Recorder(run.session),
             meta=meta,
             on_step=on_step,

@@ -401,6 +401,9 @@ class RealRLSettings:
     key (the person's s and f keys or device buttons) or classifier (`classifier`)."""
     classifier: str | None = None
     """A reward classifier from `twinrl train reward-classifier` (success classifier)."""
+    success_frames: int = 1
+    """Successive observations the classifier must call a success before it ends the
+    episode (success classifier): 3 keeps a lone false positive from ending it."""
     effects: str | None = None
     """The plant's hidden effects (YAML; default: the built-in plant)."""
     demos: list[str] = field(default_factory=list)
@@ -526,6 +529,10 @@ class RealRLSettings:
             )  # fmt: skip
         if self.success != "classifier" and self.classifier is not None:
             raise SettingError("classifier", "is read only when `success` is classifier")
+        if self.success_frames < 1:
+            raise SettingError("success_frames", f"must be at least 1, got {self.success_frames}")
+        if self.success != "classifier" and self.success_frames != 1:
+            raise SettingError("success_frames", "is read only when `success` is classifier")
         if not 0 <= self.target_ratio <= 1:
             raise SettingError("target_ratio", f"must be in [0, 1], got {self.target_ratio}")
         for name in ("refresh_every", "eval_every"):

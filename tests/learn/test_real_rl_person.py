@@ -168,6 +168,14 @@ def test_the_classifier_judges_real_rl_and_a_pause_keeps_the_run(demos, classifi
     resumed.run()
     assert resumed.run_state.agent.env_steps == 6 and len(resumed.run_state.history) == 6
     assert load_evaluations(out)[-1].plant_steps == 6
+    # Asked for 3 successive frames, the same classifier ends each episode at its third.
+    out = tmp_path / "debounced"
+    debounced = real_settings(
+        demos, out, success="classifier", classifier=str(eager), plant_steps=6, success_frames=3
+    )
+    RealRL.start(debounced).run()
+    episodes = [read_episode(p, images=False) for p in Session(out / "session").episode_paths()]
+    assert [len(e) for e in episodes] == [3, 3] and all(e.meta.success for e in episodes)
 
 
 def test_the_persons_success_key_ends_an_episode_in_the_plant(demos, tmp_path):
@@ -194,6 +202,10 @@ def test_real_rl_settings_refuse_what_a_cell_cannot_do(demos, classifier, tmp_pa
         real_settings(demos, tmp_path / "a", robot="ur", cell="cell.yaml")
     with pytest.raises(ValueError, match="classifier is needed to judge success"):
         real_settings(demos, tmp_path / "a", success="classifier")
+    with pytest.raises(ValueError, match="success_frames is read only when"):
+        real_settings(demos, tmp_path / "a", success_frames=3)
+    with pytest.raises(ValueError, match="success_frames must be at least 1, got 0"):
+        real_settings(demos, tmp_path / "a", success="classifier", classifier="c", success_frames=0)
     other = tmp_path / "other"
     other.mkdir()
     for name in ("weights.safetensors", "classifier.json"):

@@ -33,7 +33,7 @@ def test_only_the_vision_preset_reads_nothing_privileged():
         assert PRESETS[name].privileged, name
     vision = PRESETS["quick-vision"]
     # Leaving either of the real cell's stand-ins out makes it privileged again.
-    assert replace(vision, classifier_episodes=0).privileged
+    assert replace(vision, classifier_episodes=0, success_frames=1).privileged
     assert replace(vision, operator_sees=False).privileged
 
 
@@ -42,6 +42,8 @@ def test_a_preset_refuses_perception_it_cannot_use():
         replace(PRESETS["quick"], perception=10)
     with pytest.raises(SettingError, match="give `perception` episodes"):
         replace(PRESETS["quick-vision"], perception=0)
+    with pytest.raises(SettingError, match="success_frames is the classifier's"):
+        replace(PRESETS["quick-vision"], classifier_episodes=0)
 
 
 def test_every_real_rl_run_of_the_vision_preset_sees_and_judges_as_a_cell_does(tmp_path):
@@ -56,6 +58,7 @@ def test_every_real_rl_run_of_the_vision_preset_sees_and_judges_as_a_cell_does(t
         )  # fmt: skip
         settings = real_rl_settings(job)
         assert settings.success == "classifier", method.name
+        assert settings.success_frames == 3  # a lone false positive ends no episode
         # Stage I's classifier trained again with Stage II's rollouts (the policy's own).
         assert settings.classifier == str(tmp_path / "stage2" / "success_classifier")
         assert settings.operator_sees == str(stage1["estimator"])
@@ -66,6 +69,7 @@ def test_every_real_rl_run_of_the_vision_preset_sees_and_judges_as_a_cell_does(t
     assert (settings.success, settings.classifier, settings.operator_sees, settings.twin) == (
         "truth", None, None, None
     )  # fmt: skip
+    assert settings.success_frames == 1
 
 
 def test_twin_rl_and_real_rl_name_the_twin_they_run_in(tmp_path):

@@ -296,7 +296,7 @@ def _real_rl(config: RealRLSettings, resume: bool, terminal: Any) -> None:
 
 REAL_RL_FIELDS = (
     "task", "out", "init", "keep_critic", "robot", "cell", "emulated", "teleop", "success",
-    "classifier", "effects", "demos", "twin_buffer",
+    "classifier", "success_frames", "effects", "demos", "twin_buffer",
     "targets", "target_ratio", "refresh_every", "twin", "plant_steps", "eval_every", "eval_grid",
     "eval_episodes", "learner", "learner_folder", "learner_sync", "learner_timeout",
     "show_resets", "view", "device", "operator_sees",

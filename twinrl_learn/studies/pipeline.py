@@ -425,6 +425,7 @@ def real_rl_settings(job: RealRLJob) -> RealRLSettings:
         operator_sees=str(stage1["estimator"]) if p.operator_sees else None,
         success="classifier" if p.classifier_episodes else "truth",
         classifier=str(stage2_classifier(stage2)) if p.classifier_episodes else None,
+        success_frames=p.success_frames,
         device=job.device,
         rl=real_rl_config(method, p, seed),
     )
