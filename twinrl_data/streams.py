@@ -201,8 +201,11 @@ class LiveEpisode:
 
 def read_live_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
     """An episode with its sample streams (``Episode.samples``; none for an episode of
-    steps only)."""
+    steps only). Only a real cell records them, so the twin's and the plant's episodes
+    are not read twice."""
     episode = read_episode(path, images=images)
+    if episode.meta.world != "real":
+        return episode
     return replace(episode, samples=read_samples(path))
 
 
