@@ -5,6 +5,7 @@ recording session as it is recorded. Every process a test starts is stopped afte
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
 import sys
@@ -25,23 +26,30 @@ pytestmark = needs_chromium()
 
 @contextlib.contextmanager
 def _running(command: list[str], cwd: Path) -> Iterator[subprocess.Popen]:
-    """``command`` running; Ctrl-C'd on leaving, and killed with its children if it
-    does not stop within 30 s."""
+    """``command`` running; Ctrl-C'd on leaving. One that does not stop within 60 s is
+    aborted, so that it prints every thread's stack (faulthandler), killed with its
+    children, and the test fails with where it hung."""
     process = subprocess.Popen(
         command, cwd=cwd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE, text=True,
+        stderr=subprocess.PIPE, text=True, env=os.environ | {"PYTHONFAULTHANDLER": "1"},
     )  # fmt: skip
     try:
         yield process
     finally:
         process.send_signal(signal.SIGINT)
         try:
-            process.wait(timeout=30)
+            process.wait(timeout=60)
         except subprocess.TimeoutExpired:
-            for child in [*psutil.Process(process.pid).children(recursive=True), process]:
+            children = psutil.Process(process.pid).children(recursive=True)
+            process.send_signal(signal.SIGABRT)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                process.wait(timeout=10)
+            for child in [*children, process]:
                 with contextlib.suppress(psutil.NoSuchProcess):
                     child.kill()
-            raise
+            stacks = process.stderr.read()[-6000:]
+            hung = f"still running 60 s after Ctrl-C; its threads:\n{stacks}"
+            raise AssertionError(hung) from None
 
 
 def _page(process: subprocess.Popen, says: str) -> str:
