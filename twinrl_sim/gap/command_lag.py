@@ -15,7 +15,8 @@ commands has to reproduce) and says how much of it the link accounts for.
 Two measures, the better one the log allows:
 
 - **Over whole segments**, when the episodes carry the controller's every package (a
-  live episode's ``controller`` sample stream, read with ``samples=True``): the lag
+  live episode's ``controller`` sample stream, read with
+  :func:`twinrl_data.streams.read_live_episode`): the lag
   that best moves the line, laid between the steps' controller times, onto the
   package-by-package targets. A host late with a step sends its segment late and then
   runs it faster to end on time, so the lag sits in the segment's first part; this
@@ -87,12 +88,11 @@ def _package_terms(episode: contract.Episode) -> tuple[float, float] | None:
         return None
     packages = stream.values[:, columns].astype(float)
     echoed = episode.data[contract.CONTROLLER_TARGET].astype(float)
-    offset = _clock_offset(
-        stream.clock, packages, episode.data[contract.CONTROLLER_TIME][:, 0], echoed
-    )
+    row_times = episode.data[contract.CONTROLLER_TIME][:, 0].astype(float)
+    offset = _clock_offset(stream.clock, packages, row_times, echoed)
     if offset is None:
         return None
-    rows = episode.data[contract.CONTROLLER_TIME][:, 0].astype(float) + offset
+    rows = row_times + offset
     # Segment k (k >= 1) runs from sent[k - 1] at row k's time to sent[k] at row k + 1's.
     ends, starts = rows[2:], rows[1:-1]
     change = sent[1:-1] - sent[:-2]
@@ -122,5 +122,5 @@ def _clock_offset(
         apart = np.max(np.abs(packages - echoed[k]), axis=1)
         nearest = int(np.argmin(apart))
         if apart[nearest] <= SAME_TARGET:
-            offsets.append(clock[nearest] - float(row_times[k]))
+            offsets.append(clock[nearest] - row_times[k])
     return float(np.median(offsets)) if offsets else None
