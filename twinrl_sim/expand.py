@@ -47,6 +47,7 @@ from twinrl_sim.tasks import TaskConfig, make_task
 
 METHODS = ("plan", "augment")
 DETOUR_TAG = "+detour"  # ends the policy name of a demo that strayed first
+MISS_TAG = "+miss"  # ends the policy name of a demo whose first grasp missed
 MAX_ATTEMPTS_PER_DEMO = 4
 
 
@@ -60,6 +61,7 @@ class ExpandReport:
     kept: dict[str, int] = field(default_factory=dict)
     attempts: dict[str, int] = field(default_factory=dict)
     detoured: dict[str, int] = field(default_factory=dict)  # kept demos that strayed first
+    missed: dict[str, int] = field(default_factory=dict)  # kept demos that missed first
     seconds_synthesis: float = 0.0
     seconds_export: float = 0.0
     session: str = ""
@@ -86,6 +88,7 @@ class _Job:
     scene: SceneSpec | None = None  # the twin to synthesize in (None: the task's cell)
     images: bool = True  # render and record the cameras
     detours: float = 0.0  # share of planned demos that stray first (planner.detour_waypoint)
+    misses: float = 0.0  # share of planned demos whose first grasp closes high (plan_demo)
 
 
 _WORKER_CACHE: dict[tuple, Any] = {}  # per worker: twin envs by scene, demos by path
@@ -115,12 +118,13 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
         # grasp and every other attempt as they are without detours.
         draw = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt, 1])
         detour = draw if draw.random() < job.detours else None
-        plan = plan_demo(env.task, env.cell, config, rng, detour=detour)
+        draw = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt, 2])
+        miss = draw if draw.random() < job.misses else None
+        plan = plan_demo(env.task, env.cell, config, rng, detour=detour, miss=miss)
         if plan is None:
             return job, None
         actions = plan.actions
-        if detour is not None:
-            policy += DETOUR_TAG
+        policy += (DETOUR_TAG if detour is not None else "") + (MISS_TAG if miss else "")
     else:
         demo = _WORKER_CACHE.get(("demo", job.demo_path))
         if demo is None:
@@ -182,6 +186,7 @@ def expand(
     export: bool = True,
     images: bool = True,
     detours: float = 0.0,
+    misses: float = 0.0,
     force: bool = False,
     on_demo: Callable[[str, bool], None] | None = None,
     cluster: str = "",
@@ -195,8 +200,10 @@ def expand(
     (demos for a state policy: no rendering, no video encoding). ``detours`` is the
     share of planned demos whose arm first strays beside the object and does the task
     from there (off-path views and returns for an image policy; drawn per attempt, so the
-    others stay as they are). ``on_demo(region, kept)`` is called after each attempt
-    (for progress bars). ``cluster`` runs the attempts on Ray
+    others stay as they are). ``misses`` is the share whose first grasp closes above the
+    object, lifts empty-handed, opens and grasps again (closed empty fingers, and the
+    recovery, for a pose estimator or an image policy). ``on_demo(region, kept)`` is
+    called after each attempt (for progress bars). ``cluster`` runs the attempts on Ray
     (:func:`twinrl_data.executor.cluster_address`; ``workers`` defaults to its CPUs) and
     needs ``out`` on storage every node of the cluster sees.
     """
@@ -211,12 +218,11 @@ def expand(
             raise SettingError("from_demo", f"is a {demo.meta.task} episode, not {task}")
     elif from_demo is not None:
         raise SettingError("from_demo", "is only used with `method` augment")
-    if not 0.0 <= detours <= 1.0:
-        raise SettingError("detours", f"is a share of the demos, from 0 to 1; got {detours}")
-    if detours and method != "plan":
-        raise SettingError(
-            "detours", "applies to `method` plan (a re-targeted demo keeps its path)"
-        )
+    for name, share in (("detours", detours), ("misses", misses)):
+        if not 0.0 <= share <= 1.0:
+            raise SettingError(name, f"is a share of the demos, from 0 to 1; got {share}")
+        if share and method != "plan":
+            raise SettingError(name, "applies to `method` plan (a re-targeted demo keeps its path)")
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
         raise TwinError("ask for at least one demonstration (`id_count` and/or `ood_count`)")
     check_kinds(randomize)
@@ -241,6 +247,7 @@ def expand(
         "scene": scene,
         "images": images,
         "detours": detours,
+        "misses": misses,
     }
     if not on_cluster:
         workers = workers or min(2, os.cpu_count() or 1)
@@ -248,7 +255,8 @@ def expand(
     with make_executor(workers, cluster=cluster) as executor:
         workers = executor.workers
         for region, count in (("ID", id_count), ("OOD", ood_count)):
-            report.kept[region] = report.attempts[region] = report.detoured[region] = 0
+            report.kept[region] = report.attempts[region] = 0
+            report.detoured[region] = report.missed[region] = 0
             attempt = 0
             # Waves of attempts in attempt order: results do not depend on the workers.
             while report.kept[region] < count and attempt < count * MAX_ATTEMPTS_PER_DEMO:
@@ -268,7 +276,8 @@ def expand(
                         meta = EpisodeMeta.from_dict(result["meta"])
                         session.register(Path(result["path"]), meta, result["length"])
                         report.kept[region] += 1
-                        report.detoured[region] += meta.policy.endswith(DETOUR_TAG)
+                        report.detoured[region] += DETOUR_TAG in meta.policy
+                        report.missed[region] += meta.policy.endswith(MISS_TAG)
                     if on_demo is not None:
                         on_demo(region, result is not None)
     report.seconds_synthesis = time.perf_counter() - start

@@ -45,6 +45,10 @@ DETOUR_RADIUS = (0.08, 0.20)  # m
 DETOUR_RISE = (0.0, 0.12)  # m
 DETOUR_TURN = 0.4  # rad
 DETOUR_DRAWS = 8
+# Where a missed grasp closes: this far above the grasp (the image policy's misses closed
+# 1.3-1.7 cm high), then it lifts this much empty-handed and opens before grasping again.
+MISS_HEIGHT = (0.02, 0.045)  # m
+MISS_LIFT = 0.03  # m
 
 
 @dataclass(frozen=True)
@@ -199,10 +203,14 @@ def plan_demo(
     rng: np.random.Generator,
     settings: PlannerSettings | None = None,
     detour: np.random.Generator | None = None,
+    miss: np.random.Generator | None = None,
 ) -> Plan | None:
     """Plan a demonstration for ``config`` (the cell is reset to it); ``None`` if no
     grasp admits a collision-free path. With ``detour`` (the generator that draws it),
-    the arm first strays to a point beside the object (see :func:`detour_waypoint`)."""
+    the arm first strays to a point beside the object (see :func:`detour_waypoint`).
+    With ``miss``, the first grasp closes :data:`MISS_HEIGHT` above the object, lifts
+    empty-handed, opens and grasps again: what closed fingers holding nothing look like,
+    and the recovery from it."""
     settings = settings or PlannerSettings()
     task.start(cell, config)
     home, home_quat = cell.tcp_pose()
@@ -260,8 +268,17 @@ def plan_demo(
             if stray is None:
                 continue
             waypoints.append(stray)
+        waypoints.append(Waypoint(start + up, start_yaw, 0.0, settings.speed))
+        if miss is not None:
+            high = start + [0.0, 0.0, miss.uniform(*MISS_HEIGHT)]
+            empty = high + [0.0, 0.0, MISS_LIFT]
+            waypoints += [
+                Waypoint(high, start_yaw, 0.0, settings.slow_speed),
+                Waypoint(high, start_yaw, 1.0, settings.slow_speed, dwell=settings.close_steps),
+                Waypoint(empty, start_yaw, 1.0, settings.slow_speed),
+                Waypoint(empty, start_yaw, 0.0, settings.slow_speed, dwell=settings.open_steps),
+            ]
         waypoints += [
-            Waypoint(start + up, start_yaw, 0.0, settings.speed),
             Waypoint(start, start_yaw, 0.0, settings.slow_speed),
             Waypoint(start, start_yaw, 1.0, settings.slow_speed, dwell=settings.close_steps),
             Waypoint(lift, start_yaw, 1.0, settings.speed),

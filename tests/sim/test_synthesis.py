@@ -19,6 +19,7 @@ from twinrl_sim.planar import wrap_angle, yaw_of
 from twinrl_sim.planner import (
     APPROACH,
     DETOUR_RADIUS,
+    MISS_HEIGHT,
     CollisionChecker,
     object_pose_from_tcp,
     plan_demo,
@@ -115,6 +116,39 @@ def test_a_detour_strays_beside_the_object_and_comes_back_to_the_same_grasp():
     assert len(plan.actions) > len(straight.actions)
 
 
+def test_a_missed_grasp_closes_empty_above_the_object_then_grasps_as_planned():
+    """The first close is above the banana: the fingers shut on nothing and it stays on
+    the table; then the arm opens and does the straight plan's grasp."""
+    env = TwinEnv("pick_place")
+    config = env.task.sample_config(np.random.default_rng(4), "ID")
+    straight = plan_demo(env.task, env.cell, config, np.random.default_rng(1))
+    plan = plan_demo(
+        env.task, env.cell, config, np.random.default_rng(1), miss=np.random.default_rng(5)
+    )
+    assert straight is not None and plan is not None
+    assert len(plan.waypoints) == len(straight.waypoints) + 4
+    high, grasp = plan.waypoints[1], straight.waypoints[1]
+    assert MISS_HEIGHT[0] <= high.position[2] - grasp.position[2] <= MISS_HEIGHT[1]
+    for mine, theirs in zip(plan.waypoints[5:], straight.waypoints[1:], strict=True):
+        np.testing.assert_array_equal(mine.position, theirs.position)
+    env.reset(options={"config": config})
+    resting = env.cell.object_pose(env.task.object_name)[0][2]
+    closes = np.flatnonzero(np.diff((plan.actions[:, 6] > 0.5).astype(int)) == 1) + 1
+    assert len(closes) == 2
+    for t, action in enumerate(plan.actions):
+        _, _, terminated, _, info = env.step(action)
+        if t == closes[1] - 1:  # just before the second close: the first held nothing
+            assert env.cell.object_pose(env.task.object_name)[0][2] == pytest.approx(
+                resting, abs=0.003
+            )
+            assert env.cell.gripper_opening > 0.05
+        if closes[0] + 8 <= t < closes[0] + 10:  # the first close has shut on nothing
+            assert env.cell.gripper_opening < 0.01
+        if terminated:
+            break
+    assert info["success"]
+
+
 def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
     from typer.testing import CliRunner
 
@@ -128,6 +162,10 @@ def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
     assert saved["detoured"] == {"ID": 1, "OOD": 1}
     paths = Session(tmp_path / "d" / "session").episode_paths()
     assert {read_episode(p).meta.policy for p in paths} == {"synthesis:plan+detour"}
+    result = CliRunner().invoke(app, [*args, "--misses", "1", "--out", str(tmp_path / "m")])
+    assert result.exit_code == 0, result.output
+    assert "2 of the kept demos miss their first grasp" in result.output
+    assert json.loads((tmp_path / "m" / "expand.json").read_text())["missed"] == {"ID": 1, "OOD": 1}
     for detours, method, message in [
         (1.5, "plan", "from 0 to 1"),
         (0.5, "augment", "applies to `method` plan"),

@@ -75,6 +75,16 @@ def expand_command(
             max=1.0,
         ),
     ] = 0.0,
+    misses: Annotated[
+        float,
+        typer.Option(
+            help="Share of the demos (plan only) whose first grasp closes 2-4.5 cm above the "
+            "object, lifts empty-handed, opens and grasps again: closed empty fingers and the "
+            "recovery, for a pose estimator or an image policy.",
+            min=0.0,
+            max=1.0,
+        ),
+    ] = 0.0,
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
     cluster: ClusterOption = "",
 ) -> None:
@@ -108,6 +118,7 @@ def expand_command(
             workers=workers,
             images=images,
             detours=detours,
+            misses=misses,
             force=force,
             on_demo=advance,
             cluster=cluster,
@@ -126,6 +137,8 @@ def expand_command(
     console.print(table)
     if detours:
         console.print(f"{sum(report.detoured.values())} of the kept demos stray first")
+    if misses:
+        console.print(f"{sum(report.missed.values())} of the kept demos miss their first grasp")
     console.print(
         f"synthesis {report.seconds_synthesis:.1f} s, export {report.seconds_export:.1f} s; "
         f"episodes in {report.session}, dataset {report.dataset or '(none)'}"
