@@ -113,7 +113,7 @@ def start_web_viewer(
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
-        preexec_fn=_die_with_parent(),
+        preexec_fn=die_with_parent(),
     )
     # Every interface: the page names this machine as others on the network reach it.
     every = bind in ("0.0.0.0", "::")
@@ -177,8 +177,9 @@ def _rerun_program() -> str:
     return str(program)
 
 
-def _die_with_parent() -> Callable[[], None] | None:
-    """What the server runs before rerun: ask Linux for SIGTERM when its parent dies."""
+def die_with_parent() -> Callable[[], None] | None:
+    """What a child process runs before its program (`preexec_fn`): ask Linux for SIGTERM
+    when its parent dies (rerun's server, the live view's writer)."""
     if not sys.platform.startswith("linux"):
         return None
     prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up before the fork

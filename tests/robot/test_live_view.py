@@ -19,8 +19,10 @@ from twinrl_sim.tasks import make_task
 def test_a_640x480_camera_is_previewed_as_a_320x240_jpeg_of_the_same_picture() -> None:
     image = np.zeros((480, 640, 3), np.uint8)
     image[:, 320:, 0] = 200  # the right half red
-    blob = preview(image).blob.as_arrow_array()[0].values.to_numpy()
+    shown = preview(image)
+    blob = np.frombuffer(shown.jpeg, np.uint8)
     decoded = cv2.imdecode(blob, cv2.IMREAD_COLOR)[..., ::-1]  # back to RGB
+    assert shown.width == 320  # the twin's outlines are drawn at the preview's size
     assert decoded.shape == (240, 320, 3)
     assert abs(int(decoded[120, 240, 0]) - 200) < 8 and decoded[120, 80].max() < 8
     assert blob.nbytes < image.nbytes / 50
@@ -89,3 +91,35 @@ def test_the_live_view_shows_what_the_robot_touches_and_the_object_in_hand(tmp_p
         "/world/contacts"
     ]
     assert labels["/world/in_hand"] == {"in hand"}
+
+
+def test_a_viewer_that_stops_reading_holds_up_neither_the_steps_nor_the_close(caplog) -> None:
+    """A gRPC peer that accepts and never reads blocks rerun's calls for good (rerun
+    0.33); they run in the view's own process, so handing steps goes on and closing
+    stops that process within its time, with a warning."""
+    import socket
+    import threading
+
+    from twinrl_robot.live_view import CLOSE_TIMEOUT
+
+    silent = socket.create_server(("127.0.0.1", 0))
+    accepted: list[socket.socket] = []
+    threading.Thread(target=lambda: accepted.append(silent.accept()[0]), daemon=True).start()
+    task = make_task("pick_place")
+    names = Cell(compile_scene(task.scene)).contract_names()[STATE]
+    url = f"rerun+http://127.0.0.1:{silent.getsockname()[1]}/proxy"
+    view = LiveView(url, task, ("front",), names)
+    rng = np.random.default_rng(0)
+    sent = Sent(action=np.zeros(7, np.float32), joint_target=np.zeros(6, np.float32))
+    for _ in range(200):  # noise compresses badly: megabytes the peer never takes
+        image = rng.integers(0, 255, (480, 640, 3), np.uint8)
+        view.step(
+            {STATE: np.zeros(len(names), np.float32), "observation.images.front": image}, sent
+        )
+    closing = threading.Thread(target=view.close, daemon=True)
+    closing.start()
+    closing.join(CLOSE_TIMEOUT + 30)
+    assert not closing.is_alive(), "closing the view waited on the viewer"
+    assert view._process.poll() is not None
+    assert "did not finish within" in caplog.text
+    silent.close()
