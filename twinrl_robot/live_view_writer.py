@@ -6,7 +6,8 @@ twinrl_robot.live_view_writer READ_FD REPLY_FD``) and hands it, over a pipe, the
 nowhere near the control loop: a gRPC sink whose viewer stops reading blocks ``log``
 and ``flush`` (without end, in rerun 0.33), which in the recorder's process froze the
 recording with it. Here it blocks only this process, which the view stops when it
-closes.
+closes. The process runs at a lower priority (:data:`NICENESS`): a view that lags shows
+the newest step, a control loop that lags is late.
 
 Messages (tuples; previews are :class:`Preview`):
 
@@ -21,6 +22,7 @@ Messages (tuples; previews are :class:`Preview`):
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -46,6 +48,7 @@ from twinrl_sim.tasks import Task, TaskConfig, make_task
 OUTLINE_COLOUR = [255, 200, 0]
 GUIDE_WIDTH = 480  # px of the twin's guidance renders
 FLUSH_TIMEOUT = 5.0  # s the writer waits for its sink when it closes
+NICENESS = 10  # the writer yields the processor to the control loop and the recorder
 
 
 @dataclass(frozen=True)
@@ -288,6 +291,7 @@ def serve(messages: Connection, replies: Connection) -> None:
 
 
 if __name__ == "__main__":
+    os.nice(NICENESS)
     serve(
         Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False)
     )
