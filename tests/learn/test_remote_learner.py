@@ -190,3 +190,18 @@ def test_a_learner_that_does_not_answer_in_time_is_stopped_and_the_robot_goes_on
     again.close()
     with pytest.raises(SettingError, match="learner_timeout"):
         _settings(demos, tmp_path, learner_timeout=0)
+
+
+def test_an_actor_whose_learner_lags_says_so_and_acts_on(demos, tmp_path, monkeypatch):
+    """Without ``learner_sync`` the learner answers an episode at once and runs the
+    updates it bought meanwhile; an actor whose learner owes more than
+    ``BEHIND_STEPS`` robot steps of them says so and acts with the weights it has."""
+    import twinrl_learn.remote_learner as remote
+
+    monkeypatch.setattr(remote, "BEHIND_STEPS", 0)  # any debt at all is "behind"
+    said = []
+    settings = _settings(demos, tmp_path / "run", plant_steps=101, learner_sync=False)
+    run = RealRL.start(settings, on_notice=said.append).run()
+    assert len(Session(tmp_path / "run" / "session").episode_paths()) == len(run.history) >= 2
+    behind = [m for m in said if "updates behind the robot" in m]
+    assert behind and all(float(m.split()[3]) > 0 for m in behind)

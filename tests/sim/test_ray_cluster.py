@@ -1,8 +1,8 @@
 """The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
 come back in order, the first failure is raised as it was, `expand` keeps the same
 demonstrations as the process pool, mining and the gap diagnosis find what one process
-finds, and twin RL with its environments in shards on the nodes is the same run, for the
-same seed."""
+finds, twin RL with its environments in shards on the nodes is the same run, for the
+same seed, and the pipeline's real-RL runs done there end as on one machine."""
 
 import json
 import sys
@@ -205,6 +205,27 @@ def test_a_bad_cluster_is_one_line_and_leaves_nothing(tmp_path, value, monkeypat
     assert stopped.value.code == 2 and len(error.splitlines()) == 1
     assert "--cluster must be none, local, auto, HOST:PORT or ray://HOST:PORT" in error
     assert error.endswith(f"got '{value}'") and not out.exists()
+
+
+@pytest.mark.slow  # two smoke pipelines' real-RL runs, about two minutes
+@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
+def test_the_pipelines_real_rl_runs_resumed_on_the_cluster_end_as_on_one_machine(cluster, tmp_path):
+    """A smoke pipeline on worker processes; its real-RL runs removed and the pipeline
+    resumed on the cluster, which runs them as Ray tasks: the same report."""
+    import shutil
+
+    from twinrl_learn.studies.pipeline import run_demo
+
+    out = tmp_path / "demo"
+    alone = run_demo("pick_place", "smoke", out, device="cpu", log=lambda _: None)
+    shutil.rmtree(out / "real_rl")
+    said: list[str] = []
+    spread = run_demo(
+        "pick_place", "smoke", out, resume=True, cluster=cluster.address, device="cpu",
+        log=said.append,
+    )  # fmt: skip
+    assert spread == alone
+    assert any("real RL" in m for m in said)  # the runs' lines reach the log from the nodes
 
 
 @pytest.mark.slow
