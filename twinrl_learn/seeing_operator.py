@@ -62,6 +62,7 @@ class SeeingOperator(SimulatedOperator):
         self._scene_of: Task | None = None
         self._tcp_index = estimator.config.state_names.index("tcp.x")
         self._row_of = {name: k for k, name in enumerate(estimator.config.objects)}
+        self.last_seen: np.ndarray | None = None  # (n, 7): the object poses it saw last
 
     def reset(self, task: Task, config: TaskConfig) -> None:
         super().reset(task, config)
@@ -93,6 +94,7 @@ class SeeingOperator(SimulatedOperator):
             estimates = self.estimator.estimate(images, state[None])[0].numpy()
         poses = world_poses(estimates, state, self._tcp_index)
         seen = poses[[self._row_of[name] for name in self.task.scene.object_names]]
+        self.last_seen = seen
         self._cell.pose(
             state[: len(self._cell.arm_qpos)],
             float(state[-1]),  # the gripper's measured opening
