@@ -96,15 +96,15 @@ def test_the_page_loads_connects_and_receives_the_episode(tmp_path: Path) -> Non
 def test_the_page_follows_a_recording_session_live(tmp_path: Path) -> None:
     # More episodes than the test waits for: on a loaded host the browser took longer to
     # start than three episodes take to record. Once the page is seen following, the
-    # session is stopped with Ctrl-C, which keeps every episode recorded so far, while the
-    # page is still open: stopped after the browser had closed, the recorder once hung
-    # with its live view's thread inside rerun's log call (an open bug, see
-    # docs/guides/recording.md).
+    # browser closes and then the session is stopped with Ctrl-C, which keeps every
+    # episode recorded so far. (With rerun's calls in the recorder's process, a recorder
+    # stopped after its page had closed once hung inside rerun's log call; they run in
+    # the live view's own process now.)
     web, grpc = free_ports()
     command = [*TWINRL, "record", "--out", "session", "--teleop", "scripted", "--no-keys",
                "--episodes", "30", "--web", "--web-port", str(web),
                "--grpc-port", str(grpc)]  # fmt: skip
-    with chromium() as browser, _running(command, tmp_path) as recorder:
+    with _running(command, tmp_path) as recorder, chromium() as browser:
         browser.get(_page(recorder, "live view: open http://127.0.0.1:"))
         traffic = Traffic(grpc)
         seen: list[int] = []  # bytes received so far, while the session records
