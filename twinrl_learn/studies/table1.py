@@ -12,7 +12,8 @@ For each task:
    an image policy's twin demos look like the cell; with ``detours`` that share of
    them first strays beside the object (``twinrl expand --detours``).
 3. With ``perception`` (image policy): that many twin episodes per region, half of
-   them straying first, under varied light, in the same twin, and a pose estimator
+   them straying first and a third missing their first grasp (closed fingers holding
+   nothing), under varied light, in the same twin, and a pose estimator
    trained on them (:mod:`twinrl_learn.perception`) that every image policy acts
    through.
 4. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
@@ -59,6 +60,10 @@ TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operato
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
 POLICY_LABELS = {"state": "state (privileged)", "vla": "vla (images)"}
 PERCEPTION_DETOURS = 0.5  # share of the perception episodes that stray: off-path views
+# Share whose first grasp closes empty above the object: without them every closed gripper
+# holds the object, and the estimator saw a missed grasp as the object in hand
+# (docs/results/pipeline-quick.md#the-seeing-operators-own-takeovers).
+PERCEPTION_MISSES = 0.3
 # The success classifier's twin episodes: the recipe that met precision and recall of
 # 0.9 on unseen plant episodes of pick_place (docs/results/reward-classifier.md).
 CLASSIFIER_NOISE, CLASSIFIER_SETTLE, CLASSIFIER_NEAR_MISSES, CLASSIFIER_STEPS = 0.004, 3, 0.3, 3000
@@ -118,8 +123,8 @@ def train_task_estimator(
     task: str, base: Path, scene: SceneSpec | None, per_region: int, *, seed: int, device: str
 ) -> Path:
     """Synthesize ``per_region`` twin episodes per region for perception (half of them
-    straying first, under varied light) and train the pose estimator on them; returns
-    its folder."""
+    straying first, a third missing their first grasp, under varied light) and train the
+    pose estimator on them; returns its folder."""
     expand(
         task,
         id_count=per_region,
@@ -129,6 +134,7 @@ def train_task_estimator(
         seed=seed + 2,
         export=False,
         detours=PERCEPTION_DETOURS,
+        misses=PERCEPTION_MISSES,
         randomize=("lighting",),
     )
     folder = base / "estimator"
