@@ -8,7 +8,9 @@ same person with only their eyes: every step a pose estimator
 from the cameras and the arm's own pose; the operator's copy of the twin is posed with
 the arm's measured joints and those estimates, and the task's progress (its tracker:
 which marks a wipe has taken, say) is judged there. The takeover rule, the expert's
-plan and the hand-back all run on what was seen. It needs no privileged channel, so it
+plan and the hand-back all run on what was seen; on its way to the grasp, the expert's
+aim follows the object as it is seen better (estimates made from afar are centimetres
+off, and sharpen as the wrist camera nears it), as a person's does. It needs no privileged channel, so it
 also stands in for a person at an emulated cell whose ground truth is not read.
 """
 
@@ -26,6 +28,11 @@ from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.tasks import Progress, Task, TaskConfig
 from twinrl_sim.tasks.base import Tracker
+from twinrl_sim.tasks.expert import ObsView
+
+# How far each step moves the operator's aim toward where it now sees the object: a
+# person's aim follows what they see, not every flicker of it.
+AIM_GAIN = 0.3
 
 
 def world_poses(estimates: np.ndarray, state: np.ndarray, tcp_index: int) -> np.ndarray:
@@ -63,6 +70,7 @@ class SeeingOperator(SimulatedOperator):
         self._tcp_index = estimator.config.state_names.index("tcp.x")
         self._row_of = {name: k for k, name in enumerate(estimator.config.objects)}
         self.last_seen: np.ndarray | None = None  # (n, 7): the object poses it saw last
+        self._aim: np.ndarray | None = None  # where it aims the grasp: the object, steadied
 
     def reset(self, task: Task, config: TaskConfig) -> None:
         super().reset(task, config)
@@ -114,6 +122,31 @@ class SeeingOperator(SimulatedOperator):
         """As the simulated operator, on what it sees (``progress`` is not read)."""
         seen, judged = self.seen(observation)
         return super().intervene(seen, judged)
+
+    def _expert_action(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        """The expert's action, its grasp re-aimed at where the object is now seen
+        (smoothed over steps by :data:`AIM_GAIN`): estimates made far from the object are
+        centimetres off, and they sharpen as the wrist camera nears it."""
+        assert self.expert is not None
+        seen = self._seen_object(observation)
+        if self._aim is not None:
+            steadied = self._aim + AIM_GAIN * (seen - self._aim)
+            if self.expert.reaim(steadied - self._aim):
+                self._aim = steadied
+        action = super()._expert_action(observation)
+        if self._aim is None and "grasp" in self.expert.memory:  # chosen from this view
+            self._aim = seen
+        return action
+
+    def _take_over(self, observation: dict[str, np.ndarray], progress: Progress) -> None:
+        super()._take_over(observation, progress)
+        assert self.expert is not None
+        chosen = "grasp" in self.expert.memory  # a grasp corrected to, chosen from this view
+        self._aim = self._seen_object(observation) if chosen else None
+
+    def _seen_object(self, observation: dict[str, np.ndarray]) -> np.ndarray:
+        assert self.task is not None
+        return ObsView(self.task.scene, observation).position(self.task.object_name)
 
     def close(self) -> None:
         if self._cell is not None:

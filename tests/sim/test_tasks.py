@@ -90,3 +90,40 @@ def test_demonstrators_turn_no_faster_than_the_arm_follows():
     assert _largest_turn_lead(env, near, lambda obs, t: plan.actions[t], 30) < 4.0
     far_plan = plan_demo(env.task, env.cell, far, np.random.default_rng(0))
     assert far_plan is not None and np.abs(far_plan.actions[:, 5]).max() <= TRACKED_ROTATION + 1e-6
+
+
+def test_a_reaimed_expert_grasps_where_the_object_is_seen_to_be():
+    """An expert whose grasp was chosen from a view 5 cm off is re-aimed on its way
+    down (the seeing operator's aim following its sharper estimates): it grasps the
+    banana where it is; once the fingers close it is no longer re-aimed."""
+    env = TwinEnv("pick_place")
+    config = env.task.sample_config(np.random.default_rng(5), "ID")
+    observation, _ = env.reset(options={"config": config})
+    expert = env.task.expert(config, np.random.default_rng(0))
+    names = env.task.scene.object_names
+    column = slice(7 * names.index("banana"), 7 * names.index("banana") + 3)
+    yaw = config.object[2]
+    off = 0.05 * np.array([-np.sin(yaw), np.cos(yaw), 0.0])  # across the banana
+
+    def seen(obs):  # the view the grasp is planned on: the banana 5 cm across from where it is
+        shown = dict(obs)
+        environment = np.array(obs["observation.environment_state"], copy=True)
+        environment[column] += off
+        shown["observation.environment_state"] = environment
+        return shown
+
+    assert not expert.reaim(np.ones(3))  # no grasp chosen yet
+    action = expert.act(seen(observation))
+    aimed = expert.memory["grasp"][0].copy()
+    assert expert.reaim(-off)  # approaching: seen better, the aim follows
+    np.testing.assert_allclose(expert.memory["grasp"][0], aimed - off)
+    for _ in range(env.task.max_steps):
+        observation, _, terminated, _, info = env.step(action)
+        if terminated:
+            break
+        if expert.phase == "close":
+            before = expert.memory["grasp"][0].copy()
+            assert not expert.reaim(np.ones(3))
+            np.testing.assert_array_equal(expert.memory["grasp"][0], before)
+        action = expert.act(observation)
+    assert info["success"]

@@ -74,6 +74,9 @@ Goal = Callable[[ObsView, dict], tuple[np.ndarray, float]]
 """``goal(view, memory) -> (tcp position (m), tool yaw (rad))`` for a phase."""
 
 
+AIMING = ("approach", "descend")  # the phases that head for the grasp, open-handed
+
+
 @dataclass
 class Phase:
     """One segment of a scripted motion."""
@@ -202,6 +205,19 @@ class ScriptedExpert:
             if "grasp" in memory:
                 return memory["grasp"]
         return None
+
+    def reaim(self, offset: np.ndarray) -> bool:
+        """Move the grasp it is heading for by ``offset`` (m), with the goal it steps
+        toward, while it approaches or descends to it: an operator's aim follows the object
+        as they see it better on the way. Returns whether it moved (not before the grasp
+        is chosen, nor once the fingers close)."""
+        if self.phase not in AIMING or "grasp" not in self.memory or self._goal is None:
+            return False
+        offset = np.asarray(offset, float)
+        position, yaw = self.memory["grasp"]
+        self.memory["grasp"] = (position + offset, yaw)
+        self._goal = (self._goal[0] + offset, self._goal[1])
+        return True
 
     def perturb(self, translation: np.ndarray, rotation: np.ndarray) -> None:
         """Shift the reference by what was executed on top of the last action (an
