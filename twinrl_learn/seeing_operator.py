@@ -10,8 +10,9 @@ the arm's measured joints and those estimates, and the task's progress (its trac
 which marks a wipe has taken, say) is judged there. The takeover rule, the expert's
 plan and the hand-back all run on what was seen; on its way to the grasp, the expert's
 aim follows the object as it is seen better (estimates made from afar are centimetres
-off, and sharpen as the wrist camera nears it), as a person's does. It needs no privileged channel, so it
-also stands in for a person at an emulated cell whose ground truth is not read.
+off, and sharpen as the wrist camera nears it), as a person's does. It needs no
+privileged channel, so it also stands in for a person at an emulated cell whose ground
+truth is not read.
 """
 
 from __future__ import annotations
