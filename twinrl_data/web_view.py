@@ -30,13 +30,13 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
 from urllib.parse import quote
 
 import rerun as rr
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
+from twinrl_data.interrupts import interruptible
 from twinrl_data.view import CellModel, log_episodes
 
 LOOPBACK = "127.0.0.1"
@@ -68,16 +68,12 @@ class WebViewer:
     def wait(self) -> None:
         """Serve until the server ends or this process gets SIGINT (Ctrl-C) or SIGTERM,
         then stop it; call from the main thread."""
-        previous: dict[signal.Signals, Any] = {}
         try:
-            for number in (signal.SIGINT, signal.SIGTERM):
-                previous[number] = signal.signal(number, signal.default_int_handler)
-            self.process.wait()
+            with interruptible(signal.SIGINT, signal.SIGTERM):
+                self.process.wait()
         except KeyboardInterrupt:
             pass
         finally:
-            for number, handler in previous.items():
-                signal.signal(number, handler)
             self.close()
 
     def close(self) -> None:

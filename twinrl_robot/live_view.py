@@ -11,10 +11,10 @@ hand (:class:`twinrl_data.grasp_view.LiveGrasp`), joint positions and targets, t
 gripper's opening, the action and who chose it.
 
 Every Rerun call runs in a process of its own (:mod:`twinrl_robot.live_view_writer`):
-a viewer that stops reading blocks rerun's calls, and in the recorder's process that
-froze the control loop. Here a thread of the view hands the writer the newest step
-(the episode records every one) with the live cameras as JPEG previews at most
-:data:`PREVIEW_WIDTH` wide; while the writer lags, older steps are skipped, and a
+a viewer that stops reading blocks rerun's calls for good, and in the recorder's
+process the view's close then never returned. Here a thread of the view hands the
+writer the newest step (the episode records every one) with the live cameras as JPEG
+previews at most :data:`PREVIEW_WIDTH` wide; while the writer lags, older steps are skipped, and a
 writer that does not finish within :data:`CLOSE_TIMEOUT` of the view closing is
 stopped, with a warning.
 """

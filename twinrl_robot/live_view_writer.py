@@ -4,8 +4,8 @@
 twinrl_robot.live_view_writer READ_FD REPLY_FD``) and hands it, over a pipe, the view's
 :class:`ViewSpec`, then one message per thing to show. Rerun's calls run here and
 nowhere near the control loop: a gRPC sink whose viewer stops reading blocks ``log``
-and ``flush`` (without end, in rerun 0.33), which in the recorder's process froze the
-recording with it. Here it blocks only this process, which the view stops when it
+and ``flush`` (without end, in rerun 0.33), which in the recorder's process kept the
+recording from ever closing. Here it blocks only this process, which the view stops when it
 closes. The process runs at a lower priority (:data:`NICENESS`): a view that lags shows
 the newest step, a control loop that lags is late.
 

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from twinrl_data.interrupts import interruptible
 from twinrl_data.recorder import Recorder
 from twinrl_data.repair import repair_session
 from twinrl_data.schema import ENVIRONMENT_STATE, STATE
@@ -412,19 +413,20 @@ def run_recording(
                 environment_names=arm.names.get(ENVIRONMENT_STATE, []),
             )
             opened.append(live)
-        return record_session(
-            arm,
-            task,
-            device,
-            session,
-            episodes=settings.episodes,
-            plan=reset_plan,
-            terminal=terminal,
-            view=live,
-            on_status=on_status,
-            max_steps=settings.max_steps,
-            settle=settings.settle,
-        )
+        with interruptible():  # Ctrl-C stops it even as a script's background job
+            return record_session(
+                arm,
+                task,
+                device,
+                session,
+                episodes=settings.episodes,
+                plan=reset_plan,
+                terminal=terminal,
+                view=live,
+                on_status=on_status,
+                max_steps=settings.max_steps,
+                settle=settings.settle,
+            )
     finally:
         for thing in reversed(opened):
             thing.close()
