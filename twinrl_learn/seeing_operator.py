@@ -141,9 +141,7 @@ class SeeingOperator(SimulatedOperator):
 
     def _take_over(self, observation: dict[str, np.ndarray], progress: Progress) -> None:
         super()._take_over(observation, progress)
-        assert self.expert is not None
-        chosen = "grasp" in self.expert.memory  # a grasp corrected to, chosen from this view
-        self._aim = self._seen_object(observation) if chosen else None
+        self._aim = None  # set from the view its grasp is chosen on (_expert_action)
 
     def _seen_object(self, observation: dict[str, np.ndarray]) -> np.ndarray:
         assert self.task is not None

@@ -116,9 +116,10 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
     if job.method == "plan":
         # Its own stream: whether and where attempt k strays leaves its configuration, its
         # grasp and every other attempt as they are without detours.
-        draw = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt, 1])
+        stream = [job.seed, 0 if job.region == "ID" else 1, job.attempt]
+        draw = np.random.default_rng([*stream, 1])
         detour = draw if draw.random() < job.detours else None
-        draw = np.random.default_rng([job.seed, 0 if job.region == "ID" else 1, job.attempt, 2])
+        draw = np.random.default_rng([*stream, 2])
         miss = draw if draw.random() < job.misses else None
         plan = plan_demo(env.task, env.cell, config, rng, detour=detour, miss=miss)
         if plan is None:
