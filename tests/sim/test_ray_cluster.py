@@ -1,8 +1,8 @@
 """The executor on Ray: embedded Ray listens on loopback only; on a two-node cluster jobs
 come back in order, the first failure is raised as it was, `expand` keeps the same
 demonstrations as the process pool, mining and the gap diagnosis find what one process
-finds, twin RL with its environments in shards on the nodes is the same run, for the
-same seed, and the pipeline's real-RL runs done there end as on one machine."""
+finds, and twin RL with its environments in shards on the nodes is the same run, for the
+same seed (the pipeline's runs there: test_pipeline_on_ray.py)."""
 
 import json
 import sys
@@ -13,8 +13,6 @@ import psutil
 import pytest
 import ray
 import torch
-from ray._private import ray_constants
-from ray.cluster_utils import Cluster
 from typer.testing import CliRunner
 
 from tests.conftest import tiny_state_policy
@@ -38,29 +36,7 @@ from twinrl_sim.gap.diagnose import diagnose
 LOOPBACK = {"127.0.0.1", "::ffff:127.0.0.1", "::1"}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def ray_environment():
-    """Clusters on loopback, without token authentication (a cluster without it is what
-    warns), and no RAY_ADDRESS from outside."""
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("RAY_AUTH_MODE", "disabled")
-        patch.delenv("RAY_ADDRESS", raising=False)
-        # Ray turns a loopback address into the machine's reachable one, unless clusters
-        # are off (as on macOS); off, a driver finds the test's cluster on 127.0.0.1.
-        patch.setattr(ray_constants, "ENABLE_RAY_CLUSTER", False)
-        yield
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    """Two nodes of one CPU each, on loopback, shared by the module's tests."""
-    nodes = Cluster(
-        initialize_head=True, head_node_args={"num_cpus": 1, "node_ip_address": "127.0.0.1"}
-    )
-    nodes.add_node(num_cpus=1, node_ip_address="127.0.0.1")
-    nodes.wait_for_nodes()
-    yield nodes
-    nodes.shutdown()
+pytestmark = pytest.mark.usefixtures("ray_environment")
 
 
 def node_of(n):
@@ -205,27 +181,6 @@ def test_a_bad_cluster_is_one_line_and_leaves_nothing(tmp_path, value, monkeypat
     assert stopped.value.code == 2 and len(error.splitlines()) == 1
     assert "--cluster must be none, local, auto, HOST:PORT or ray://HOST:PORT" in error
     assert error.endswith(f"got '{value}'") and not out.exists()
-
-
-@pytest.mark.slow  # two smoke pipelines' real-RL runs, about two minutes
-@pytest.mark.filterwarnings("ignore:this Ray cluster runs without token authentication")
-def test_the_pipelines_real_rl_runs_resumed_on_the_cluster_end_as_on_one_machine(cluster, tmp_path):
-    """A smoke pipeline on worker processes; its real-RL runs removed and the pipeline
-    resumed on the cluster, which runs them as Ray tasks: the same report."""
-    import shutil
-
-    from twinrl_learn.studies.pipeline import run_demo
-
-    out = tmp_path / "demo"
-    alone = run_demo("pick_place", "smoke", out, device="cpu", log=lambda _: None)
-    shutil.rmtree(out / "real_rl")
-    said: list[str] = []
-    spread = run_demo(
-        "pick_place", "smoke", out, resume=True, cluster=cluster.address, device="cpu",
-        log=said.append,
-    )  # fmt: skip
-    assert spread == alone
-    assert any("real RL" in m for m in said)  # the runs' lines reach the log from the nodes
 
 
 @pytest.mark.slow
