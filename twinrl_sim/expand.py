@@ -47,6 +47,7 @@ from twinrl_sim.tasks import TaskConfig, make_task
 
 METHODS = ("plan", "augment")
 DETOUR_TAG = "+detour"  # ends the policy name of a demo that strayed first
+CLOSED_TAG = "+closed"  # follows DETOUR_TAG when the demo strayed with closed fingers
 MISS_TAG = "+miss"  # ends the policy name of a demo whose first grasp missed
 MAX_ATTEMPTS_PER_DEMO = 4
 
@@ -61,6 +62,7 @@ class ExpandReport:
     kept: dict[str, int] = field(default_factory=dict)
     attempts: dict[str, int] = field(default_factory=dict)
     detoured: dict[str, int] = field(default_factory=dict)  # kept demos that strayed first
+    closed: dict[str, int] = field(default_factory=dict)  # of which with closed fingers
     missed: dict[str, int] = field(default_factory=dict)  # kept demos that missed first
     seconds_synthesis: float = 0.0
     seconds_export: float = 0.0
@@ -89,6 +91,7 @@ class _Job:
     images: bool = True  # render and record the cameras
     detours: float = 0.0  # share of planned demos that stray first (planner.detour_waypoint)
     misses: float = 0.0  # share of planned demos whose first grasp closes high (plan_demo)
+    closed_detours: float = 0.0  # share of the detours made with closed fingers (plan_demo)
 
 
 _WORKER_CACHE: dict[tuple, Any] = {}  # per worker: twin envs by scene, demos by path
@@ -121,11 +124,17 @@ def _run_job(job: _Job) -> tuple[_Job, dict[str, Any] | None]:
         detour = draw if draw.random() < job.detours else None
         draw = np.random.default_rng([*stream, 2])
         miss = draw if draw.random() < job.misses else None
-        plan = plan_demo(env.task, env.cell, config, rng, detour=detour, miss=miss)
+        closed = detour is not None and np.random.default_rng([*stream, 3]).random() < (
+            job.closed_detours
+        )
+        plan = plan_demo(
+            env.task, env.cell, config, rng, detour=detour, miss=miss, closed_detour=closed
+        )
         if plan is None:
             return job, None
         actions = plan.actions
-        policy += (DETOUR_TAG if detour is not None else "") + (MISS_TAG if miss else "")
+        policy += (DETOUR_TAG if detour is not None else "") + (CLOSED_TAG if closed else "")
+        policy += MISS_TAG if miss else ""
     else:
         demo = _WORKER_CACHE.get(("demo", job.demo_path))
         if demo is None:
@@ -188,6 +197,7 @@ def expand(
     images: bool = True,
     detours: float = 0.0,
     misses: float = 0.0,
+    closed_detours: float = 0.0,
     force: bool = False,
     on_demo: Callable[[str, bool], None] | None = None,
     cluster: str = "",
@@ -203,7 +213,10 @@ def expand(
     from there (off-path views and returns for an image policy; drawn per attempt, so the
     others stay as they are). ``misses`` is the share whose first grasp closes above the
     object, lifts empty-handed, opens and grasps again (closed empty fingers, and the
-    recovery, for a pose estimator or an image policy). ``on_demo(region, kept)`` is
+    recovery, for a pose estimator or an image policy). ``closed_detours`` is the share
+    of the detours made with the fingers closed, opened on the way back (closed fingers
+    holding nothing, far from the object: a pose estimator must not read them as a
+    grasp; never for a policy's demos). ``on_demo(region, kept)`` is
     called after each attempt (for progress bars). ``cluster`` runs the attempts on Ray
     (:func:`twinrl_data.executor.cluster_address`; ``workers`` defaults to its CPUs) and
     needs ``out`` on storage every node of the cluster sees.
@@ -219,11 +232,17 @@ def expand(
             raise SettingError("from_demo", f"is a {demo.meta.task} episode, not {task}")
     elif from_demo is not None:
         raise SettingError("from_demo", "is only used with `method` augment")
-    for name, share in (("detours", detours), ("misses", misses)):
+    for name, share in (
+        ("detours", detours),
+        ("misses", misses),
+        ("closed_detours", closed_detours),
+    ):
         if not 0.0 <= share <= 1.0:
             raise SettingError(name, f"is a share of the demos, from 0 to 1; got {share}")
         if share and method != "plan":
             raise SettingError(name, "applies to `method` plan (a re-targeted demo keeps its path)")
+    if closed_detours and not detours:
+        raise SettingError("closed_detours", "is a share of the detours; ask for `detours` too")
     if id_count < 0 or ood_count < 0 or id_count + ood_count == 0:
         raise TwinError("ask for at least one demonstration (`id_count` and/or `ood_count`)")
     check_kinds(randomize)
@@ -249,6 +268,7 @@ def expand(
         "images": images,
         "detours": detours,
         "misses": misses,
+        "closed_detours": closed_detours,
     }
     if not on_cluster:
         workers = workers or min(2, os.cpu_count() or 1)
@@ -257,7 +277,7 @@ def expand(
         workers = executor.workers
         for region, count in (("ID", id_count), ("OOD", ood_count)):
             report.kept[region] = report.attempts[region] = 0
-            report.detoured[region] = report.missed[region] = 0
+            report.detoured[region] = report.closed[region] = report.missed[region] = 0
             attempt = 0
             # Waves of attempts in attempt order: results do not depend on the workers.
             while report.kept[region] < count and attempt < count * MAX_ATTEMPTS_PER_DEMO:
@@ -278,6 +298,7 @@ def expand(
                         session.register(Path(result["path"]), meta, result["length"])
                         report.kept[region] += 1
                         report.detoured[region] += DETOUR_TAG in meta.policy
+                        report.closed[region] += CLOSED_TAG in meta.policy
                         report.missed[region] += meta.policy.endswith(MISS_TAG)
                     if on_demo is not None:
                         on_demo(region, result is not None)

@@ -204,10 +204,13 @@ def plan_demo(
     settings: PlannerSettings | None = None,
     detour: np.random.Generator | None = None,
     miss: np.random.Generator | None = None,
+    closed_detour: bool = False,
 ) -> Plan | None:
     """Plan a demonstration for ``config`` (the cell is reset to it); ``None`` if no
     grasp admits a collision-free path. With ``detour`` (the generator that draws it),
-    the arm first strays to a point beside the object (see :func:`detour_waypoint`).
+    the arm first strays to a point beside the object (see :func:`detour_waypoint`);
+    with ``closed_detour`` too, it strays with the fingers closed and opens them on the
+    way back: closed fingers holding nothing, away from the object.
     With ``miss``, the first grasp closes :data:`MISS_HEIGHT` above the object, lifts
     empty-handed, opens and grasps again: what closed fingers holding nothing look like,
     and the recovery from it."""
@@ -267,6 +270,8 @@ def plan_demo(
             )
             if stray is None:
                 continue
+            if closed_detour:
+                stray = Waypoint(stray.position, stray.yaw, 1.0, stray.speed, settings.close_steps)
             waypoints.append(stray)
         waypoints.append(Waypoint(start + up, start_yaw, 0.0, settings.speed))
         if miss is not None:

@@ -116,6 +116,40 @@ def test_a_detour_strays_beside_the_object_and_comes_back_to_the_same_grasp():
     assert len(plan.actions) > len(straight.actions)
 
 
+def test_a_closed_handed_detour_shuts_the_fingers_on_nothing_and_opens_them_to_grasp():
+    """Closed empty fingers far from the object (for a pose estimator): the same stray and
+    grasp as the open-handed detour, the fingers shut there and open on the way back."""
+    env = TwinEnv("pick_place")
+    config = env.task.sample_config(np.random.default_rng(3), "OOD")
+    open_handed = plan_demo(
+        env.task, env.cell, config, np.random.default_rng(1), detour=np.random.default_rng(2)
+    )
+    plan = plan_demo(
+        env.task,
+        env.cell,
+        config,
+        np.random.default_rng(1),
+        detour=np.random.default_rng(2),
+        closed_detour=True,
+    )
+    assert open_handed is not None and plan is not None
+    for mine, theirs in zip(plan.waypoints, open_handed.waypoints, strict=True):
+        np.testing.assert_array_equal(mine.position, theirs.position)
+    assert plan.waypoints[0].gripper == 1.0 and open_handed.waypoints[0].gripper == 0.0
+    env.reset(options={"config": config})
+    stray = plan.waypoints[0].position
+    object_start = env.cell.object_pose(env.task.object_name)[0]
+    shut_away = False
+    for action in plan.actions:
+        *_, terminated, _, info = env.step(action)
+        tcp = env.cell.tcp_pose()[0]
+        if np.linalg.norm(tcp - stray) < 0.02 and env.cell.gripper_opening < 0.01:
+            shut_away = np.linalg.norm(tcp[:2] - object_start[:2]) >= DETOUR_RADIUS[0] - 0.01
+        if terminated:
+            break
+    assert shut_away and info["success"]
+
+
 def test_a_missed_grasp_closes_empty_above_the_object_then_grasps_as_planned():
     """The first close is above the banana: the fingers shut on nothing and it stays on
     the table; then the arm opens and does the straight plan's grasp."""
@@ -166,9 +200,17 @@ def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
     assert result.exit_code == 0, result.output
     assert "2 of the kept demos miss their first grasp" in result.output
     assert json.loads((tmp_path / "m" / "expand.json").read_text())["missed"] == {"ID": 1, "OOD": 1}
-    for detours, method, message in [
-        (1.5, "plan", "from 0 to 1"),
-        (0.5, "augment", "applies to `method` plan"),
+    closed = ["--detours", "1", "--closed-detours", "1", "--out", str(tmp_path / "c")]
+    result = CliRunner().invoke(app, [*args, *closed])
+    assert result.exit_code == 0, result.output
+    assert "2 of the kept demos stray first (2 with closed fingers)" in result.output
+    assert json.loads((tmp_path / "c" / "expand.json").read_text())["closed"] == {"ID": 1, "OOD": 1}
+    paths = Session(tmp_path / "c" / "session").episode_paths()
+    assert {read_episode(p).meta.policy for p in paths} == {"synthesis:plan+detour+closed"}
+    for detours, closed_detours, method, message in [
+        (1.5, 0.0, "plan", "from 0 to 1"),
+        (0.5, 0.0, "augment", "applies to `method` plan"),
+        (0.0, 0.5, "plan", "share of the detours"),
     ]:
         with pytest.raises(ValueError, match=message):
             expand(
@@ -179,6 +221,7 @@ def test_expand_with_detours_marks_them_and_refuses_what_cannot_stray(tmp_path):
                 method=method,
                 from_demo=paths[0] if method == "augment" else None,
                 detours=detours,
+                closed_detours=closed_detours,
             )
         assert not (tmp_path / "x").exists()
 

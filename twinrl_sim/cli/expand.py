@@ -85,6 +85,16 @@ def expand_command(
             max=1.0,
         ),
     ] = 0.0,
+    closed_detours: Annotated[
+        float,
+        typer.Option(
+            help="Share of the detours made with the fingers closed, opened on the way back: "
+            "closed fingers holding nothing, away from the object, for a pose estimator "
+            "(not for a policy's demos: it would learn to close them there).",
+            min=0.0,
+            max=1.0,
+        ),
+    ] = 0.0,
     force: Annotated[bool, typer.Option(help="Replace --out if it exists.")] = False,
     cluster: ClusterOption = "",
 ) -> None:
@@ -119,6 +129,7 @@ def expand_command(
             images=images,
             detours=detours,
             misses=misses,
+            closed_detours=closed_detours,
             force=force,
             on_demo=advance,
             cluster=cluster,
@@ -136,7 +147,8 @@ def expand_command(
         )
     console.print(table)
     if detours:
-        console.print(f"{sum(report.detoured.values())} of the kept demos stray first")
+        closed = f" ({sum(report.closed.values())} with closed fingers)" if closed_detours else ""
+        console.print(f"{sum(report.detoured.values())} of the kept demos stray first{closed}")
     if misses:
         console.print(f"{sum(report.missed.values())} of the kept demos miss their first grasp")
     console.print(
