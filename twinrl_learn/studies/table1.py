@@ -64,6 +64,9 @@ PERCEPTION_DETOURS = 0.5  # share of the perception episodes that stray: off-pat
 # holds the object, and the estimator saw a missed grasp as the object in hand
 # (docs/results/pipeline-quick.md#the-seeing-operators-own-takeovers).
 PERCEPTION_MISSES = 0.3
+# Share of their detours made with closed fingers: closed empty fingers far from the
+# object, where a stalled policy leaves them, were still read as a grasp (same page).
+PERCEPTION_CLOSED_DETOURS = 0.4
 # The success classifier's twin episodes: the recipe that met precision and recall of
 # 0.9 on unseen plant episodes of pick_place (docs/results/reward-classifier.md).
 CLASSIFIER_NOISE, CLASSIFIER_SETTLE, CLASSIFIER_NEAR_MISSES, CLASSIFIER_STEPS = 0.004, 3, 0.3, 3000
@@ -123,8 +126,8 @@ def train_task_estimator(
     task: str, base: Path, scene: SceneSpec | None, per_region: int, *, seed: int, device: str
 ) -> Path:
     """Synthesize ``per_region`` twin episodes per region for perception (half of them
-    straying first, a third missing their first grasp, under varied light) and train the
-    pose estimator on them; returns its folder."""
+    straying first, two in five of those with closed fingers, a third missing their first
+    grasp, under varied light) and train the pose estimator on them; returns its folder."""
     expand(
         task,
         id_count=per_region,
@@ -135,6 +138,7 @@ def train_task_estimator(
         export=False,
         detours=PERCEPTION_DETOURS,
         misses=PERCEPTION_MISSES,
+        closed_detours=PERCEPTION_CLOSED_DETOURS,
         randomize=("lighting",),
     )
     folder = base / "estimator"
