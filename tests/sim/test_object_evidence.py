@@ -12,6 +12,7 @@ from twinrl_sim.reconstruct.evidence import (
     ObjectEvidence,
     bound_one_sided,
     judge_candidates,
+    weigh_evidence,
 )
 from twinrl_sim.reconstruct.pipeline import build_twin
 from twinrl_sim.reconstruct.report import dropped_lines
@@ -99,6 +100,27 @@ def test_the_hulls_top_is_where_the_silhouettes_end_and_a_lower_bound_when_unsee
     assert not unseen.top_seen and unseen.top == pytest.approx(0.2, abs=0.01)
     # Seen steeply from above, a hull overshoots the top: its top is not trusted.
     assert _hull(0.05, seen_above=True, elevation_deg=60.0).trusted_top is None
+
+
+def test_an_object_whose_top_was_not_seen_has_its_height_said_to_be_a_lower_bound():
+    class NoFrames:  # a walk whose frames are not needed to judge the top
+        def walk_images(self) -> list:
+            return []
+
+    class Identity:
+        def invert(self, points: np.ndarray) -> np.ndarray:
+            return points
+
+    rng = np.random.default_rng(1)
+    points = _column(rng, (0.0, 0.0), 0.03, 0.0, 0.23, 200)
+    size = np.array([0.07, 0.07, 0.23])
+    whole = ObjectCluster(np.zeros(3), size, 0.0, DARK, points, carved=np.zeros((4, 2)))
+    cut = ObjectCluster(
+        np.zeros(3), size, 0.0, DARK, points, carved=np.zeros((4, 2)), top_seen=False
+    )
+    said = weigh_evidence(cut, NoFrames(), Identity()).doubts
+    assert any("its height, 230 mm, is a lower bound" in doubt for doubt in said)
+    assert not any("lower bound" in d for d in weigh_evidence(whole, NoFrames(), Identity()).doubts)
 
 
 def test_candidates_without_silhouettes_are_dropped_with_the_reason():
