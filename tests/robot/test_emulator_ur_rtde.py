@@ -146,7 +146,9 @@ def test_a_watchdog_kick_after_every_servoj_never_swallows_a_target(ur) -> None:
     qd, difference = steady_speeds(samples)
     assert np.abs(samples.qd).max() < SPEED_LIMIT
     assert np.mean(np.abs(difference - 1.0) > 0.25) < 0.05, "the wrist stalled and jumped"
-    assert np.median(np.abs(np.diff(qd))) < 0.01
+    # Swallowed targets made 0.2-0.8 rad/s jumps; a kick behind each package adds the
+    # host's jitter (a loaded CI machine measured a median of 0.0102 rad/s).
+    assert np.median(np.abs(np.diff(qd))) < 0.02
     assert samples.running.all()
 
 
