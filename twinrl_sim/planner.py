@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -271,7 +271,7 @@ def plan_demo(
             if stray is None:
                 continue
             if closed_detour:
-                stray = Waypoint(stray.position, stray.yaw, 1.0, stray.speed, settings.close_steps)
+                stray = replace(stray, gripper=1.0, dwell=settings.close_steps)
             waypoints.append(stray)
         waypoints.append(Waypoint(start + up, start_yaw, 0.0, settings.speed))
         if miss is not None:

@@ -32,18 +32,15 @@ def live_cell(tmp_path: Path) -> Path:
                       "control_hz": 10})  # fmt: skip
 
 
-def step_clock(path: Path) -> np.ndarray:
-    """Each step's log time in seconds from the episode's start (its state messages')."""
+def step_clock(path: Path, created_at: str) -> np.ndarray:
+    """Each step's log time (its state message's) in seconds from ``created_at``."""
     from mcap.reader import make_reader
 
-    from twinrl_data.mcap_log import META_START, TOPICS, _decode, _iso_to_ns
+    from twinrl_data.mcap_log import TOPICS, _iso_to_ns
 
     with open(path, "rb") as f:
-        reader = make_reader(f)
-        start = next(m for m in reader.iter_metadata() if m.name == META_START)
-        created = _iso_to_ns(_decode(start.metadata)["created_at"])
-        topic = TOPICS["observation.state"]
-        return np.array([m.log_time - created for _, _, m in reader.iter_messages([topic])]) / 1e9
+        messages = make_reader(f).iter_messages([TOPICS["observation.state"]])
+        return np.array([m.log_time for _, _, m in messages]) / 1e9 - _iso_to_ns(created_at) / 1e9
 
 
 def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
@@ -70,7 +67,8 @@ def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
     assert (cycles >= 1).all() and np.allclose(np.diff(samples.clock) * 500, cycles, atol=0.01)
     # One clock: the 500 Hz state spans the steps, and its joints agree with each step's.
     steps = len(episode)
-    stepped = step_clock(path)  # when each step was logged: a loaded machine's steps run late
+    # When each step was logged: a loaded machine's steps run late.
+    stepped = step_clock(path, episode.meta.created_at)
     assert len(stepped) == steps and samples.times[0] < 0.2 and samples.times[-1] > stepped[-2]
     step_q = episode.data["observation.state"][:, :6]
     nearest = np.clip(np.searchsorted(samples.times, stepped), 0, len(samples.times) - 1)
