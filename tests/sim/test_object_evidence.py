@@ -8,12 +8,18 @@ import math
 import numpy as np
 import pytest
 
-from twinrl_sim.reconstruct.evidence import (
-    ObjectEvidence,
-    bound_one_sided,
+from twinrl_sim.reconstruct.candidates import (
+    HIGHLIGHT,
+    REFLECTION,
+    SEEN_THROUGH,
+    SHADOW,
+    STRAY,
+    TABLE_TEXTURE,
+    TAG_SHEET,
     judge_candidates,
-    weigh_evidence,
+    name_cause,
 )
+from twinrl_sim.reconstruct.evidence import ObjectEvidence, bound_one_sided, weigh_evidence
 from twinrl_sim.reconstruct.pipeline import build_twin
 from twinrl_sim.reconstruct.report import dropped_lines
 from twinrl_sim.reconstruct.segment import (
@@ -23,7 +29,7 @@ from twinrl_sim.reconstruct.segment import (
     find_objects,
 )
 from twinrl_sim.reconstruct.settings import BuildSettings
-from twinrl_sim.reconstruct.silhouette import Hull, _carving, _lab, object_colours
+from twinrl_sim.reconstruct.silhouette import Hull, _carving, lab_colours, object_colours
 from twinrl_sim.reconstruct.synthetic import (
     CLUTTERED_SCENE,
     LOW_WALK,
@@ -66,7 +72,7 @@ def test_a_dark_labelled_object_has_colours_to_carve_and_a_white_one_none():
     colours = np.vstack([DARK + rng.normal(0, 0.02, (60, 3)), LABEL + rng.normal(0, 0.02, (40, 3))])
     found = object_colours(np.clip(colours, 0, 1), WHITE)
     for colour in (DARK, LABEL):
-        assert np.linalg.norm(found - _lab(colour), axis=1).min() < 10
+        assert np.linalg.norm(found - lab_colours(colour), axis=1).min() < 10
     assert len(object_colours(WHITE + rng.normal(0, 0.01, (50, 3)), WHITE)) == 0
 
 
@@ -77,7 +83,7 @@ def _hull(height: float, seen_above: bool, elevation_deg: float) -> Hull:
     rng = np.random.default_rng(0)
     points = _column(rng, (0.0, 0.0), 0.035, 0.01, 0.5 * height, 100)
     cluster = ObjectCluster(np.zeros(3), np.ones(3), 0.0, DARK, points)
-    carving = _carving(cluster, _lab(LABEL), TABLE, lambda p: p)
+    carving = _carving(cluster, lab_colours(LABEL), TABLE, lambda p: p)
     views = 20
     inside = np.linalg.norm(carving.grid[:, :2], axis=1) <= 0.035
     inside &= carving.grid[:, 2] <= height
@@ -132,13 +138,66 @@ def test_candidates_without_silhouettes_are_dropped_with_the_reason():
     real = ObjectCluster(np.zeros(3), np.ones(3), 0.0, DARK, points)
     empty = Hull(None, False, None, False, 0.0)
     whole = Hull(np.zeros((5, 2)), True, 0.04, True, 0.0)
-    kept, dropped = judge_candidates([stray, clear, mark, real], [empty, None, None, whole])
+    kept, dropped = judge_candidates([stray, clear, mark, real], [empty, None, None, whole], TABLE)
     assert kept == [1, 3]
     assert [d.points for d in dropped] == [48, 48]
-    assert "no silhouette" in dropped[0].reason and "table's colour" in dropped[1].reason
+    assert "no silhouette holds" in dropped[0].reason and "too few" in dropped[1].reason
     table = "\n".join(dropped_lines(dropped))
-    assert "| 0.000 | 0.000 | 66 x 22 x 38 | 48 | no silhouette" in table
+    assert "| 0.000 | 0.000 | 66 x 22 x 38 | 48 | seen through a clear object |" in table
     assert dropped_lines([]) == []
+
+
+def _patch(xy, colour, n=30, seed=0) -> ObjectCluster:
+    """A few points just over the table at ``xy``, every one of them ``colour``."""
+    points = _column(np.random.default_rng(seed), xy, 0.01, 0.005, 0.012, n)
+    return ObjectCluster(
+        np.array([*xy, 0.006]),
+        np.array([0.02, 0.02, 0.012]),
+        0.0,
+        colour,
+        points,
+        point_colors=np.tile(colour, (n, 1)),
+    )
+
+
+def test_each_dropped_candidate_is_named_by_what_it_most_likely_is():
+    rng = np.random.default_rng(3)
+    bottle = ObjectCluster(  # a dark bottle, 7 cm across, at (0.4, 0)
+        np.array([0.4, 0.0, 0.115]),
+        np.array([0.07, 0.07, 0.23]),
+        0.0,
+        DARK,
+        _column(rng, (0.4, 0.0), 0.035, 0.0, 0.23, 200),
+        point_colors=np.tile(DARK, (200, 1)),
+    )
+    glass = ObjectCluster(  # a clear glass, 8 cm across, at (0.1, 0.3)
+        np.array([0.1, 0.3, 0.06]),
+        np.array([0.08, 0.08, 0.12]),
+        0.0,
+        WHITE,
+        _column(rng, (0.1, 0.3), 0.04, 0.0, 0.12, 200),
+        outline=3,
+    )
+    tag = np.array([[-0.05, -0.05, 0], [0.05, -0.05, 0], [0.05, 0.05, 0], [-0.05, 0.05, 0]])
+    grey, glare = WHITE * 0.55, np.full(3, 0.99)
+    cases = {
+        TAG_SHEET: _patch((0.09, 0.0), DARK),  # past the tag's black, on its white sheet
+        SEEN_THROUGH: _patch((0.11, 0.31), LABEL),
+        HIGHLIGHT: _patch((0.3, -0.3), glare),
+        SHADOW: _patch((0.48, 0.0), grey),  # just behind the bottle, the table grey
+        REFLECTION: _patch((0.4, -0.09), DARK),  # in front of the bottle, its colour
+        TABLE_TEXTURE: _patch((-0.3, 0.3), WHITE * 0.97),
+        STRAY: _patch((-0.3, -0.3), LABEL),
+    }
+    for cause, patch in cases.items():
+        named, seen = name_cause(patch, TABLE, [tag], [bottle, glass])
+        assert named == cause, (cause, seen)
+    # A shadow on its own is a shadow still; the tag's sheet only where a tag lies.
+    assert name_cause(_patch((-0.3, 0.3), grey), TABLE, [], [])[0] == SHADOW
+    assert name_cause(_patch((0.09, 0.0), LABEL), TABLE, [], [bottle])[0] == STRAY
+    # The reason says what was seen, for the person reading the report.
+    _, seen = name_cause(cases[SHADOW], TABLE, [tag], [bottle, glass])
+    assert "darker" in seen and "from object 1" in seen
 
 
 def test_an_object_seen_from_one_side_is_no_deeper_than_it_is_wide():

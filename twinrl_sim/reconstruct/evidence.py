@@ -5,7 +5,8 @@ one side has a depth (along the view) nobody saw. The build still makes such an 
 and says so: each object carries the frames that saw it, the arc of directions they saw
 it from, its points and whether its silhouette was carved, a confidence and, in words,
 what is thin. A candidate without evidence a person would accept is no object: it is
-dropped, and the report says which and why (:func:`judge_candidates`).
+dropped, and the report says which and why
+(:func:`~twinrl_sim.reconstruct.candidates.judge_candidates`).
 
 An object seen from one side and not carved is made no wider across the view than its
 silhouettes' base and no deeper along the view than it is wide across it
@@ -60,47 +61,6 @@ class ObjectEvidence:
         """One line for the report's table: views, arc, points, carved."""
         carved = "carved" if self.carved else "not carved"
         return f"{self.views} views, {self.arc_deg:.0f} deg, {self.points} pts, {carved}"
-
-
-@dataclass(frozen=True)
-class DroppedCandidate:
-    """Points that stood above the table but were not made an object, and why."""
-
-    center: np.ndarray  # (2,) xy of its footprint, levelled base frame
-    size: np.ndarray  # (3,) long, short, height (m)
-    points: int
-    reason: str
-
-
-def judge_candidates(
-    clusters: list[ObjectCluster], hulls: list[Hull | None]
-) -> tuple[list[int], list[DroppedCandidate]]:
-    """Which candidates are objects (indices into ``clusters``) and the dropped rest.
-
-    An object needs its silhouette in the views: a candidate whose colour stands apart
-    from the table's but which no silhouette holds is stray matches (a reflection, a
-    highlight, texture seen through a clear object). One the table's colour cannot be
-    carved: it is kept when its points outline a clear object or are enough to shape
-    it (:data:`MIN_POINTS`), dropped otherwise (a mark, a shadow, the tag's sheet)."""
-    kept, dropped = [], []
-    for index, (cluster, hull) in enumerate(zip(clusters, hulls, strict=True)):
-        count = len(cluster.points)
-        if hull is not None and hull.footprint is None:
-            reason = (
-                f"no silhouette: the frames do not show its colour where its {count} "
-                "points are (stray matches: a reflection, a highlight, or texture seen "
-                "through a clear object)"
-            )
-        elif hull is None and not cluster.outline and count < MIN_POINTS:
-            reason = (
-                f"only {count} points and no silhouette (the table's colour: a mark, a "
-                "shadow, texture on the table or the tag's sheet)"
-            )
-        else:
-            kept.append(index)
-            continue
-        dropped.append(DroppedCandidate(cluster.center[:2], cluster.size, count, reason))
-    return kept, dropped
 
 
 def weigh_evidence(

@@ -30,12 +30,8 @@ from twinrl_sim.reconstruct.align import (
     check_reference_points,
 )
 from twinrl_sim.reconstruct.calibration import FilmingCamera, filming_camera
-from twinrl_sim.reconstruct.evidence import (
-    ObjectEvidence,
-    bound_one_sided,
-    judge_candidates,
-    weigh_evidence,
-)
+from twinrl_sim.reconstruct.candidates import judge_candidates
+from twinrl_sim.reconstruct.evidence import ObjectEvidence, bound_one_sided, weigh_evidence
 from twinrl_sim.reconstruct.frames import CaptureError, select_frames
 from twinrl_sim.reconstruct.look import Lighting, frame_views, paint_cell, split_views
 from twinrl_sim.reconstruct.look_score import score_look, twin_lighting
@@ -265,7 +261,11 @@ def build_twin(
             clusters, table, model, work / "frames", to_cell.invert, to_cell.apply, settings.seed
         )
         clusters, hulls = join_parts(clusters, hulls, table)
-        chosen, dropped = judge_candidates(clusters, hulls)
+        # The tags lying on the table, levelled with it: their sheets are no objects.
+        tags = [(c - pivot) @ levelling.T + pivot for c in alignment.tag_outlines]
+        chosen, dropped = judge_candidates(
+            clusters, hulls, table, tags if settings.tags_on_table else ()
+        )
         hulls = [hulls[k] for k in chosen]
         clusters = [
             _with_hull(clusters[k], hull, table) for k, hull in zip(chosen, hulls, strict=True)

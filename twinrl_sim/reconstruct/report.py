@@ -18,7 +18,7 @@ from twinrl_sim.reconstruct.segment import TablePlane, planar_axes
 from twinrl_sim.reconstruct.table_extent import SIDES
 
 if TYPE_CHECKING:
-    from twinrl_sim.reconstruct.evidence import DroppedCandidate
+    from twinrl_sim.reconstruct.candidates import DroppedCandidate
     from twinrl_sim.reconstruct.result import TwinBuild
     from twinrl_sim.reconstruct.sfm import SparseModel
 
@@ -101,14 +101,14 @@ def dropped_lines(dropped: list[DroppedCandidate]) -> list[str]:
         "",
         "Not made objects (points above the table that the frames do not bear out):",
         "",
-        "| x (m) | y (m) | size L x W x H (mm) | points | why |",
-        "|---|---|---|---|---|",
+        "| x (m) | y (m) | size L x W x H (mm) | points | most likely | why |",
+        "|---|---|---|---|---|---|",
     ]
     for candidate in dropped:
         size = " x ".join(f"{1000 * v:.0f}" for v in candidate.size)
         lines.append(
             f"| {candidate.center[0]:.3f} | {candidate.center[1]:.3f} | {size} | "
-            f"{candidate.points} | {candidate.reason} |"
+            f"{candidate.points} | {candidate.cause} | {candidate.reason} |"
         )
     return lines
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from twinrl_sim.reconstruct.align import Alignment
-from twinrl_sim.reconstruct.evidence import DroppedCandidate
+from twinrl_sim.reconstruct.candidates import DroppedCandidate
 from twinrl_sim.reconstruct.frames import FrameSelection
 from twinrl_sim.reconstruct.look import CellLook
 from twinrl_sim.reconstruct.look_score import LookScore

@@ -39,7 +39,7 @@ the background has the object's colour and few points, the hull grows instead.
   (:func:`~twinrl_sim.reconstruct.evidence.bound_one_sided` takes the object's width
   across the view from there).
 - **Support**: an object whose colour stands apart from the table's but whose hull is
-  empty is not there (:func:`~twinrl_sim.reconstruct.evidence.judge_candidates`).
+  empty is not there (:func:`~twinrl_sim.reconstruct.candidates.judge_candidates`).
 
 An object whose colour does not stand apart from the table's (a white plate on a white
 table), or a clear one (an outline's streaks), is left to its points.
@@ -107,7 +107,7 @@ class Hull:
         return self.top
 
 
-def _lab(rgb: np.ndarray) -> np.ndarray:
+def lab_colours(rgb: np.ndarray) -> np.ndarray:
     """(N, 3) CIELAB (OpenCV's 8-bit scale) of RGB colours in [0, 1]."""
     pixels = np.round(255 * np.asarray(rgb).reshape(-1, 1, 3)).astype(np.uint8)
     return cv2.cvtColor(pixels, cv2.COLOR_RGB2LAB).reshape(-1, 3).astype(np.float32)
@@ -117,7 +117,7 @@ def object_colours(colours: np.ndarray, table_colour: np.ndarray, seed: int = 0)
     """(K, 3) Lab colours of an object, from its points' RGB ``colours`` (N, 3,
     in [0, 1]): the k-means centres that hold :data:`MIN_COLOUR_SHARE` of the points and
     stand :data:`MIN_CONTRAST` apart from the table's colour; (0, 3) when none does."""
-    lab = _lab(colours)
+    lab = lab_colours(colours)
     if len(lab) <= COLOURS:  # each colour its own
         centres, shares = lab, np.full(len(lab), 1 / len(lab))
     else:
@@ -125,7 +125,7 @@ def object_colours(colours: np.ndarray, table_colour: np.ndarray, seed: int = 0)
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.5)
         _, labels, centres = cv2.kmeans(lab, COLOURS, None, criteria, 3, cv2.KMEANS_PP_CENTERS)
         shares = np.bincount(labels.ravel(), minlength=COLOURS) / len(lab)
-    apart = np.linalg.norm(centres - _lab(table_colour), axis=1) >= MIN_CONTRAST
+    apart = np.linalg.norm(centres - lab_colours(table_colour), axis=1) >= MIN_CONTRAST
     return centres[(shares >= MIN_COLOUR_SHARE) & apart]
 
 
@@ -292,7 +292,7 @@ def _carving(
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     votes = np.zeros(len(grid))
     shape = (len(axes[0]), len(axes[1]), len(axes[2]))
-    apart = np.linalg.norm(colours[:, 1:] - _lab(table.color)[0, 1:], axis=1) >= MIN_CONTRAST
+    apart = np.linalg.norm(colours[:, 1:] - lab_colours(table.color)[0, 1:], axis=1) >= MIN_CONTRAST
     heights = np.percentile(cluster.points[:, 2], [25, 75]) - low[2]
     core = tuple(int(k) for k in np.clip(heights // LAYER, 0, shape[2] - 1))
     return _Carving(colours, apart, grid, shape, core, to_sfm(grid), votes, votes.copy())
@@ -337,7 +337,7 @@ def carve_hulls(
     ``from_sfm`` back. Each frame is read once for all clusters. The footprint's cell
     centres are jittered by a tenth of a voxel (seeded): a regular grid is degenerate for
     the alpha shape's Delaunay tetrahedra."""
-    table_lab = _lab(table.color)[0]
+    table_lab = lab_colours(table.color)[0]
     carvings = []
     for cluster in clusters:
         seen = cluster.color[None] if cluster.point_colors is None else cluster.point_colors
@@ -351,7 +351,7 @@ def carve_hulls(
     if active:
         for image in views:
             rgb = cv2.imread(str(image_dir / image.name))[:, :, ::-1]
-            lab = _lab(rgb.reshape(-1, 3) / 255.0).reshape(*rgb.shape[:2], 3)
+            lab = lab_colours(rgb.reshape(-1, 3) / 255.0).reshape(*rgb.shape[:2], 3)
             to_table = np.dstack(
                 [
                     np.linalg.norm(lab - table_lab, axis=2),
