@@ -22,6 +22,7 @@ from twinrl_robot.errors import RobotError
 
 STROKES = {"robotiq_2f85": 0.085, "robotiq_2f140": 0.140}  # m, fully open
 ACTIVATION_TIMEOUT = 5.0  # s
+POLL_PERIOD = 0.02  # s between reads of a Robotiq's position: five a 10 Hz control period
 
 
 class GripperError(RobotError):
@@ -60,8 +61,14 @@ class NoGripper:
 class RobotiqGripper:
     """A Robotiq 2F gripper through the URCap socket (see the module docstring).
 
-    The newest command wins: :meth:`command` only sends when the position changes by at
-    least one of the gripper's 255 steps, so a 10 Hz policy does not flood the socket.
+    The socket is served by a thread of its own, so that the control loop never waits
+    for an answer: a round trip takes a millisecond or two, and at times (a controller
+    or a host under load) over a control period. :meth:`command` hands the thread the
+    newest position (the newest command wins; it is sent when it changes by at least one
+    of the gripper's 255 steps, so a 10 Hz policy does not flood the socket) and
+    :meth:`opening` reads the newest of the positions it asks for every
+    :data:`POLL_PERIOD`. What goes wrong in the thread (an error answer, a lost
+    connection, no answer for ``timeout`` seconds) is raised by the next call.
     """
 
     def __init__(
@@ -79,10 +86,16 @@ class RobotiqGripper:
                 "check that the Robotiq URCap is installed and the gripper is connected"
             ) from None
         self._socket.settimeout(timeout)
-        self._lock = threading.Lock()
+        self.timeout = timeout
         self._buffer = b""
         self._sent_position: int | None = None
+        self._wanted: int | None = None  # the newest commanded position, not yet sent
+        self._fault: GripperError | None = None
+        self._wake, self._closing = threading.Event(), threading.Event()
         self._activate()
+        self._position, self._read_at = self._get("POS"), time.monotonic()
+        self._thread = threading.Thread(target=self._serve, name="robotiq-gripper", daemon=True)
+        self._thread.start()
 
     def _activate(self) -> None:
         if self._get("STA") == 3:
@@ -100,19 +113,49 @@ class RobotiqGripper:
         self._set(GTO=1, SPE=255, FOR=150)
 
     def command(self, closure: float) -> None:
-        position = round(min(max(float(closure), 0.0), 1.0) * 255)
-        if position != self._sent_position:
-            self._set(POS=position, GTO=1)
-            self._sent_position = position
+        self._raise_fault()
+        self._wanted = round(min(max(float(closure), 0.0), 1.0) * 255)
+        self._wake.set()
 
     def opening(self) -> float:
-        return self.stroke * (1.0 - self._get("POS") / 255.0)
+        self._raise_fault()
+        age = time.monotonic() - self._read_at
+        if age > self.timeout:
+            raise GripperError(
+                f"the Robotiq gripper at {self.address} has not answered for {age:.1f} s; "
+                "check its cable and the URCap's status"
+            )
+        return self.stroke * (1.0 - self._position / 255.0)
 
     def describe(self) -> str:
         return f"{self.kind} at {self.address}"
 
     def close(self) -> None:
+        self._closing.set()
+        self._wake.set()
+        self._thread.join(timeout=self.timeout + 1.0)
         self._socket.close()
+
+    def _serve(self) -> None:
+        """Send the newest command when it changed, then read the position; again every
+        :data:`POLL_PERIOD` or as soon as a command comes."""
+        while not self._closing.is_set():
+            self._wake.clear()  # a command from here on is sent without waiting
+            try:
+                wanted = self._wanted
+                if wanted is not None and wanted != self._sent_position:
+                    self._set(POS=wanted, GTO=1)
+                    self._sent_position = wanted
+                self._position, self._read_at = self._get("POS"), time.monotonic()
+            except GripperError as err:
+                if not self._closing.is_set():
+                    self._fault = err
+                return
+            self._wake.wait(POLL_PERIOD)
+
+    def _raise_fault(self) -> None:
+        if self._fault is not None:
+            raise self._fault
 
     def _set(self, **values: int) -> None:
         line = "SET " + " ".join(f"{k} {int(v)}" for k, v in values.items())
@@ -132,22 +175,23 @@ class RobotiqGripper:
         return int(value)
 
     def _exchange(self, line: str) -> str:
-        with self._lock:
-            try:
-                self._socket.sendall(line.encode() + b"\n")
-                while b"\n" not in self._buffer:
-                    chunk = self._socket.recv(1024)
-                    if not chunk:
-                        raise GripperError(
-                            f"the Robotiq gripper at {self.address} closed the connection"
-                        )
-                    self._buffer += chunk
-            except OSError as err:
-                raise GripperError(
-                    f"lost the Robotiq gripper at {self.address} ({err.strerror or err})"
-                ) from None
-            reply, _, self._buffer = self._buffer.partition(b"\n")
-            return reply.decode(errors="replace").strip()
+        """One request and its answer (the socket is the serving thread's alone once it
+        runs)."""
+        try:
+            self._socket.sendall(line.encode() + b"\n")
+            while b"\n" not in self._buffer:
+                chunk = self._socket.recv(1024)
+                if not chunk:
+                    raise GripperError(
+                        f"the Robotiq gripper at {self.address} closed the connection"
+                    )
+                self._buffer += chunk
+        except OSError as err:
+            raise GripperError(
+                f"lost the Robotiq gripper at {self.address} ({err.strerror or err})"
+            ) from None
+        reply, _, self._buffer = self._buffer.partition(b"\n")
+        return reply.decode(errors="replace").strip()
 
 
 class DigitalGripper:
