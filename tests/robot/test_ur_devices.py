@@ -184,6 +184,34 @@ def test_a_taken_port_stops_a_second_emulator_with_one_line(tmp_path: Path) -> N
         pass
 
 
+def test_an_emulator_ends_with_the_process_that_started_it(tmp_path: Path) -> None:
+    """A benchmark or test killed mid-run leaves no emulator holding the cell's ports."""
+    cell = write_cell(tmp_path)
+    starter = subprocess.Popen(
+        [sys.executable, "-c", (
+            "import sys, time\n"
+            "from twinrl_robot.ur.emulator.harness import EmulatorProcess\n"
+            f"with EmulatorProcess({str(cell)!r}) as emulator:\n"
+            "    print(emulator.process.pid, flush=True)\n"
+            "    time.sleep(600)\n"
+        )],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        emulator = int(starter.stdout.readline())
+    finally:
+        starter.kill()  # no context exit, no clean-up: only the kernel knows
+        starter.wait()
+    deadline = time.monotonic() + 10.0
+    while Path(f"/proc/{emulator}").exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    status = Path(f"/proc/{emulator}/status")
+    gone = not status.exists() or "zombie" in status.read_text()
+    assert gone, "the emulator outlived the process that started it"
+    with EmulatorProcess(cell):  # and its ports are free again
+        pass
+
+
 def test_robot_check_reports_the_cell_and_records_the_safety_box(tmp_path: Path) -> None:
     cell = write_cell(tmp_path)
     with EmulatorProcess(cell):

@@ -13,6 +13,7 @@ test, works here and not on a real cell, where a person or a reward classifier j
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -33,6 +34,9 @@ from twinrl_sim.tasks import Progress, TaskConfig
 
 READY_PREFIX = "emulating"
 START_TIMEOUT = 90.0  # s for the emulator process to serve (it compiles the plant)
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent ends
+# Looked up here, not in the child between fork and exec, where little is safe to run.
+_PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
 
 
 class HarnessClient:
@@ -102,8 +106,17 @@ class EmulatedTruth:
         self.harness.close()
 
 
+def _ends_with_its_parent() -> None:
+    """In the emulator's process, before it runs: on Linux, the kernel ends it when the
+    process that started it ends, however that ends (a killed benchmark or test would
+    otherwise leave it holding the cell's ports)."""
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
+
+
 class EmulatorProcess:
-    """``twinrl robot emulate CELL`` in a process of its own, for as long as the context.
+    """``twinrl robot emulate CELL`` in a process of its own, for as long as the context
+    and no longer than the process that started it.
 
     Args:
         cell_file: the cell file; the emulator serves on its ``arm.host`` (a loopback
@@ -129,7 +142,12 @@ class EmulatorProcess:
         # Its errors go to a file: a pipe nobody reads would fill and stall the emulator.
         self.log = tempfile.NamedTemporaryFile("w+", prefix="twinrl-emulator-", suffix=".log")
         self.process = subprocess.Popen(
-            self.command, stdout=subprocess.PIPE, stderr=self.log, text=True, env=env
+            self.command,
+            stdout=subprocess.PIPE,
+            stderr=self.log,
+            text=True,
+            env=env,
+            preexec_fn=_ends_with_its_parent,
         )
         deadline = time.monotonic() + START_TIMEOUT
         assert self.process.stdout is not None
