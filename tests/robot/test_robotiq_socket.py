@@ -6,6 +6,8 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 
@@ -54,10 +56,19 @@ class URCap:
                         connection.sendall(f"{words[1]} {self.values[words[1]]}\n".encode())
 
 
-def test_a_slow_answer_never_holds_the_loop_and_the_newest_command_is_sent():
+@contextmanager
+def connected(timeout: float = 2.0) -> Iterator[tuple[URCap, RobotiqGripper]]:
+    """A URCap socket and a gripper connected to it, closed after."""
     urcap = URCap()
-    gripper = RobotiqGripper("127.0.0.1", port=urcap.port, timeout=2.0)
+    gripper = RobotiqGripper("127.0.0.1", port=urcap.port, timeout=timeout)
     try:
+        yield urcap, gripper
+    finally:
+        gripper.close()
+
+
+def test_a_slow_answer_never_holds_the_loop_and_the_newest_command_is_sent():
+    with connected() as (urcap, gripper):
         assert gripper.opening() == pytest.approx(0.085)
         urcap.delay = 0.15  # every answer later than a 10 Hz control period
         calls = []
@@ -73,14 +84,10 @@ def test_a_slow_answer_never_holds_the_loop_and_the_newest_command_is_sent():
         assert gripper.opening() == pytest.approx(0.0, abs=1e-9), "the newest command wins"
         assert urcap.sets[-1] == "SET POS 255 GTO 1"
         assert len([s for s in urcap.sets if "POS" in s]) <= 3
-    finally:
-        gripper.close()
 
 
 def test_a_lost_connection_reaches_the_loop_as_one_line():
-    urcap = URCap()
-    gripper = RobotiqGripper("127.0.0.1", port=urcap.port, timeout=2.0)
-    try:
+    with connected() as (urcap, gripper):
         urcap.hang_up.set()
         deadline = time.monotonic() + 2.0
         with pytest.raises(GripperError) as raised:
@@ -91,17 +98,11 @@ def test_a_lost_connection_reaches_the_loop_as_one_line():
         assert "\n" not in message and "Robotiq gripper at 127.0.0.1" in message
         with pytest.raises(GripperError):  # and keeps being said
             gripper.command(1.0)
-    finally:
-        gripper.close()
 
 
 def test_a_gripper_that_stops_answering_is_said_within_its_timeout():
-    urcap = URCap()
-    gripper = RobotiqGripper("127.0.0.1", port=urcap.port, timeout=0.3)
-    try:
+    with connected(timeout=0.3) as (urcap, gripper):
         urcap.silent = True
         time.sleep(0.6)
         with pytest.raises(GripperError, match="has not answered|lost the Robotiq"):
             gripper.opening()
-    finally:
-        gripper.close()

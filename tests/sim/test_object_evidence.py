@@ -160,24 +160,19 @@ def _patch(xy, colour, n=30, seed=0) -> ObjectCluster:
     )
 
 
+def _standing(rng, xy, width, height, colour, outline=0) -> ObjectCluster:
+    """An object kept by the build: a column of points ``width`` across at ``xy``."""
+    points = _column(rng, xy, width / 2, 0.0, height, 200)
+    return ObjectCluster(
+        np.array([*xy, height / 2]), np.array([width, width, height]), 0.0, colour, points,
+        outline=outline, point_colors=np.tile(colour, (200, 1)),
+    )  # fmt: skip
+
+
 def test_each_dropped_candidate_is_named_by_what_it_most_likely_is():
     rng = np.random.default_rng(3)
-    bottle = ObjectCluster(  # a dark bottle, 7 cm across, at (0.4, 0)
-        np.array([0.4, 0.0, 0.115]),
-        np.array([0.07, 0.07, 0.23]),
-        0.0,
-        DARK,
-        _column(rng, (0.4, 0.0), 0.035, 0.0, 0.23, 200),
-        point_colors=np.tile(DARK, (200, 1)),
-    )
-    glass = ObjectCluster(  # a clear glass, 8 cm across, at (0.1, 0.3)
-        np.array([0.1, 0.3, 0.06]),
-        np.array([0.08, 0.08, 0.12]),
-        0.0,
-        WHITE,
-        _column(rng, (0.1, 0.3), 0.04, 0.0, 0.12, 200),
-        outline=3,
-    )
+    bottle = _standing(rng, (0.4, 0.0), 0.07, 0.23, DARK)  # a dark bottle
+    glass = _standing(rng, (0.1, 0.3), 0.08, 0.12, WHITE, outline=3)  # a clear glass
     tag = np.array([[-0.05, -0.05, 0], [0.05, -0.05, 0], [0.05, 0.05, 0], [-0.05, 0.05, 0]])
     grey, glare = WHITE * 0.55, np.full(3, 0.99)
     cases = {
