@@ -4,6 +4,7 @@ clustering, the silhouettes' hull and its top, and the candidates that are dropp
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -21,7 +22,7 @@ from twinrl_sim.reconstruct.candidates import (
 )
 from twinrl_sim.reconstruct.evidence import ObjectEvidence, bound_one_sided, weigh_evidence
 from twinrl_sim.reconstruct.pipeline import build_twin
-from twinrl_sim.reconstruct.report import dropped_lines
+from twinrl_sim.reconstruct.report import dropped_lines, dropped_summary
 from twinrl_sim.reconstruct.segment import (
     ObjectCluster,
     TablePlane,
@@ -145,6 +146,11 @@ def test_candidates_without_silhouettes_are_dropped_with_the_reason():
     table = "\n".join(dropped_lines(dropped))
     assert "| 0.000 | 0.000 | 66 x 22 x 38 | 48 | seen through a clear object |" in table
     assert dropped_lines([]) == []
+    shadow = replace(dropped[1], cause=SHADOW)
+    assert dropped_summary([*dropped, shadow]) == (
+        "3 candidate(s) not made objects (seen through a clear object x2, a shadow): see report.md"
+    )
+    assert dropped_summary([]) == ""
 
 
 def _patch(xy, colour, n=30, seed=0) -> ObjectCluster:

@@ -16,6 +16,7 @@ from twinrl_data.console import progress
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.settings_cli import options, settings_command
 from twinrl_sim.cli.common import console
+from twinrl_sim.reconstruct.report import dropped_summary
 from twinrl_sim.reconstruct.settings import STAGES, Board, BuildSettings
 
 twin_app = typer.Typer(
@@ -87,6 +88,8 @@ def build(settings: dict[str, Any], source: Path, out: Path) -> None:
             f"look, from {look.frames} held-out frames: PSNR {look.psnr:.1f} dB, SSIM "
             f"{look.ssim:.3f} (flat colours: {look.flat_psnr:.1f} dB, {look.flat_ssim:.3f})"
         )
+    if dropped := dropped_summary(built.dropped):
+        console.print(dropped)
     console.print(f"{out}/scene.yaml (use as --twin), report.md, reconstruction.rrd")
 
 

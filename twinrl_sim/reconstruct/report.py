@@ -3,6 +3,7 @@ the point cloud, the camera path and the MuJoCo scene that came out."""
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -91,6 +92,15 @@ def plot_build(built: TwinBuild, out: Path) -> list[Path]:
     fig.savefig(residual_plot, dpi=110)
     plt.close(fig)
     return [cloud, residual_plot]
+
+
+def dropped_summary(dropped: list[DroppedCandidate]) -> str:
+    """One line on the candidates not made objects, by cause ("": none)."""
+    if not dropped:
+        return ""
+    causes = Counter(candidate.cause for candidate in dropped)
+    named = ", ".join(cause if n == 1 else f"{cause} x{n}" for cause, n in causes.items())
+    return f"{len(dropped)} candidate(s) not made objects ({named}): see report.md"
 
 
 def dropped_lines(dropped: list[DroppedCandidate]) -> list[str]:
