@@ -13,14 +13,18 @@ whole host process's share, the loop's period p50/p99 each way, and the LeRobot 
 of the first recorded episode against lerobot's own loop on the same frames, side by
 side: at the cameras' rate (every frame a row, the videos encoded while recording, what
 ``twinrl data export`` does with a live episode) and at the control rate (one frame per
-step, encoded at export). Usage::
+step, encoded at export). ``--pin`` puts the emulator on one core and the host on the
+others, as a controller of its own would leave the host's processor to the host (on
+two cores the emulator then serves less of the real rates). Usage::
 
     MUJOCO_GL=egl python bench/bench_recording.py --duration 600
+    MUJOCO_GL=egl python bench/bench_recording.py --duration 120 --pin
     MUJOCO_GL=egl python bench/bench_recording.py --duration 20 --episode-seconds 10
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 import time
@@ -96,15 +100,28 @@ def main(
     compare_seconds: Annotated[
         float, typer.Option(help="Seconds of the loop alone and with the live view.")
     ] = 60.0,
+    pin: Annotated[
+        bool,
+        typer.Option(
+            help="The emulator on one core, this process on the others (Linux): a "
+            "controller of its own leaves the host's processor to the host."
+        ),
+    ] = False,
 ) -> None:
     quiet_encoders()
+    cores = sorted(os.sched_getaffinity(0))
+    if pin and len(cores) < 2:
+        raise typer.BadParameter("needs two cores or more", param_hint="--pin")
     work = Path(tempfile.mkdtemp(prefix="twinrl-bench-recording-"))
     cell = write_cell(work)
     task = make_task("pick_place")
     config = task.sample_config(np.random.default_rng(0), "ID")
     rows: list[tuple[str, str]] = []
     try:
-        with EmulatorProcess(cell):
+        with EmulatorProcess(cell) as emulator:
+            if pin:  # every thread of each; those started later inherit their starter's
+                _pin(emulator.process.pid, cores[-1:])
+                _pin(os.getpid(), cores[:-1])
             robot = open_robot(
                 "real", task, cameras=CAMERAS, effort=True, object_poses=False,
                 cell=cell, emulated=True,
@@ -195,11 +212,18 @@ def main(
         ("export of the first episode at the control rate: twinrl / lerobot's own loop (s)",
          f"{ours_steps / own_steps:.2f} ({ours_steps:.1f} / {own_steps:.1f})"),
     ]  # fmt: skip
+    pinned = f"; the emulator on core {cores[-1]}, the host on the rest" if pin else ""
     print(f"{duration:g} s recorded in {len(paths)} episodes: 2 cameras 640x480 at {FPS} fps, "
-          f"controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz\n")  # fmt: skip
+          f"controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz{pinned}\n")  # fmt: skip
     print("| what | figure |\n|---|---|")
     for name, figure in rows:
         print(f"| {name} | {figure} |")
+
+
+def _pin(pid: int, cores: list[int]) -> None:
+    """Every thread of process ``pid`` onto ``cores`` (Linux)."""
+    for thread in Path(f"/proc/{pid}/task").iterdir():
+        os.sched_setaffinity(int(thread.name), cores)
 
 
 def _backend(robot):
