@@ -109,7 +109,8 @@ class EmulatedTruth:
 def _ends_with_its_parent() -> None:
     """In the emulator's process, before it runs: on Linux, the kernel ends it when the
     process that started it ends, however that ends (a killed benchmark or test would
-    otherwise leave it holding the cell's ports)."""
+    otherwise leave it holding the cell's ports). Strictly, when the starting thread
+    ends, which a ``with`` block outlives."""
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, int(signal.SIGTERM))
 
