@@ -16,7 +16,6 @@ from twinrl_data.console import progress
 # is quick; each command loads the rest (rendering, datasets, the fitting) when it runs.
 from twinrl_data.settings_cli import options, settings_command
 from twinrl_sim.cli.common import console
-from twinrl_sim.reconstruct.report import dropped_summary
 from twinrl_sim.reconstruct.settings import STAGES, Board, BuildSettings
 
 twin_app = typer.Typer(
@@ -52,6 +51,7 @@ def build(settings: dict[str, Any], source: Path, out: Path) -> None:
     spec that every twinrl command takes as --twin, with a report and a Rerun recording."""
     # Imported here: open3d, pycolmap and CoACD take seconds to load.
     from twinrl_sim.reconstruct.pipeline import build_twin
+    from twinrl_sim.reconstruct.report import dropped_summary
 
     config = BuildSettings(**settings)
     with progress() as bar:
