@@ -108,8 +108,7 @@ def name_cause(
     for number, item in enumerate(objects, 1):
         if item.outline and _past_footprint(xy, item) <= 0.0:
             return SEEN_THROUGH, f"it lies inside clear object {number}'s outline"
-    colours = candidate.color[None] if candidate.point_colors is None else candidate.point_colors
-    colour = np.median(lab_colours(colours), axis=0)
+    colour = np.median(lab_colours(candidate.seen_colours), axis=0)
     ground = lab_colours(table.color)[0]
     lighter = float(colour[0] - ground[0])
     hue_apart = float(np.linalg.norm(colour[1:] - ground[1:]))
@@ -118,13 +117,12 @@ def name_cause(
         return HIGHLIGHT, f"lighter than the table ({shade})"
     near = _nearest(xy, objects)
     if near:
-        item = objects[near[0] - 1]
-        own = item.color[None] if item.point_colors is None else item.point_colors
-        apart = float(np.linalg.norm(colour - np.median(lab_colours(own), axis=0)))
-        if apart <= OBJECT_COLOUR:
-            return REFLECTION, f"object {near[0]}'s colour, {near[1]:.2f} m from it"
+        index, gap = near
+        own = np.median(lab_colours(objects[index].seen_colours), axis=0)
+        if np.linalg.norm(colour - own) <= OBJECT_COLOUR:
+            return REFLECTION, f"object {index + 1}'s colour, {gap:.2f} m from it"
     if hue_apart <= TABLE_HUE and lighter <= -SHADOW_DARKER:
-        beside = f", {near[1]:.2f} m from object {near[0]}" if near else ""
+        beside = f", {near[1]:.2f} m from object {near[0] + 1}" if near else ""
         return SHADOW, f"the table's hue, darker ({shade}){beside}"
     if hue_apart <= TABLE_HUE and abs(lighter) < SHADOW_DARKER:
         return TABLE_TEXTURE, f"the table's colour ({shade}), no object near"
@@ -149,9 +147,9 @@ def _past_footprint(xy: np.ndarray, item: ObjectCluster) -> float:
 
 
 def _nearest(xy: np.ndarray, objects: Sequence[ObjectCluster]) -> tuple[int, float] | None:
-    """(number from 1, m past its footprint) of the object nearest ``xy``, if within
+    """(index, m past its footprint) of the object nearest ``xy``, if within
     :data:`NEAR_OBJECT`."""
     gaps = [max(_past_footprint(xy, item), 0.0) for item in objects]
     if not gaps or min(gaps) > NEAR_OBJECT:
         return None
-    return int(np.argmin(gaps)) + 1, min(gaps)
+    return int(np.argmin(gaps)), min(gaps)

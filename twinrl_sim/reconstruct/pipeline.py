@@ -262,10 +262,9 @@ def build_twin(
         )
         clusters, hulls = join_parts(clusters, hulls, table)
         # The tags lying on the table, levelled with it: their sheets are no objects.
-        tags = [(c - pivot) @ levelling.T + pivot for c in alignment.tag_outlines]
-        chosen, dropped = judge_candidates(
-            clusters, hulls, table, tags if settings.tags_on_table else ()
-        )
+        on_table = alignment.tag_outlines if settings.tags_on_table else ()
+        tags = [(c - pivot) @ levelling.T + pivot for c in on_table]
+        chosen, dropped = judge_candidates(clusters, hulls, table, tags)
         hulls = [hulls[k] for k in chosen]
         clusters = [
             _with_hull(clusters[k], hull, table) for k, hull in zip(chosen, hulls, strict=True)

@@ -94,6 +94,12 @@ class ObjectCluster:
     top_from: str = "points"  # or "silhouettes": what its height was measured from
 
     @property
+    def seen_colours(self) -> np.ndarray:
+        """(K, 3) RGB in [0, 1]: its points' colours, or its mean colour where those were
+        not kept."""
+        return self.color[None] if self.point_colors is None else self.point_colors
+
+    @property
     def body_points(self) -> np.ndarray:
         """The SfM points and the carved footprint on the table: what the object's
         shape is made of."""

@@ -340,7 +340,7 @@ def carve_hulls(
     table_lab = lab_colours(table.color)[0]
     carvings = []
     for cluster in clusters:
-        seen = cluster.color[None] if cluster.point_colors is None else cluster.point_colors
+        seen = cluster.seen_colours
         # A clear object (an outline's streaks) shows what is behind it: no colour of
         # its own to carve by.
         colours = np.empty((0, 3)) if cluster.outline else object_colours(seen, table.color, seed)
