@@ -5,7 +5,10 @@ host runs the robot loop at 10 Hz with a small end-effector wave as its action s
 three ways, one after another on the same arm: the loop alone; the loop recording live
 episodes (every camera frame and every controller package, :mod:`twinrl_data.streams`)
 for ``--duration`` seconds in episodes of ``--episode-seconds``; the loop recording with
-the live view saved to an .rrd. It reports the frames and samples delivered and
+the live view saved to an .rrd. ``--rounds N`` takes the three ways in turn N times
+(the recording's seconds split between the rounds), so that a drift of the machine
+falls on all three alike, and reports each round's p99 beside the pooled one. It
+reports the frames and samples delivered and
 written (dropped = delivered, not written), the packages the emulator itself did not
 send in time (gaps in the controller's clock: the emulator's, not the recorder's), the
 recorder's share of one core (its threads' CPU over the recording's wall time), the
@@ -19,6 +22,7 @@ two cores the emulator then serves less of the real rates). Usage::
 
     MUJOCO_GL=egl python bench/bench_recording.py --duration 600
     MUJOCO_GL=egl python bench/bench_recording.py --duration 120 --pin
+    MUJOCO_GL=egl python bench/bench_recording.py --duration 180 --rounds 3 --pin
     MUJOCO_GL=egl python bench/bench_recording.py --duration 20 --episode-seconds 10
 """
 
@@ -89,9 +93,15 @@ def write_cell(folder: Path) -> Path:
     return path
 
 
-def percentiles(periods: list[float]) -> str:
-    ms = 1000 * np.asarray(periods)
-    return f"{np.percentile(ms, 50):.1f} / {np.percentile(ms, 99):.1f} / {ms.max():.1f}"
+def percentiles(rounds: list[list[float]]) -> str:
+    """p50 / p99 / max (ms) of the periods of every round, then each round's p99 where
+    there are several."""
+    ms = 1000 * np.concatenate(rounds)
+    pooled = f"{np.percentile(ms, 50):.1f} / {np.percentile(ms, 99):.1f} / {ms.max():.1f}"
+    if len(rounds) == 1:
+        return pooled
+    each = ", ".join(f"{np.percentile(1000 * np.asarray(r), 99):.1f}" for r in rounds)
+    return f"{pooled} (p99 by round: {each})"
 
 
 def main(
@@ -107,6 +117,14 @@ def main(
             "controller of its own leaves the host's processor to the host."
         ),
     ] = False,
+    rounds: Annotated[
+        int,
+        typer.Option(
+            min=1,
+            help="Times the loop alone, recording and with the live view are taken in "
+            "turn; the recording's seconds are split between them.",
+        ),
+    ] = 1,
 ) -> None:
     quiet_encoders()
     cores = sorted(os.sched_getaffinity(0))
@@ -132,49 +150,62 @@ def main(
                 return task.episode_meta(source="teleop", world="real", names=names, config=config)
 
             steps = lambda seconds: max(2, round(seconds * CONTROL_HZ))  # noqa: E731
+            alone: list[list[float]] = []
+            periods: list[list[float]] = []
+            viewed: list[list[float]] = []
             try:
-                alone = run_episode(
-                    robot, Wave(), task, config, judge=None, max_steps=steps(compare_seconds)
-                )
                 recorder = Recorder(EpisodeFolder(work / "episodes"))
                 backend = _backend(robot)
-                periods: list[float] = []
                 delivered = written = received = samples = 0
-                cpu = wall = 0.0
-                process_cpu = time.process_time()
+                cpu = wall = process_cpu = 0.0
                 backlog = 0
-                left = duration
                 paths = []
-                while left > 0:
-                    seconds = min(episode_seconds, left)
-                    left -= seconds
-                    started = time.perf_counter()
-                    result = run_episode(
-                        robot, Wave(), task, config, judge=None, max_steps=steps(seconds),
-                        recorder=recorder, meta=meta(),
+                for turn in range(rounds):
+                    alone.append(
+                        run_episode(
+                            robot, Wave(), task, config, judge=None,
+                            max_steps=steps(compare_seconds),
+                        ).periods
                     )  # fmt: skip
-                    wall += time.perf_counter() - started
-                    paths.append(result.path)
-                    periods += result.periods
-                    sensors = backend.sensors
-                    delivered += sum(sensors.handed.values())
-                    received += sensors.received
-                    cpu += sensors.cpu
-                    live = recorder.saved_live
-                    written += sum(live.counts[c] for c in CAMERAS)
-                    samples += live.counts["controller"]
-                    cpu += live.cpu
-                    backlog = max(backlog, live.backlog)
-                process_cpu = time.process_time() - process_cpu
-                view = LiveView(str(work / "live.rrd"), task, CAMERAS, names["observation.state"])
-                wave = Wave()
-                viewed = run_episode(
-                    robot, wave, task, config, judge=None, max_steps=steps(compare_seconds),
-                    recorder=Recorder(EpisodeFolder(work / "viewed")),
-                    meta=meta(),
-                    on_step=lambda t, sent: view.step(wave.observation, sent),
-                )  # fmt: skip
-                view.close()
+                    periods.append([])
+                    left = duration / rounds
+                    process_started = time.process_time()
+                    while left > 0:
+                        seconds = min(episode_seconds, left)
+                        left -= seconds
+                        started = time.perf_counter()
+                        result = run_episode(
+                            robot, Wave(), task, config, judge=None, max_steps=steps(seconds),
+                            recorder=recorder, meta=meta(),
+                        )  # fmt: skip
+                        wall += time.perf_counter() - started
+                        paths.append(result.path)
+                        periods[-1] += result.periods
+                        sensors = backend.sensors
+                        delivered += sum(sensors.handed.values())
+                        received += sensors.received
+                        cpu += sensors.cpu
+                        live = recorder.saved_live
+                        written += sum(live.counts[c] for c in CAMERAS)
+                        samples += live.counts["controller"]
+                        cpu += live.cpu
+                        backlog = max(backlog, live.backlog)
+                    process_cpu += time.process_time() - process_started
+                    rrd = str(work / f"live-{turn}.rrd")
+                    view = LiveView(rrd, task, CAMERAS, names["observation.state"])
+                    wave = Wave()
+                    viewed.append(
+                        run_episode(
+                            robot, wave, task, config, judge=None,
+                            max_steps=steps(compare_seconds),
+                            recorder=Recorder(EpisodeFolder(work / f"viewed-{turn}")),
+                            meta=meta(),
+                            on_step=lambda t, sent, view=view, wave=wave: view.step(
+                                wave.observation, sent
+                            ),
+                        ).periods
+                    )  # fmt: skip
+                    view.close()
             finally:
                 robot.close()
         gaps = 0
@@ -204,17 +235,18 @@ def main(
         ("host process's share of one core (cameras' decoding, loop, recorder)",
          f"{100 * process_cpu / wall:.1f} %"),
         ("recorder's most items waiting", f"{backlog}"),
-        ("loop period p50 / p99 / max (ms), loop alone", percentiles(alone.periods)),
+        ("loop period p50 / p99 / max (ms), loop alone", percentiles(alone)),
         ("loop period p50 / p99 / max (ms), recording", percentiles(periods)),
-        ("loop period p50 / p99 / max (ms), recording + live view", percentiles(viewed.periods)),
+        ("loop period p50 / p99 / max (ms), recording + live view", percentiles(viewed)),
         ("export of the first episode at the cameras' rate: twinrl / lerobot's own loop (s)",
          f"{ours_live / own_live:.2f} ({ours_live:.1f} / {own_live:.1f})"),
         ("export of the first episode at the control rate: twinrl / lerobot's own loop (s)",
          f"{ours_steps / own_steps:.2f} ({ours_steps:.1f} / {own_steps:.1f})"),
     ]  # fmt: skip
     pinned = f"; the emulator on core {cores[-1]}, the host on the rest" if pin else ""
-    print(f"{duration:g} s recorded in {len(paths)} episodes: 2 cameras 640x480 at {FPS} fps, "
-          f"controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz{pinned}\n")  # fmt: skip
+    turns = f", in {rounds} rounds" if rounds > 1 else ""
+    print(f"{duration:g} s recorded in {len(paths)} episodes{turns}: 2 cameras 640x480 at "
+          f"{FPS} fps, controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz{pinned}\n")  # fmt: skip
     print("| what | figure |\n|---|---|")
     for name, figure in rows:
         print(f"| {name} | {figure} |")
