@@ -32,7 +32,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Annotated
 
@@ -72,6 +72,35 @@ class Wave:
 
     def interrupted(self) -> None:
         pass
+
+
+@dataclass
+class Tally:
+    """What the recorded episodes delivered, wrote and cost, summed over them."""
+
+    paths: list[Path] = field(default_factory=list)
+    periods: list[list[float]] = field(default_factory=list)  # the loop's, one list a round
+    delivered: int = 0  # camera frames the cameras handed over
+    written: int = 0  # camera frames in the episodes
+    received: int = 0  # controller packages received
+    samples: int = 0  # controller samples in the episodes
+    cpu: float = 0.0  # s of the recorder's threads
+    process_cpu: float = 0.0  # s of the whole host process while recording
+    wall: float = 0.0  # s of recording
+    backlog: int = 0  # the recorder's most items waiting
+
+    def add(self, result, wall: float, backend, recorder: Recorder) -> None:
+        """One recorded episode of the current round, ``wall`` s long."""
+        self.paths.append(result.path)
+        self.periods[-1] += result.periods
+        self.wall += wall
+        sensors, live = backend.sensors, recorder.saved_live
+        self.delivered += sum(sensors.handed.values())
+        self.received += sensors.received
+        self.written += sum(live.counts[c] for c in CAMERAS)
+        self.samples += live.counts["controller"]
+        self.cpu += sensors.cpu + live.cpu
+        self.backlog = max(self.backlog, live.backlog)
 
 
 def write_cell(folder: Path) -> Path:
@@ -151,15 +180,11 @@ def main(
 
             steps = lambda seconds: max(2, round(seconds * CONTROL_HZ))  # noqa: E731
             alone: list[list[float]] = []
-            periods: list[list[float]] = []
             viewed: list[list[float]] = []
+            tally = Tally()
             try:
                 recorder = Recorder(EpisodeFolder(work / "episodes"))
                 backend = _backend(robot)
-                delivered = written = received = samples = 0
-                cpu = wall = process_cpu = 0.0
-                backlog = 0
-                paths = []
                 for turn in range(rounds):
                     alone.append(
                         run_episode(
@@ -167,7 +192,7 @@ def main(
                             max_steps=steps(compare_seconds),
                         ).periods
                     )  # fmt: skip
-                    periods.append([])
+                    tally.periods.append([])
                     left = duration / rounds
                     process_started = time.process_time()
                     while left > 0:
@@ -178,21 +203,11 @@ def main(
                             robot, Wave(), task, config, judge=None, max_steps=steps(seconds),
                             recorder=recorder, meta=meta(),
                         )  # fmt: skip
-                        wall += time.perf_counter() - started
-                        paths.append(result.path)
-                        periods[-1] += result.periods
-                        sensors = backend.sensors
-                        delivered += sum(sensors.handed.values())
-                        received += sensors.received
-                        cpu += sensors.cpu
-                        live = recorder.saved_live
-                        written += sum(live.counts[c] for c in CAMERAS)
-                        samples += live.counts["controller"]
-                        cpu += live.cpu
-                        backlog = max(backlog, live.backlog)
-                    process_cpu += time.process_time() - process_started
-                    rrd = str(work / f"live-{turn}.rrd")
-                    view = LiveView(rrd, task, CAMERAS, names["observation.state"])
+                        tally.add(result, time.perf_counter() - started, backend, recorder)
+                    tally.process_cpu += time.process_time() - process_started
+                    view = LiveView(
+                        str(work / f"live-{turn}.rrd"), task, CAMERAS, names["observation.state"]
+                    )
                     wave = Wave()
                     viewed.append(
                         run_episode(
@@ -208,6 +223,7 @@ def main(
                     view.close()
             finally:
                 robot.close()
+        paths = tally.paths
         gaps = 0
         for path in paths:
             clock = read_samples(path)["controller"].clock
@@ -226,17 +242,17 @@ def main(
     finally:
         shutil.rmtree(work, ignore_errors=True)
     rows += [
-        ("camera frames: delivered / written / dropped", f"{delivered} / {written} / "
-         f"{delivered - written}"),
-        ("controller samples: received / written / dropped", f"{received} / {samples} / "
-         f"{received - samples}"),
+        ("camera frames: delivered / written / dropped", f"{tally.delivered} / "
+         f"{tally.written} / {tally.delivered - tally.written}"),
+        ("controller samples: received / written / dropped", f"{tally.received} / "
+         f"{tally.samples} / {tally.received - tally.samples}"),
         ("controller packages the emulator did not send in time", f"{gaps}"),
-        ("recorder's share of one core (its threads)", f"{100 * cpu / wall:.1f} %"),
+        ("recorder's share of one core (its threads)", f"{100 * tally.cpu / tally.wall:.1f} %"),
         ("host process's share of one core (cameras' decoding, loop, recorder)",
-         f"{100 * process_cpu / wall:.1f} %"),
-        ("recorder's most items waiting", f"{backlog}"),
+         f"{100 * tally.process_cpu / tally.wall:.1f} %"),
+        ("recorder's most items waiting", f"{tally.backlog}"),
         ("loop period p50 / p99 / max (ms), loop alone", percentiles(alone)),
-        ("loop period p50 / p99 / max (ms), recording", percentiles(periods)),
+        ("loop period p50 / p99 / max (ms), recording", percentiles(tally.periods)),
         ("loop period p50 / p99 / max (ms), recording + live view", percentiles(viewed)),
         ("export of the first episode at the cameras' rate: twinrl / lerobot's own loop (s)",
          f"{ours_live / own_live:.2f} ({ours_live:.1f} / {own_live:.1f})"),
