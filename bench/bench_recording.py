@@ -43,7 +43,8 @@ from bench_data import lerobot_loop  # the same loop the data benchmark measures
 
 from twinrl_data.console import quiet_encoders
 from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.live_export import decode_jpeg, read_live
+from twinrl_data.live_export import read_live
+from twinrl_data.live_video import decode_frame
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import EpisodeFolder, Recorder
 from twinrl_data.streams import read_samples
@@ -229,7 +230,7 @@ def main(
             clock = read_samples(path)["controller"].clock
             gaps += int(np.sum(np.round(np.diff(clock) * SERVO_HZ) - 1))
         first = read_live(paths[0])  # the rows' frames in memory, for lerobot's own loop
-        images = {c: np.stack([decode_jpeg(j) for j in f]) for c, f in first.frames.items()}
+        images = {c: np.stack([decode_frame(j) for j in f]) for c, f in first.frames.items()}
         own_live = lerobot_loop([replace(first.episode, images=images)], work / "own_live")
         del first, images
         start = time.perf_counter()

@@ -39,7 +39,7 @@ from twinrl_data.live_export import (
     LIVE_INFO,
     LiveRows,
     LiveVideos,
-    decode_jpeg,
+    decode_frame,
     encoder_config,
     live_dataset_class,
     live_info,
@@ -256,8 +256,8 @@ def _add_episode(dataset: Any, episode: contract.Episode) -> None:
 
 
 def _add_live(dataset: Any, rows: LiveRows, videos: LiveVideos) -> None:
-    """A live episode's rows; its videos as encoded while recording when it has them all
-    (a crashed episode has none: its frames are encoded here)."""
+    """A live episode's rows; its videos its logged frames remuxed (a log from before the
+    frames were H.264 has JPEGs: they are encoded here)."""
     encoded = set(rows.videos) == set(rows.frames)
     videos.use(
         {
@@ -270,8 +270,8 @@ def _add_live(dataset: Any, rows: LiveRows, videos: LiveVideos) -> None:
     blank = {camera: np.zeros(rows.shape(camera), np.uint8) for camera in rows.frames}
     for t in range(len(rows)):
         frame = _fields(rows.episode, t)
-        for camera, jpegs in rows.frames.items():
-            image = blank[camera] if encoded else decode_jpeg(jpegs[t])
+        for camera, logged in rows.frames.items():
+            image = blank[camera] if encoded else decode_frame(logged[t])
             frame[contract.image_field(camera)] = image
         dataset.add_frame(frame)
     dataset.save_episode()

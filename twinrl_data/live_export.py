@@ -31,13 +31,11 @@ The dataset says so in ``meta/twinrl/live.json`` (:data:`LIVE_INFO`; lerobot's o
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import PIL.Image
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
@@ -47,11 +45,15 @@ from twinrl_data.live_video import (
     VIDEO_GOP,
     VIDEO_PIX_FMT,
     VIDEO_PRESET,
+    decode_frame,
+    is_h264,
+    remux,
     row_count,
     row_time,
 )
 from twinrl_data.mcap_log import (
     CAMERA_PREFIX,
+    CAMERA_SCHEMAS,
     META_START,
     META_STREAMS,
     TOPICS,
@@ -63,7 +65,7 @@ from twinrl_data.mcap_log import (
     read_episode,
 )
 from twinrl_data.step_frames import frames_of_steps
-from twinrl_data.streams import META_VIDEOS, VIDEO_ATTACHMENT, read_samples
+from twinrl_data.streams import read_samples
 
 LIVE_INFO = Path("meta") / "twinrl" / "live.json"
 
@@ -76,15 +78,15 @@ class LiveRows:
     control_fps: float  # the rate of its control steps
     reference: str  # the camera whose frames are the rows
     times: np.ndarray  # (rows,) s from the episode's start, host clock: each row's capture
-    frames: dict[str, list[bytes]]  # each camera's JPEG at each row
-    videos: dict[str, bytes]  # each camera's MP4 of the rows, encoded while recording
+    frames: dict[str, list[bytes]]  # each camera's logged frame at each row
+    videos: dict[str, bytes]  # each camera's MP4 of the rows: its logged frames, remuxed
 
     def __len__(self) -> int:
         return len(self.times)
 
     def shape(self, camera: str) -> tuple[int, int, int]:
         """A camera's frame shape (H, W, 3)."""
-        return decode_jpeg(self.frames[camera][0]).shape
+        return decode_frame(self.frames[camera][0]).shape
 
 
 def is_live(path: str | Path) -> bool:
@@ -105,50 +107,46 @@ def read_for_export(path: str | Path) -> contract.Episode | LiveRows:
     return read_live(path) if is_live(path) else read_episode(path)
 
 
-def decode_jpeg(data: bytes) -> np.ndarray:
-    return np.asarray(PIL.Image.open(io.BytesIO(data)).convert("RGB"))
-
-
 def read_live(path: str | Path) -> LiveRows:
     """A live episode's rows (:class:`LiveRows`); a damaged file is refused."""
-    from mcap.records import Attachment, Channel, Message, Metadata
+    from mcap.records import Channel, Message, Metadata, Schema
 
     path = _open_checked(path)
     episode = read_episode(path, images=False)
     records: dict[str, dict[str, Any]] = {}
     channels: dict[int, str] = {}
+    schemas: dict[int, str] = {}  # schema id -> name
+    message_schemas: dict[int, str] = {}  # channel id -> its schema's name
     frames: dict[str, dict[int, tuple[int, bytes]]] = {}
     step_times: dict[int, int] = {}
-    attachments: dict[str, bytes] = {}
 
     def damaged(_chunk: Any) -> None:
         raise DataError(f"{path} is damaged; `twinrl data recover {path}` rewrites what is intact")
 
-    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-
     with open(path, "rb") as f:
         for record in intact_records(f, damaged):
-            if isinstance(record, Channel):
+            if isinstance(record, Schema):
+                schemas[record.id] = record.name
+            elif isinstance(record, Channel):
                 channels[record.id] = record.topic
+                message_schemas[record.id] = schemas.get(record.schema_id, "")
             elif isinstance(record, Message):
                 topic = channels.get(record.channel_id, "")
                 if topic == TOPICS[contract.STATE]:
                     step_times[record.sequence] = record.log_time
                 elif topic.startswith(CAMERA_PREFIX):
-                    image = CompressedImage.FromString(record.data).data
+                    message = CAMERA_SCHEMAS[message_schemas[record.channel_id]]
+                    image = message.FromString(record.data).data
                     camera = topic[len(CAMERA_PREFIX) :]
                     frames.setdefault(camera, {})[record.sequence] = (record.log_time, image)
             elif isinstance(record, Metadata):
                 records[record.name] = _decode(record.metadata)
-            elif isinstance(record, Attachment):
-                attachments[record.name] = record.data
     cameras = list(records.get(META_STREAMS, {}).get("cameras", {}))
     if not cameras or not all(frames.get(camera) for camera in cameras):
         raise DataError(
             f"{path} is not a live episode with camera frames; it exports at its control rate"
         )
-    videos_record = records.get(META_VIDEOS, {})
-    reference = videos_record.get("reference", cameras[0])
+    reference = cameras[0]
     start = _iso_to_ns(records[META_START]["created_at"])
     fps = round(float(records[META_STREAMS]["cameras"][reference]))
     ordered = sorted(frames[reference].values())
@@ -174,12 +172,9 @@ def read_live(path: str | Path) -> LiveRows:
         for camera in cameras
     }
     rows[reference] = [ordered[i][1] for i in chosen]
-    videos = {}
-    if videos_record.get("frames") == count:
-        for camera in videos_record.get("cameras", []):
-            data_mp4 = attachments.get(VIDEO_ATTACHMENT.format(camera=camera))
-            if data_mp4:
-                videos[camera] = data_mp4
+    videos = {  # a log from before the frames were H.264 has JPEGs: export encodes them
+        camera: remux(frames, fps) for camera, frames in rows.items() if all(map(is_h264, frames))
+    }
     return LiveRows(
         episode=contract.Episode(meta=episode.meta.replace(fps=float(fps)), data=data),
         control_fps=episode.meta.fps,
@@ -203,7 +198,7 @@ def live_info(rows: LiveRows) -> dict[str, Any]:
 
 
 def encoder_config() -> Any:
-    """lerobot's encoder settings of the videos encoded while recording."""
+    """lerobot's encoder settings of the frames encoded while recording."""
     from lerobot.configs.video import RGBEncoderConfig
 
     return RGBEncoderConfig(
@@ -211,7 +206,7 @@ def encoder_config() -> Any:
     )
 
 
-def video_stats(jpegs: list[bytes]) -> dict[str, np.ndarray]:
+def video_stats(frames: list[bytes]) -> dict[str, np.ndarray]:
     """A camera's per-channel statistics over a sample of its frames, as lerobot's
     streaming encoder computes them over all of them."""
     from lerobot.datasets.compute_stats import (
@@ -221,8 +216,8 @@ def video_stats(jpegs: list[bytes]) -> dict[str, np.ndarray]:
     )
 
     stats = RunningQuantileStats()
-    for index in sample_indices(len(jpegs)):
-        chw = decode_jpeg(jpegs[index]).transpose(2, 0, 1)
+    for index in sample_indices(len(frames)):
+        chw = decode_frame(frames[index]).transpose(2, 0, 1)
         small = auto_downsample_height_width(chw)
         stats.update(small.transpose(1, 2, 0).reshape(-1, small.shape[0]))
     return stats.get_statistics()

@@ -11,6 +11,7 @@ topic                               schema                       content
 /command/joint_target               twinrl.FloatVector           servo targets
 /transition                         twinrl.Transition            reward, done, success, ...
 /camera/<name>                      foxglove.CompressedImage     JPEG (default) or PNG
+/camera/<name> (a live episode's)   foxglove.CompressedVideo     H.264, every frame a key
 /tf                                 foxglove.FrameTransforms     TCP and object poses
 /samples/<stream>                   twinrl.FloatVector           a live episode's samples
 ==================================  ===========================  ==========================
@@ -42,6 +43,7 @@ from typing import IO, Any
 import numpy as np
 import PIL.Image
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from mcap.reader import make_reader
@@ -54,6 +56,7 @@ from mcap_protobuf.schema import register_schema
 from twinrl_data import schema as contract
 from twinrl_data.atomic import disk_error
 from twinrl_data.errors import DataError, McapError
+from twinrl_data.live_video import decode_frame
 from twinrl_data.messages import FloatVector, Transition
 from twinrl_data.step_frames import frames_of_steps
 
@@ -78,6 +81,11 @@ META_FIELDS = "twinrl.fields"
 META_END = "twinrl.episode_end"
 META_STREAMS = "twinrl.streams"  # a live episode's cameras and sample streams, at their rates
 POSE_SUFFIXES = ("x", "y", "z", "qw", "qx", "qy", "qz")
+# a camera topic's messages: a step's image, or a live episode's H.264 frame
+CAMERA_SCHEMAS = {
+    "foxglove.CompressedImage": CompressedImage,
+    "foxglove.CompressedVideo": CompressedVideo,
+}
 IMAGE_FORMATS = ("jpeg", "png")
 
 
@@ -230,10 +238,6 @@ class EpisodeWriter:
     def add_metadata(self, name: str, values: Mapping[str, Any]) -> None:
         """Write a metadata record (values JSON-encoded)."""
         self._guarded(lambda: self._writer.add_metadata(name, _encode(values)))
-
-    def attach(self, name: str, media_type: str, data: bytes) -> None:
-        """Write a file into the episode (an MCAP attachment)."""
-        self._guarded(lambda: self._writer.add_attachment(0, 0, name, media_type, data))
 
     def flush(self) -> None:
         """Close the open chunk: what was written so far survives a crash."""
@@ -558,7 +562,7 @@ def read_episode(path: str | Path, *, images: bool = True) -> contract.Episode:
             if key in fields:
                 data[key] = np.array([getattr(transitions[s], attribute) for s in steps], dtype)
     camera_arrays = {
-        cam: np.stack([_decode_image(rows[s][1]) for s in steps])
+        cam: np.stack([decode_frame(rows[s][1]) for s in steps])
         for cam, rows in frames.items()
         if steps
     }
@@ -592,11 +596,7 @@ def _collect(
     elif channel.topic == TRANSITION_TOPIC and name == "twinrl.Transition":
         transition = Transition.FromString(message.data)
         transitions[transition.step] = transition
-    elif images and channel.topic.startswith(CAMERA_PREFIX) and name == "foxglove.CompressedImage":
-        image = CompressedImage.FromString(message.data)
+    elif images and channel.topic.startswith(CAMERA_PREFIX) and name in CAMERA_SCHEMAS:
+        image = CAMERA_SCHEMAS[name].FromString(message.data)
         camera = channel.topic[len(CAMERA_PREFIX) :]
         frames[camera][message.sequence] = (message.log_time, image.data)
-
-
-def _decode_image(data: bytes) -> np.ndarray:
-    return np.asarray(PIL.Image.open(io.BytesIO(data)).convert("RGB"))

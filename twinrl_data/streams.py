@@ -15,12 +15,12 @@ sample streams.
 
 :class:`LiveEpisode` writes one from a background thread: the control loop, the
 cameras' threads and the sample readers only hand their data over (a queue), and the
-thread encodes the frames (JPEG), writes and closes a chunk every ``flush_seconds`` of
-the host's clock (half a second by default: with the controller's samples read every
-0.2 s, a crash loses under a second of any stream, plus what is queued). It also
-encodes the cameras' videos for export (:mod:`twinrl_data.live_video`), attached to the
-file when the episode closes (``video/<camera>.mp4``, described by the metadata record
-``twinrl.videos``); a crashed episode has none, and its export encodes its frames.
+thread encodes each frame once, as an H.264 intra frame (``foxglove.CompressedVideo``,
+:mod:`twinrl_data.live_video`: what export copies into the dataset's videos as it is),
+and writes and closes a chunk every ``flush_seconds`` of the host's clock (half a second
+by default: with the controller's samples read every 0.2 s, a crash loses under a second
+of any stream, plus what is queued). A crashed episode, recovered, exports as one that
+ended.
 """
 
 from __future__ import annotations
@@ -33,13 +33,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 
 from twinrl_data import schema as contract
 from twinrl_data.errors import DataError
-from twinrl_data.live_video import VIDEO_CODEC, VIDEO_OPTIONS, RowVideos
+from twinrl_data.live_video import FRAME_FORMAT, FrameEncoder
 from twinrl_data.mcap_log import (
     CAMERA_PREFIX,
     META_START,
@@ -53,9 +52,6 @@ from twinrl_data.messages import FloatVector
 from twinrl_data.schema import Samples
 
 SAMPLES_PREFIX = "/samples/"
-VIDEO_ATTACHMENT = "video/{camera}.mp4"
-META_VIDEOS = "twinrl.videos"
-JPEG_QUALITY = 90
 
 
 class LiveEpisode:
@@ -86,9 +82,7 @@ class LiveEpisode:
             META_STREAMS,
             {"cameras": self.cameras, "samples": {k: list(v) for k, v in samples.items()}},
         )
-        self._videos = (
-            RowVideos(list(cameras), round(cameras[next(iter(cameras))])) if cameras else None
-        )
+        self._encoders = {camera: FrameEncoder(camera) for camera in cameras}
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="live-episode", daemon=True)
@@ -120,28 +114,11 @@ class LiveEpisode:
 
     # ---------------------------------------------------------------- closing
     def close(self) -> None:
-        """Write what is queued, stop the thread and attach the cameras' videos (the
-        writer stays open)."""
+        """Write what is queued and stop the thread (the writer stays open)."""
         self._queue.put(None)
         self._thread.join()
         if self._error is not None:
             raise DataError(f"the episode's writer stopped: {self._error}")
-        if self._videos is None:
-            return
-        videos = self._videos.close()
-        for camera, data in videos.items():
-            self.writer.attach(VIDEO_ATTACHMENT.format(camera=camera), "video/mp4", data)
-        self.writer.add_metadata(
-            META_VIDEOS,
-            {
-                "reference": self._videos.reference,
-                "fps": self._videos.videos[self._videos.reference].fps,
-                "frames": self._videos.videos[self._videos.reference].frames,
-                "codec": VIDEO_CODEC,
-                "options": VIDEO_OPTIONS,
-                "cameras": sorted(videos),
-            },
-        )
 
     # ------------------------------------------------------------ the thread
     def _ns(self, seconds: float) -> int:
@@ -175,18 +152,11 @@ class LiveEpisode:
             self.writer.append(step, self._ns(observed))
         elif kind == "frame":
             _, camera, image, captured, index = item
-            ok, jpeg = cv2.imencode(
-                ".jpg",
-                np.ascontiguousarray(image[..., ::-1]),
-                [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY],
-            )
-            if not ok:
-                raise DataError(f"camera {camera}'s frame {index} could not be encoded")
             time_ns = self._ns(captured)
-            message = CompressedImage(frame_id=camera, format="jpeg", data=jpeg.tobytes())
+            packet = self._encoders[camera].encode(image)
+            message = CompressedVideo(frame_id=camera, format=FRAME_FORMAT, data=packet)
             message.timestamp.FromNanoseconds(time_ns)
             self.writer.write(CAMERA_PREFIX + camera, message, time_ns, index)
-            self._videos.frame(camera, image, captured)
             self.counts[camera] += 1
         else:
             _, stream, received, rows, clock = item

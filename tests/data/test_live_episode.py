@@ -1,5 +1,5 @@
-"""Live episodes: steps, every camera frame and a 500 Hz sample stream written from a
-background thread into one MCAP file, on one clock, and read back."""
+"""Live episodes: steps, every camera frame (an H.264 keyframe each) and a 500 Hz sample
+stream written from a background thread into one MCAP file, on one clock, and read back."""
 
 from __future__ import annotations
 
@@ -7,7 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 
+from twinrl_data.errors import DataError
+from twinrl_data.live_video import FrameEncoder, decode_frame, is_h264
 from twinrl_data.mcap_log import EpisodeWriter, read_episode
 from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_data.streams import LiveEpisode, read_live_episode, read_samples
@@ -64,4 +67,54 @@ def test_a_step_that_breaks_the_contract_is_refused_where_it_is_given(tmp_path: 
     with pytest.raises(Exception, match="missing"):
         live.step({"observation.state": np.zeros(3)}, START)
     live.close()
+    writer.close()
+
+
+def _textured(seed: int) -> np.ndarray:
+    """A 640x480 picture with edges and noise, as a camera's."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    image = np.repeat(np.repeat(coarse, 16, axis=0), 16, axis=1).astype(np.int16)
+    return np.clip(image + rng.normal(0, 4, image.shape), 0, 255).astype(np.uint8)
+
+
+def test_each_logged_frame_is_an_h264_keyframe_that_decodes_on_its_own(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=10.0)
+    writer = EpisodeWriter(tmp_path / "live.mcap", meta, flush_seconds=0)
+    live = LiveEpisode(writer, cameras={"front": 30.0}, samples={}, started=START)
+    pictures = [_textured(k) for k in range(4)]
+    for k, picture in enumerate(pictures):
+        live.frame("front", picture, START + k / 30, k)
+    live.close()
+    writer.close()
+    with open(tmp_path / "live.mcap", "rb") as f:
+        logged = [
+            (schema.name, message.data)
+            for schema, channel, message in make_reader(f).iter_messages(topics=["/camera/front"])
+        ]
+    assert [name for name, _ in logged] == ["foxglove.CompressedVideo"] * 4
+    # Any one frame, read alone and out of order, is its picture (x264's crf 23 on noise).
+    for k in (3, 0, 2):
+        data = CompressedVideo.FromString(logged[k][1])
+        assert data.format == "h264" and is_h264(data.data)
+        error = np.abs(decode_frame(data.data).astype(int) - pictures[k]).mean()
+        assert error < 6, error
+
+
+def test_a_camera_of_odd_size_or_changing_size_is_refused_in_one_line(tmp_path: Path) -> None:
+    encoder = FrameEncoder("front")
+    with pytest.raises(DataError, match="camera front's frames are .*even width and height"):
+        encoder.encode(np.zeros((479, 640, 3), np.uint8))
+    encoder.encode(np.zeros((480, 640, 3), np.uint8))
+    with pytest.raises(DataError, match="frame 1 is \\(240, 320, 3\\), its first was"):
+        encoder.encode(np.zeros((240, 320, 3), np.uint8))
+    # In a recording, the next call says so and what was written stays readable.
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=10.0)
+    writer = EpisodeWriter(tmp_path / "live.mcap", meta, flush_seconds=0)
+    live = LiveEpisode(writer, cameras={"front": 30.0}, samples={}, started=START)
+    live.frame("front", np.zeros((47, 64, 3), np.uint8), START, 0)
+    with pytest.raises(DataError, match="the episode's writer stopped: camera front's frames"):
+        live.close()
     writer.close()

@@ -1,24 +1,28 @@
 """A live episode exported to LeRobot at its cameras' rate: every frame of the first
-camera a row, the state resampled from its 500 Hz stream, the control steps held."""
+camera a row, its logged frames copied into the videos, the state resampled from its
+500 Hz stream, the control steps held."""
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import av
+import cv2
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from twinrl_data.catalog import build_index, load_selected, query
 from twinrl_data.errors import DataError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.live_export import LIVE_INFO, LiveRows, encoder_config, read_live
-from twinrl_data.live_video import VIDEO_OPTIONS, RowVideos
-from twinrl_data.mcap_log import EpisodeWriter, read_episode
+from twinrl_data.live_video import VIDEO_OPTIONS, decode_frame
+from twinrl_data.mcap_log import META_STREAMS, EpisodeWriter, _iso_to_ns, read_episode
 from twinrl_data.salvage import recover
 from twinrl_data.schema import STATE, EpisodeMeta, step_record
 from twinrl_data.streams import LiveEpisode
@@ -116,15 +120,13 @@ def test_a_dropped_frame_is_the_frame_before_repeated_and_the_rows_keep_the_cloc
     np.testing.assert_allclose(dataset[10][STATE].numpy(), newest, atol=1e-6)
 
 
-def test_a_crashed_live_episode_exports_the_same_rows_encoding_its_frames(tmp_path: Path) -> None:
+def test_a_crashed_live_episode_exports_the_same_videos(tmp_path: Path) -> None:
     record_live(tmp_path / "live.mcap")
-    # Recovery keeps messages and metadata, not the videos attached at the end.
+    # Recovery keeps the messages: the frames, encoded as they came, are the videos.
     recovered = recover(tmp_path / "live.mcap", tmp_path / "recovered.mcap").output
     rows = read_live(recovered)
-    assert rows.videos == {} and read_live(tmp_path / "live.mcap").videos.keys() == {
-        "front",
-        "wrist",
-    }
+    assert rows.videos == read_live(tmp_path / "live.mcap").videos
+    assert rows.videos.keys() == {"front", "wrist"}
     export_dataset([rows], tmp_path / "ds", repo_id="t/recovered")
     dataset = LeRobotDataset("t/recovered", root=tmp_path / "ds", video_backend="pyav")
     assert dataset.num_frames == FPS
@@ -180,17 +182,6 @@ def test_a_catalog_selection_reads_live_episodes_as_rows_for_export(tmp_path: Pa
     assert len(steps) == CONTROL_HZ
 
 
-def test_a_camera_keeps_a_second_of_frames_while_the_first_delivers_none() -> None:
-    videos = RowVideos(["front", "wrist"], FPS)
-    videos.frame("front", _frame(0), 0.0)
-    for k in range(3 * FPS):  # 3 s of the wrist camera, the front one silent
-        videos.frame("wrist", _frame(k), 0.01 + k / FPS)
-    assert len(videos._recent["wrist"]) <= FPS
-    videos.frame("front", _frame(8), 3.0)
-    mp4 = videos.close()
-    assert videos.rows == 3 * FPS + 1 and set(mp4) == {"front", "wrist"}
-
-
 def test_a_cut_short_episode_file_is_refused_in_one_line_and_nothing_is_written(
     tmp_path: Path,
 ) -> None:
@@ -205,3 +196,40 @@ def test_a_cut_short_episode_file_is_refused_in_one_line_and_nothing_is_written(
     assert run.returncode != 0 and not (tmp_path / "ds").exists()
     assert "truncated or damaged" in run.stderr and "twinrl data recover" in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1
+
+
+def test_the_videos_are_the_logged_frames_copied_not_encoded_again(tmp_path: Path) -> None:
+    record_live(tmp_path / "live.mcap", dropped=(10,))
+    rows = read_live(tmp_path / "live.mcap")
+    for camera in ("front", "wrist"):
+        with av.open(io.BytesIO(rows.videos[camera])) as container:
+            decoded = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+        assert len(decoded) == len(rows)
+        for t in (0, 9, 10, 29):  # row 10 repeats frame 9 of the front camera
+            np.testing.assert_array_equal(decoded[t], decode_frame(rows.frames[camera][t]))
+
+
+def test_a_live_episode_logged_with_jpeg_frames_still_exports(tmp_path: Path) -> None:
+    """The log of a recorder from before the frames were H.264: JPEG frames, encoded at
+    export."""
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=CONTROL_HZ)
+    start_ns = 0
+    with EpisodeWriter(tmp_path / "old.mcap", meta, flush_seconds=0) as writer:
+        start_ns = _iso_to_ns(writer.meta.created_at)
+        writer.add_metadata(META_STREAMS, {"cameras": {"front": FPS}, "samples": {}})
+        for k in range(FPS):
+            jpeg = cv2.imencode(".jpg", _frame(8 * k))[1].tobytes()
+            time_ns = start_ns + round((FRONT_AT + k / FPS) * 1e9)
+            writer.write("/camera/front", CompressedImage(format="jpeg", data=jpeg), time_ns, k)
+        for t in range(CONTROL_HZ):
+            observation = {STATE: np.full(3, t, np.float32)}
+            step = step_record(
+                observation, np.full(7, t, np.float32), np.zeros(6), 0.0, False, False
+            )
+            writer.append(step, start_ns + round(t / CONTROL_HZ * 1e9))
+    rows = read_live(tmp_path / "old.mcap")
+    assert len(rows) == FPS and rows.videos == {}
+    export_dataset([rows], tmp_path / "ds", repo_id="t/old")
+    dataset = LeRobotDataset("t/old", root=tmp_path / "ds", video_backend="pyav")
+    front = 255 * dataset[14]["observation.images.front"].numpy().mean()
+    assert dataset.num_frames == FPS and front == pytest.approx(8 * 14, abs=4)
