@@ -60,12 +60,13 @@ $(STAMP): pyproject.toml
 
 # The suite runs on every core, a test file per worker, each worker on one thread (torch
 # and OpenMP threads of two workers on two cores fight: 9.2 min against 6.3); the tests
-# that keep real time against an emulated controller run after it, alone.
+# that keep real time against an emulated controller run after it, alone. Each prints its
+# slowest tests, to keep the suite within CI's time.
 PARALLEL := OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/pytest -n auto --dist loadfile
 test: setup
 	$(BIN)/ruff check .
-	$(PARALLEL) -q -m "not slow and not realtime and not long"
-	$(BIN)/pytest -q -m "realtime and not slow and not long"
+	$(PARALLEL) -q --durations=15 -m "not slow and not realtime and not long"
+	$(BIN)/pytest -q --durations=10 -m "realtime and not slow and not long"
 
 # The end-to-end runs marked slow (about 5 minutes more on 2 cores); CI runs them after
 # `make test`: on every core, then those that keep real time (timed kills among them)
