@@ -3,6 +3,8 @@ stream written from a background thread into one MCAP file, on one clock, and re
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +120,30 @@ def test_a_camera_of_odd_size_or_changing_size_is_refused_in_one_line(tmp_path: 
     with pytest.raises(DataError, match="the episode's writer stopped: camera front's frames"):
         live.close()
     writer.close()
+
+
+def test_rerun_opens_a_live_episodes_cameras_as_video_streams(tmp_path: Path) -> None:
+    from rerun.experimental import RrdReader
+
+    meta = EpisodeMeta(task="pick_place", source="teleop", world="real", fps=10.0)
+    writer = EpisodeWriter(tmp_path / "live.mcap", meta, flush_seconds=0)
+    live = LiveEpisode(writer, cameras={"front": 30.0}, samples={}, started=START)
+    for k in range(6):
+        live.frame("front", _textured(k), START + k / 30, k)
+    observation = {"observation.state": np.zeros(3, np.float32)}
+    live.step(step_record(observation, np.zeros(7), np.zeros(6), 0.0, True, False), START)
+    live.close()
+    writer.close()
+    rerun = Path(sys.executable).parent / "rerun"
+    run = subprocess.run(
+        [str(rerun), "mcap", "convert", str(tmp_path / "live.mcap"), "-o", str(tmp_path / "l.rrd")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr
+    samples = [
+        chunk.num_rows
+        for chunk in RrdReader(tmp_path / "l.rrd").store().stream().to_chunks()
+        if chunk.entity_path == "/camera/front"
+        and "VideoStream:sample" in chunk.to_record_batch().schema.names
+    ]
+    assert sum(samples) == 6  # every frame, as Rerun's own video stream
