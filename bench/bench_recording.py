@@ -15,9 +15,8 @@ recorder's share of one core (its threads' CPU over the recording's wall time), 
 whole host process's share, the loop's period p50/p99 each way, and the LeRobot export
 of the first recorded episode against lerobot's own loop on the same frames, side by
 side: at the cameras' rate (every frame a row, the frames encoded while recording copied
-into the videos, what
-``twinrl data export`` does with a live episode) and at the control rate (one frame per
-step, encoded at export). ``--pin`` puts the emulator on one core and the host on the
+into the videos, what ``twinrl data export`` does with a live episode) and at the control
+rate (one frame per step, encoded at export). ``--pin`` puts the emulator on one core and the host on the
 others, as a controller of its own would leave the host's processor to the host (on
 two cores the emulator then serves less of the real rates). Usage::
 
