@@ -16,9 +16,9 @@ whole host process's share, the loop's period p50/p99 each way, and the LeRobot 
 of the first recorded episode against lerobot's own loop on the same frames, side by
 side: at the cameras' rate (every frame a row, the frames encoded while recording copied
 into the videos, what ``twinrl data export`` does with a live episode) and at the control
-rate (one frame per step, encoded at export). ``--pin`` puts the emulator on one core and the host on the
-others, as a controller of its own would leave the host's processor to the host (on
-two cores the emulator then serves less of the real rates). Usage::
+rate (one frame per step, encoded at export). ``--pin`` puts the emulator on one core
+and the host on the others, as a controller of its own would leave the host's processor
+to the host (on two cores the emulator then serves less of the real rates). Usage::
 
     MUJOCO_GL=egl python bench/bench_recording.py --duration 600
     MUJOCO_GL=egl python bench/bench_recording.py --duration 120 --pin
