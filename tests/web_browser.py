@@ -75,6 +75,9 @@ def chromium(width: int = 1280, height: int = 800) -> Iterator[WebDriver]:
     driver = webdriver.Chrome(service=service, options=options)
     try:
         driver.set_page_load_timeout(PAGE_TIMEOUT)
+        # A script waits for the page's thread, which the viewer holds while it takes in
+        # a recording: past Selenium's 30 s on a loaded 2-core host.
+        driver.set_script_timeout(PAGE_TIMEOUT)
         yield driver
     finally:
         tree = [psutil.Process(service.process.pid)]
