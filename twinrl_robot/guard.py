@@ -142,15 +142,18 @@ class JointGuard:
         return Guarded(q=q, clipped=tuple(clipped))
 
     def _unsafe(self, velocity: np.ndarray) -> str:
-        """What moving at ``velocity`` for one period, then braking, would break."""
+        """What moving at ``velocity`` for one period, then braking, would break: every
+        target of the braking, period by period as the guard would send them (a point
+        between two of them, off their line in joint space, can leave the cone)."""
         assert self._last is not None
+        step = self.limits.max_acceleration * self.period
         q = self._last + velocity * self.period
-        stop = q + velocity * np.abs(velocity) / (2.0 * self.limits.max_acceleration)
-        for point in (q, 0.5 * (q + stop), stop):
-            problem = self.violation(point)
-            if problem:
+        while True:
+            problem = self.violation(q)
+            if problem or not velocity.any():
                 return problem
-        return ""
+            velocity = velocity - np.clip(velocity, -step, step)
+            q = q + velocity * self.period
 
 
 def tool_tilt_deg(quat: np.ndarray) -> float:

@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from twinrl_robot.cell_file import SafetySpec
@@ -98,6 +98,12 @@ def test_no_action_sequence_leaves_the_limits(twin: Cell, sequence: list[list[fl
 @given(
     steps=st.lists(st.lists(st.floats(-0.6, 0.6), min_size=6, max_size=6), min_size=1, max_size=30)
 )
+# Once sent 30.09 deg from straight down: the braking was checked on a line in joint
+# space, and the next period's target lay off it.
+@example(
+    steps=[[0, 0.15625, 0.5, 0, 0, 0], [0, 0, 0, 0.59375, 0, 0], [0, 0, 0, 0.0625, 0, 0],
+           [0] * 6, [0, 0, 0, -0.125, 0.5, 0], [0, -0.5, 0, -0.5, 0, 0], [0] * 6]
+)  # fmt: skip
 def test_no_joint_target_sequence_leaves_the_limits(twin: Cell, steps: list[list[float]]) -> None:
     """Replay and excitation send joint targets directly: random jumps of up to 0.6 rad
     per joint per step are clipped to every limit too."""
