@@ -114,9 +114,8 @@ def read_live(path: str | Path) -> LiveRows:
     path = _open_checked(path)
     episode = read_episode(path, images=False)
     records: dict[str, dict[str, Any]] = {}
-    channels: dict[int, str] = {}
     schemas: dict[int, str] = {}  # schema id -> name
-    message_schemas: dict[int, str] = {}  # channel id -> its schema's name
+    channels: dict[int, tuple[str, str]] = {}  # channel id -> topic, its schema's name
     frames: dict[str, dict[int, tuple[int, bytes]]] = {}
     step_times: dict[int, int] = {}
 
@@ -128,15 +127,13 @@ def read_live(path: str | Path) -> LiveRows:
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
             elif isinstance(record, Channel):
-                channels[record.id] = record.topic
-                message_schemas[record.id] = schemas.get(record.schema_id, "")
+                channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
             elif isinstance(record, Message):
-                topic = channels.get(record.channel_id, "")
+                topic, schema = channels.get(record.channel_id, ("", ""))
                 if topic == TOPICS[contract.STATE]:
                     step_times[record.sequence] = record.log_time
                 elif topic.startswith(CAMERA_PREFIX):
-                    message = CAMERA_SCHEMAS[message_schemas[record.channel_id]]
-                    image = message.FromString(record.data).data
+                    image = CAMERA_SCHEMAS[schema].FromString(record.data).data
                     camera = topic[len(CAMERA_PREFIX) :]
                     frames.setdefault(camera, {})[record.sequence] = (record.log_time, image)
             elif isinstance(record, Metadata):

@@ -7,8 +7,8 @@ decodes on its own as Foxglove and Rerun expect). Every frame is a keyframe: any
 decodes alone, so the log is read like a log of JPEGs, and export (:mod:`twinrl_data.
 live_export`) builds each camera's video of the dataset's rows by copying the frames'
 packets into an MP4, repeating a frame where a camera dropped one, with no decoding or
-encoding. Encoding once this way costs about half of a JPEG at quality 90 (1.4 against
-3.1 ms a 640x480 frame on this 2-core host, ``bench/bench_recording.py``), where the
+encoding. Encoding once this way costs about half of a JPEG at quality 90 (1.37 against
+2.71 ms a 640x480 frame on a 2-core host, ``bench/bench_live_encoding.py``), where the
 recorder once encoded every frame twice (JPEG for the log, H.264 for export), and a
 frame takes a fifth of the bytes.
 

@@ -126,7 +126,7 @@ class JointGuard:
             clipped.append("acceleration")
         problem = self._unsafe(chosen)
         if problem:
-            braking = velocity - np.clip(velocity, -step, step)
+            braking = self._braked(velocity)
             low, high = 0.0, 1.0
             for _ in range(BISECTIONS):
                 middle = 0.5 * (low + high)
@@ -146,14 +146,19 @@ class JointGuard:
         target of the braking, period by period as the guard would send them (a point
         between two of them, off their line in joint space, can leave the cone)."""
         assert self._last is not None
-        step = self.limits.max_acceleration * self.period
         q = self._last + velocity * self.period
         while True:
             problem = self.violation(q)
             if problem or not velocity.any():
                 return problem
-            velocity = velocity - np.clip(velocity, -step, step)
+            velocity = self._braked(velocity)
             q = q + velocity * self.period
+
+    def _braked(self, velocity: np.ndarray) -> np.ndarray:
+        """The joint velocity one period of full braking leaves: what the guard sends when
+        it stops the arm, and so what :meth:`_unsafe` checks."""
+        step = self.limits.max_acceleration * self.period
+        return velocity - np.clip(velocity, -step, step)
 
 
 def tool_tilt_deg(quat: np.ndarray) -> float:
