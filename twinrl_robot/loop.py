@@ -79,6 +79,14 @@ def sensor_streams(robot: Robot) -> Any:
     return streams() if callable(streams) else None
 
 
+def observation_time(robot: Robot) -> float:
+    """When the newest observation was taken, on the host's monotonic clock: a real
+    cell's controller package time on its samples' clock (``observed_at``), so each step
+    lines up with the state streamed at the controller's rate; otherwise now."""
+    at = getattr(list(layers(robot))[-1], "observed_at", None)
+    return time.monotonic() if at is None else float(at)
+
+
 def privileged_success(robot: Robot) -> Judge:
     """The judge of a simulated cell: its ground-truth success."""
     channel = require_privileged(robot, "judging success from the task's ground truth")
@@ -129,7 +137,7 @@ def run_episode(
     if ready is not None:
         ready(observation)
         observation = robot.observe()
-    observed = time.monotonic()
+    observed = observation_time(robot)
     source.reset(task, config)
     streams = sensor_streams(robot) if recorder is not None else None
     if recorder is not None and meta is not None:
@@ -155,7 +163,7 @@ def run_episode(
                 source.interrupted()
                 interventions += 1
             following = robot.observe()
-            following_at = time.monotonic()
+            following_at = observation_time(robot)
             if success:
                 settled += 1
             else:

@@ -67,6 +67,9 @@ SERVO_STOP_DECELERATION = 10.0  # rad/s^2
 ARRIVED = 2e-3  # rad from a move's goal that counts as there
 MOVE_STALL = 2.0  # s without getting ARRIVED nearer its goal that ends a move
 RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
+# Reads of the controller's clock at each reset, a servo period or two apart, from which
+# the episode's host-minus-controller offset starts (the quickest read bounds it).
+CLOCK_READS = 20
 EMERGENCY_STOP = (
     "the emergency stop is pressed; release it, power the arm on and release the brakes on "
     "the pendant, then acknowledge"
@@ -180,6 +183,9 @@ class URArm:
         self._apply_cell_settings()
         self._next_step: float | None = None
         self._opening = 0.0  # the gripper's opening at the last observation
+        # When the newest observation's controller package was sent, on the host's clock
+        # as the samples are stamped (see ``observe``); None before the first one.
+        self.observed_at: float | None = None
         self._stream_kinematics = EndEffectorController(  # its own data: another thread's
             twin.model, twin.layout, workspace, 1.0 / self.control_hz, settings
         )
@@ -202,10 +208,21 @@ class URArm:
         self.guard.reset(q)
         self.kinematics.reset(q)
         self._counts_at_reset = self.cameras.counts()
+        self._read_clock_offset()
         self._clock_at_reset = float(self._receive.getTimestamp())
         self.stream.start(q)
         self._next_step = time.monotonic() + 1.0 / self.control_hz
         return self.observe()
+
+    def _read_clock_offset(self) -> None:
+        """Start the episode's host-minus-controller clock offset afresh (the two clocks
+        drift apart over a session) from :data:`CLOCK_READS` quick reads, so that the
+        first steps are stamped as closely as the last (each observation may lower it)."""
+        self.sensors.offset = None
+        for _ in range(CLOCK_READS):
+            (clock,) = self._link.snapshot(("getTimestamp",))
+            self.sensors.saw(clock, time.monotonic())
+            time.sleep(1.0 / self.servo_hz)
 
     def _move_to(self, q: np.ndarray) -> None:
         """moveJ to ``q``, asynchronously (the stream's thread keeps kicking the watchdog).
@@ -255,6 +272,10 @@ class URArm:
             getters += ("getTargetMoment", "getActualTCPForce")
         clock, q, qd, target, *forces = self._link.snapshot(getters)
         self.sensors.saw(clock, time.monotonic())
+        # The step is logged at its package's time on the samples' clock, not when the
+        # host got round to it (the gripper's socket and the cameras come after): a step
+        # and the 500 Hz state line up however loaded the host is.
+        self.observed_at = clock + self.sensors.offset
         q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
         self._opening = self.gripper.opening()
