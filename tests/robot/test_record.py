@@ -105,12 +105,14 @@ def test_a_scripted_person_records_on_the_emulated_arm(tmp_path: Path) -> None:
     assert 0.0 <= clock[0] < 0.05
     assert np.median(np.diff(clock)) == pytest.approx(0.1, abs=0.01)
     # ... and the targets the controller was tracking then: the step's sent target, all
-    # but the last few milliseconds of its segment (a 10 Hz step's target within 5 %).
+    # but the last milliseconds of its segment, the link's latency (a few ms on a quiet
+    # host, 15 on a loaded two-core one; a 10 Hz step's target within 25 %; a step
+    # logged a period off would be a whole segment away).
     echoed, sent = episode.data[CONTROLLER_TARGET], episode.data[JOINT_TARGET]
     assert episode.meta.names[CONTROLLER_TARGET] == episode.meta.names[JOINT_TARGET]
     moved = np.linalg.norm(sent[1:-1] - sent[:-2], axis=1) > 0.01
     short = np.linalg.norm(sent[1:-1] - echoed[2:], axis=1)[moved]
-    assert np.median(short / np.linalg.norm(sent[1:-1] - sent[:-2], axis=1)[moved]) < 0.05
+    assert np.median(short / np.linalg.norm(sent[1:-1] - sent[:-2], axis=1)[moved]) < 0.25
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     result = export_dataset([episode], tmp_path / "dataset", repo_id="tests/ur")
