@@ -74,9 +74,12 @@ def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
     assert len(stepped) == steps and samples.times[0] < 0.2 and samples.times[-1] > stepped[-2]
     step_q = episode.data["observation.state"][:, :6]
     nearest = np.abs(samples.times[:, None] - stepped[None, :]).argmin(axis=0)
-    # Each step beside its own package (the first's came before the episode's start, 0).
-    assert np.abs(samples.times[nearest] - stepped)[1:].max() < 1e-4
-    assert np.abs(samples.values[nearest, :6] - step_q).max() < 1e-3
+    # Each step beside its own package, or one a few servo periods away: ur_rtde's file
+    # skips a package now and then, a frame captured after the package moves the step
+    # to the frame's time, and the clocks' offset is found as the episode goes (up to
+    # 7 ms seen in its first steps). The first step's came before the episode's start.
+    assert np.abs(samples.times[nearest] - stepped)[1:].max() < 0.01
+    assert np.abs(samples.values[nearest, :6] - step_q).max() < 0.02  # 10 ms at 1 rad/s
     step_tcp = episode.data["observation.state"][:, 12:19]  # and the TCP computed from them
     assert np.abs(state.values[nearest, 12:19] - step_tcp).max() < 0.02
     # The camera: each step given the frame it saw.

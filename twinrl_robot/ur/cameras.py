@@ -224,11 +224,14 @@ class CameraRig:
     def __init__(self, cameras: list[Camera]) -> None:
         self.cameras = cameras
         self._used: dict[str, int] = {}
+        # When the newest frame the last ``images`` gave was captured (host clock).
+        self.captured_at: float | None = None
 
     def images(self) -> dict[str, np.ndarray]:
         """Each camera's newest frame for this control step, keyed like the contract."""
         now = time.monotonic()
         images = {}
+        self.captured_at = None
         for camera in self.cameras:
             frame = camera.latest()
             if frame is None:
@@ -239,6 +242,7 @@ class CameraRig:
             self._used[camera.name] = frame.index
             camera.stats.latencies.append(age)
             images[f"observation.images.{camera.name}"] = frame.image
+            self.captured_at = max(frame.stamp, self.captured_at or frame.stamp)
         return images
 
     def counts(self) -> dict[str, dict[str, int]]:

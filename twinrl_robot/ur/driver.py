@@ -67,9 +67,6 @@ SERVO_STOP_DECELERATION = 10.0  # rad/s^2
 ARRIVED = 2e-3  # rad from a move's goal that counts as there
 MOVE_STALL = 2.0  # s without getting ARRIVED nearer its goal that ends a move
 RELEASE_TIMEOUT = 2.0  # s for a cleared stop to show in the controller's state
-# Reads of the controller's clock at each reset, a servo period or two apart, from which
-# the episode's host-minus-controller offset starts (the quickest read bounds it).
-CLOCK_READS = 20
 EMERGENCY_STOP = (
     "the emergency stop is pressed; release it, power the arm on and release the brakes on "
     "the pendant, then acknowledge"
@@ -200,6 +197,9 @@ class URArm:
         config = TaskConfig.from_dict(config)
         self.stream.stop()
         self.guard.check_start(self.start_q, "the task's start pose")
+        # The host-minus-controller clock offset is found afresh each episode (the clocks
+        # drift apart over a session), from the move's reads and every observation.
+        self.sensors.offset = None
         self._move_to(self.start_q)
         self.gripper.command(0.0)
         if self.arrange is not None:
@@ -208,21 +208,10 @@ class URArm:
         self.guard.reset(q)
         self.kinematics.reset(q)
         self._counts_at_reset = self.cameras.counts()
-        self._read_clock_offset()
         self._clock_at_reset = float(self._receive.getTimestamp())
         self.stream.start(q)
         self._next_step = time.monotonic() + 1.0 / self.control_hz
         return self.observe()
-
-    def _read_clock_offset(self) -> None:
-        """Start the episode's host-minus-controller clock offset afresh (the two clocks
-        drift apart over a session) from :data:`CLOCK_READS` quick reads, so that the
-        first steps are stamped as closely as the last (each observation may lower it)."""
-        self.sensors.offset = None
-        for _ in range(CLOCK_READS):
-            (clock,) = self._link.snapshot(("getTimestamp",))
-            self.sensors.saw(clock, time.monotonic())
-            time.sleep(1.0 / self.servo_hz)
 
     def _move_to(self, q: np.ndarray) -> None:
         """moveJ to ``q``, asynchronously (the stream's thread keeps kicking the watchdog).
@@ -233,7 +222,9 @@ class URArm:
         nearest, progressed = np.inf, time.monotonic()
         while True:
             self._check()
-            remaining = float(np.abs(self.measured_q() - q).max())
+            clock, measured = self._link.snapshot(("getTimestamp", "getActualQ"))
+            self.sensors.saw(clock, time.monotonic())
+            remaining = float(np.abs(np.array(measured) - q).max())
             if remaining < ARRIVED and np.abs(self._receive.getActualQd()).max() < 1e-2:
                 return
             if remaining < nearest - ARRIVED:
@@ -270,12 +261,17 @@ class URArm:
         getters = ("getTimestamp", "getActualQ", "getActualQd", "getTargetQ")
         if self.effort:  # the torques the controller applies (RTDE target_moment)
             getters += ("getTargetMoment", "getActualTCPForce")
+        images = self.cameras.images()  # before the state: see observed_at below
         clock, q, qd, target, *forces = self._link.snapshot(getters)
         self.sensors.saw(clock, time.monotonic())
         # The step is logged at its package's time on the samples' clock, not when the
-        # host got round to it (the gripper's socket and the cameras come after): a step
-        # and the 500 Hz state line up however loaded the host is.
-        self.observed_at = clock + self.sensors.offset
+        # host got round to it (the gripper's socket comes after): a step and the 500 Hz
+        # state line up however loaded the host is. A live episode gives each step the
+        # newest frame captured by its time, which must be the frame read here: frames
+        # are read first, so their capture is all but always older than the package.
+        captured = self.cameras.captured_at
+        package_at = clock + self.sensors.offset
+        self.observed_at = package_at if captured is None else max(package_at, captured)
         q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
         self._opening = self.gripper.opening()
@@ -288,7 +284,7 @@ class URArm:
         if self.effort:
             observation[EFFORT] = np.array(forces[0], np.float32)
             observation[WRENCH] = np.array(forces[1], np.float32)
-        observation.update(self.cameras.images())
+        observation.update(images)
         return observation
 
     def _state_of(self, joints: np.ndarray, speeds: np.ndarray) -> np.ndarray:
