@@ -180,8 +180,9 @@ class URArm:
         self._apply_cell_settings()
         self._next_step: float | None = None
         self._opening = 0.0  # the gripper's opening at the last observation
-        # When the newest observation's controller package was sent, on the host's clock
-        # as the samples are stamped (see ``observe``); None before the first one.
+        # When the newest observation was taken, on the host's clock as the samples are
+        # stamped: its controller package's time, or its frames' if later (``observe``);
+        # None before the first one.
         self.observed_at: float | None = None
         self._stream_kinematics = EndEffectorController(  # its own data: another thread's
             twin.model, twin.layout, workspace, 1.0 / self.control_hz, settings

@@ -9,10 +9,10 @@
   reads the new rows every :data:`READ_PERIOD` and hands them over, each stamped with
   the controller's time mapped onto the host's clock (the offset is the smallest
   host-minus-controller time seen this episode, from the reads of the move to its
-  start and every observation, so a package never looks older than it is; each step is logged
-  at its own package's time on the same clock). ur_rtde writes a package's row again
-  when no new one came in between; a row whose timestamp is not newer than the last is
-  skipped.
+  start and every observation, so a package never looks older than it is; each step is
+  logged at its own package's time on the same clock). ur_rtde writes a package's row
+  again when no new one came in between; a row whose timestamp is not newer than the
+  last is skipped.
 - **The observation's state at the same rate** (stream ``observation.state``, the
   contract's entries): each package's joints and speeds, the TCP pose from the twin's
   kinematics of those joints, and the gripper's opening as the last observation read it
