@@ -198,9 +198,6 @@ class URArm:
         config = TaskConfig.from_dict(config)
         self.stream.stop()
         self.guard.check_start(self.start_q, "the task's start pose")
-        # The host-minus-controller clock offset is found afresh each episode (the clocks
-        # drift apart over a session), from the move's reads and every observation.
-        self.sensors.offset = None
         self._move_to(self.start_q)
         self.gripper.command(0.0)
         if self.arrange is not None:
@@ -223,9 +220,7 @@ class URArm:
         nearest, progressed = np.inf, time.monotonic()
         while True:
             self._check()
-            clock, measured = self._link.snapshot(("getTimestamp", "getActualQ"))
-            self.sensors.saw(clock, time.monotonic())
-            remaining = float(np.abs(np.array(measured) - q).max())
+            remaining = float(np.abs(self.measured_q() - q).max())
             if remaining < ARRIVED and np.abs(self._receive.getActualQd()).max() < 1e-2:
                 return
             if remaining < nearest - ARRIVED:
@@ -262,17 +257,8 @@ class URArm:
         getters = ("getTimestamp", "getActualQ", "getActualQd", "getTargetQ")
         if self.effort:  # the torques the controller applies (RTDE target_moment)
             getters += ("getTargetMoment", "getActualTCPForce")
-        images = self.cameras.images()  # before the state: see observed_at below
         clock, q, qd, target, *forces = self._link.snapshot(getters)
         self.sensors.saw(clock, time.monotonic())
-        # The step is logged at its package's time on the samples' clock, not when the
-        # host got round to it (the gripper's socket comes after): a step and the 500 Hz
-        # state line up however loaded the host is. A live episode gives each step the
-        # newest frame captured by its time, which must be the frame read here: frames
-        # are read first, so their capture is all but always older than the package.
-        captured = self.cameras.captured_at
-        package_at = clock + self.sensors.offset
-        self.observed_at = package_at if captured is None else max(package_at, captured)
         q, qd = np.array(q), np.array(qd)
         position, quat = self.kinematics.forward(q)
         self._opening = self.gripper.opening()
@@ -285,7 +271,15 @@ class URArm:
         if self.effort:
             observation[EFFORT] = np.array(forces[0], np.float32)
             observation[WRENCH] = np.array(forces[1], np.float32)
-        observation.update(images)
+        observation.update(self.cameras.images())
+        # The step is logged at its package's time on the samples' clock, not when the
+        # host got round to it (the gripper's socket and the cameras come after), so a
+        # step and the 500 Hz state line up however loaded the host is; or at its
+        # frames' capture if later, as a live episode gives each step the newest frame
+        # captured by its time, which must be the frame read here.
+        package_at = clock + self.sensors.offset
+        captured = self.cameras.captured_at
+        self.observed_at = package_at if captured is None else max(package_at, captured)
         return observation
 
     def _state_of(self, joints: np.ndarray, speeds: np.ndarray) -> np.ndarray:
