@@ -76,10 +76,11 @@ def test_a_ur_episode_holds_every_frame_and_controller_package_on_one_clock(
     nearest = np.abs(samples.times[:, None] - stepped[None, :]).argmin(axis=0)
     # Each step beside its own package, or one a few servo periods away: ur_rtde's file
     # skips a package now and then, a frame captured after the package moves the step
-    # to the frame's time, and the clocks' offset is found as the session goes (up to
-    # 7 ms seen in its first steps). The first step's came before the episode's start.
-    assert np.abs(samples.times[nearest] - stepped)[1:].max() < 0.01
-    assert np.abs(samples.values[nearest, :6] - step_q).max() < 0.02  # 10 ms at 1 rad/s
+    # to the frame's time, and the clocks' offset is found as the session goes, the
+    # packages kept in order as it falls (12 ms seen in the first steps). The first
+    # step's package came before the episode's start.
+    assert np.abs(samples.times[nearest] - stepped)[1:].max() < 0.02
+    assert np.abs(samples.values[nearest, :6] - step_q).max() < 0.03  # 20 ms at 1.5 rad/s
     step_tcp = episode.data["observation.state"][:, 12:19]  # and the TCP computed from them
     assert np.abs(state.values[nearest, 12:19] - step_tcp).max() < 0.03  # as the joints
     # The camera: each step given the frame it saw.
