@@ -65,17 +65,22 @@ class EpisodeResult:
     periods: tuple[float, ...] = ()  # s between consecutive control steps (wall clock)
 
 
+def _backend(robot: Robot) -> Robot:
+    """The backend at the bottom of ``robot``'s stack (``robot`` itself if unwrapped)."""
+    *_, backend = layers(robot)
+    return backend
+
+
 def sensor_counts(robot: Robot) -> dict:
     """What the backend's sensors delivered this episode (a real cell's cameras), if it says."""
-    backend = list(layers(robot))[-1]
-    counts = getattr(backend, "sensor_counts", None)
+    counts = getattr(_backend(robot), "sensor_counts", None)
     return counts() if callable(counts) else {}
 
 
 def sensor_streams(robot: Robot) -> Any:
     """The backend's sensors at their own rates (a real cell's cameras and controller
     state: ``cameras``, ``samples``, ``start(live)``, ``stop()``), or ``None``."""
-    streams = getattr(list(layers(robot))[-1], "sensor_streams", None)
+    streams = getattr(_backend(robot), "sensor_streams", None)
     return streams() if callable(streams) else None
 
 
@@ -83,7 +88,7 @@ def observation_time(robot: Robot) -> float:
     """When the newest observation was taken, on the host's monotonic clock: a real
     cell's controller package time on its samples' clock (``observed_at``), so each step
     lines up with the state streamed at the controller's rate; otherwise now."""
-    at = getattr(list(layers(robot))[-1], "observed_at", None)
+    at = getattr(_backend(robot), "observed_at", None)
     return time.monotonic() if at is None else float(at)
 
 

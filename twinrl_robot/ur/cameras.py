@@ -230,8 +230,7 @@ class CameraRig:
     def images(self) -> dict[str, np.ndarray]:
         """Each camera's newest frame for this control step, keyed like the contract."""
         now = time.monotonic()
-        images = {}
-        self.captured_at = None
+        images, stamps = {}, []
         for camera in self.cameras:
             frame = camera.latest()
             if frame is None:
@@ -242,7 +241,8 @@ class CameraRig:
             self._used[camera.name] = frame.index
             camera.stats.latencies.append(age)
             images[f"observation.images.{camera.name}"] = frame.image
-            self.captured_at = max(frame.stamp, self.captured_at or frame.stamp)
+            stamps.append(frame.stamp)
+        self.captured_at = max(stamps, default=None)
         return images
 
     def counts(self) -> dict[str, dict[str, int]]:

@@ -9,8 +9,9 @@
   reads the new rows every :data:`READ_PERIOD` and hands them over, each stamped with
   the controller's time mapped onto the host's clock (the offset is the smallest
   host-minus-controller time seen at any observation, so a package never looks older
-  than it is; each step is logged at its own package's time on the same clock, or at
-  its frames' capture if later). ur_rtde writes a package's row again when no new one
+  than it is; it only falls, so an episode's packages keep the offset of its first
+  rows, in order; each step is logged at its own package's time, or at its frames'
+  capture if later). ur_rtde writes a package's row again when no new one
   came in between; a row whose timestamp is not newer than the last is skipped.
 - **The observation's state at the same rate** (stream ``observation.state``, the
   contract's entries): each package's joints and speeds, the TCP pose from the twin's
@@ -76,7 +77,7 @@ class SensorStreams:
         self._folder: Path | None = None
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
-        self._handed_at = 0.0  # s, the host time the newest handed package was given
+        self._episode_offset = 0.0  # s, the offset this episode's packages are mapped with
 
     @property
     def cameras(self) -> dict[str, float]:
@@ -146,16 +147,15 @@ class SensorStreams:
         if len(rows):
             clock = rows[:, 0]
             values = rows[:, 1:].astype(np.float32)
-            # A lower offset found since the last rows must not map these before them
-            # (the log would hold the packages out of order): no earlier than the last
-            # rows' mapping carried on.
-            received = clock + self.offset
-            if np.isfinite(last):
-                received = np.maximum(received, self._handed_at + (clock - last))
+            # A lower offset found since the episode's first rows would map these before
+            # rows already handed over, out of order in the log: it keeps the first's.
+            if not np.isfinite(last):
+                self._episode_offset = self.offset
+            received = clock + self._episode_offset
             self._live.samples("controller", received, values, clock)
             if self.state_of is not None:
                 joints, speeds = values[:, :JOINTS], values[:, JOINTS : 2 * JOINTS]
                 self._live.samples(STATE, received, self.state_of(joints, speeds), clock)
             self.received += len(rows)
-            last, self._handed_at = float(clock[-1]), float(received[-1])
+            last = float(clock[-1])
         return rest, last
