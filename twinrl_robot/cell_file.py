@@ -125,6 +125,11 @@ class CameraSpec(_Strict):
 class SafetySpec(_Strict):
     workspace: WorkspaceSpec = WorkspaceSpec()  # the twin's box: base frame, m
     tool_cone_deg: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=180.0)] = 45.0
+    # m every corner of the tool (fingers open or closed, at any tilt) keeps above the table
+    table_clearance: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=0.1)] = 0.003
+    # m above the clearance within which the tool descends at table_approach_speed at most
+    table_approach_height: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=0.5)] = 0.02
+    table_approach_speed: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=2.0)] = 0.05
     max_step_translation: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=0.1)] = 0.02
     max_step_rotation: Annotated[float, Field(allow_inf_nan=False, gt=0.0, le=0.5)] = 0.1
     joint_margin: Annotated[float, Field(allow_inf_nan=False, ge=0.0, le=0.5)] = 0.05

@@ -245,7 +245,8 @@ def cell_check(
     table.add_row(
         "safety",
         f"box {list(safety.workspace.low)}..{list(safety.workspace.high)} m, tool cone "
-        f"{safety.tool_cone_deg:g} deg, {safety.max_step_translation:g} m and "
+        f"{safety.tool_cone_deg:g} deg, {safety.table_clearance:g} m above the table, "
+        f"{safety.max_step_translation:g} m and "
         f"{safety.max_step_rotation:g} rad per step, joints {safety.max_joint_speed:g} rad/s, "
         f"watchdog {safety.watchdog_ms:g} ms",
     )

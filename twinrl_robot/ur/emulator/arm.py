@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from twinrl_robot.tool_clearance import subtree
 from twinrl_robot.ur.emulator.reference import (
     SERVO_GAIN,
     SERVO_LOOKAHEAD,
@@ -146,8 +147,8 @@ class EmulatedArm:
         self._flange = model.body(self.cell.layout.flange_body).id
         self._base = model.body(MOUNT_BODY).id
         self._table = model.geom(self.cell.layout.table_geom).id
-        self._robot_bodies = _subtree(model, self._base)
-        self._arm_link_bodies = self._robot_bodies - _subtree(model, self._flange)
+        self._robot_bodies = subtree(model, self._base)
+        self._arm_link_bodies = self._robot_bodies - subtree(model, self._flange)
         self._tracker = task.start(self.cell, task.sample_config(np.random.default_rng(0)))
         joints = [model.joint(name).id for name in self.cell.layout.arm_joints]
         self.limits = JointLimits(
@@ -375,8 +376,9 @@ class EmulatedArm:
     def _check_safety(self) -> None:
         """The protective stops a UR's safety system raises: the arm against the table,
         a joint beyond its range or faster than its speed limit."""
-        if self._hits_table():
-            self.protective_stop("the arm hit the table or pressed on it too hard")
+        contact = self._table_contact()
+        if contact:
+            self.protective_stop(contact)
             return
         if not self._within_range(self.reference.q, "arm"):
             return
@@ -388,7 +390,9 @@ class EmulatedArm:
                 f"{speed[fastest]:.2f} rad/s, beyond its {self.limits.speed:.2f} rad/s limit"
             )
 
-    def _hits_table(self) -> bool:
+    def _table_contact(self) -> str:
+        """Why the arm must stop for the table ("" when it need not): one of its links
+        touches it, or the tool presses on it harder than a UR's force limit."""
         data, model = self.cell.data, self.cell.model
         force = np.zeros(6)
         pressing = 0.0
@@ -400,11 +404,17 @@ class EmulatedArm:
             other = geoms[1] if geoms[0] == self._table else geoms[0]
             body = int(model.geom_bodyid[other])
             if body in self._arm_link_bodies:
-                return True
+                name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body)
+                return f"the arm's {name} link hit the table"
             if body in self._robot_bodies:
                 mujoco.mj_contactForce(model, data, i, force)
                 pressing += abs(force[0])
-        return pressing > PROTECTIVE_FORCE
+        if pressing > PROTECTIVE_FORCE:
+            return (
+                f"the tool pressed on the table with {pressing:.0f} N, "
+                f"over the {PROTECTIVE_FORCE:.0f} N force limit"
+            )
+        return ""
 
     # ---------------------------------------------------------------- reading
     def read(self) -> ArmReading:
@@ -449,7 +459,7 @@ class EmulatedArm:
     def _tcp_force(self) -> np.ndarray:
         """Contact wrench on the robot's tool (flange subtree), world-aligned."""
         model, data = self.cell.model, self.cell.data
-        tool = _subtree(model, self._flange)
+        tool = subtree(model, self._flange)
         total = np.zeros(6)
         for i in range(data.ncon):
             contact = data.contact[i]
@@ -462,15 +472,3 @@ class EmulatedArm:
             sign = -1.0 if bodies[0] in tool else 1.0
             total[:3] += sign * frame.T @ local[:3]
         return total
-
-
-def _subtree(model: mujoco.MjModel, root: int) -> set[int]:
-    """Ids of ``root`` and every body below it."""
-    bodies = {root}
-    for body in range(model.nbody):
-        parent = body
-        while parent > 0 and parent not in bodies:
-            parent = int(model.body_parentid[parent])
-        if parent in bodies:
-            bodies.add(body)
-    return bodies

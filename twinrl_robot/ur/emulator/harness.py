@@ -34,6 +34,7 @@ from twinrl_sim.tasks import Progress, TaskConfig
 
 READY_PREFIX = "emulating"
 START_TIMEOUT = 90.0  # s for the emulator process to serve (it compiles the plant)
+ERROR_TAIL = 20  # lines of the emulator's errors shown when the block it serves fails
 PR_SET_PDEATHSIG = 1  # prctl(2): the signal a process gets when its parent ends
 # Looked up here, not in the child between fork and exec, where little is safe to run.
 _PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
@@ -165,6 +166,9 @@ class EmulatorProcess:
         raise RobotError(f"the emulator did not start: {last}")
 
     def __exit__(self, *exc: object) -> None:
+        if exc and exc[0] is not None:  # what went wrong, as the controller saw it
+            tail = self.errors().strip().splitlines()[-ERROR_TAIL:]
+            print("\n".join(["the emulator's last words:", *tail]), file=sys.stderr)
         if self.process is None or self.process.poll() is not None:
             return
         self.process.send_signal(signal.SIGINT)
