@@ -17,8 +17,9 @@ from twinrl_learn.cli import app, main
 runner = CliRunner()
 
 
-def twinrl(*args: str, cwd=None, stdin: str = "") -> subprocess.CompletedProcess:
-    """Run the real entry point (so exit codes and stderr are what a user sees)."""
+def twinrl_process(*args: str, cwd=None, stdin: str = "") -> subprocess.CompletedProcess:
+    """Run the real entry point in a fresh interpreter, for what only a process shows
+    (its start-up, what it imports, how it ends)."""
     return subprocess.run(
         [sys.executable, "-m", "twinrl_learn", *args],
         capture_output=True,
@@ -29,15 +30,18 @@ def twinrl(*args: str, cwd=None, stdin: str = "") -> subprocess.CompletedProcess
     )
 
 
-def twinrl_in_process(*args: str, cwd: str | Path) -> subprocess.CompletedProcess:
+def twinrl(
+    *args: str, cwd: str | Path | None = None, stdin: str = ""
+) -> subprocess.CompletedProcess:
     """The entry point called in this process, as ``python -m twinrl_learn`` calls it
-    (the same ``main``: one-line errors, exit statuses), for the many bad-input cases
-    whose check costs less than a fresh interpreter's start-up. A bug's traceback is
-    raised here rather than printed."""
+    (the same ``main``: one-line errors, exit statuses): a fresh interpreter's start-up
+    (up to 14 s here, most of it lerobot's imports) would cost more than most commands
+    tested. A bug's traceback is raised here rather than printed."""
     out, err = io.StringIO(), io.StringIO()
-    argv, here, show = sys.argv, os.getcwd(), warnings.showwarning
+    argv, here, show, stdin_was = sys.argv, os.getcwd(), warnings.showwarning, sys.stdin
     sys.argv = ["twinrl", *args]
-    os.chdir(cwd)
+    sys.stdin = io.StringIO(stdin)
+    os.chdir(cwd or here)
     code: int | str | None = 0
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -45,8 +49,10 @@ def twinrl_in_process(*args: str, cwd: str | Path) -> subprocess.CompletedProces
     except SystemExit as stop:
         code = stop.code
     finally:
-        sys.argv, warnings.showwarning = argv, show
+        sys.argv, warnings.showwarning, sys.stdin = argv, show, stdin_was
         os.chdir(here)
+    if isinstance(code, str):  # as the interpreter does with sys.exit("...")
+        err.write(code + "\n")
     status = code if isinstance(code, int) else (0 if code is None else 1)
     return subprocess.CompletedProcess(list(args), status, out.getvalue(), err.getvalue())
 
@@ -271,7 +277,7 @@ STARTED = ["--task", "pick_place", "--init", "p", "--out", "x"]  # a run's first
     ],
 )
 def test_stage1_bad_input(args, message, tmp_path):
-    result = twinrl_in_process(*args, cwd=tmp_path)
+    result = twinrl(*args, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
     assert not (tmp_path / "x").exists()  # nothing written

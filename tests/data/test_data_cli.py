@@ -1,20 +1,9 @@
-"""``twinrl data`` and ``twinrl view`` end to end, with the real entry point."""
+"""``twinrl data`` and ``twinrl view`` end to end, through the entry point's ``main``."""
 
 import json
-import subprocess
-import sys
 
 from tests.data.conftest import write_episode
-
-
-def twinrl(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "twinrl_learn", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=600,
-    )
+from tests.test_cli import twinrl
 
 
 def test_record_index_query_export_view(tmp_path):

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from tests.robot.test_ur_cell import write_cell
-from tests.test_cli import twinrl_in_process
+from tests.test_cli import twinrl
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode, read_summary
 from twinrl_data.schema import CONTROLLER_TARGET, CONTROLLER_TIME, JOINT_TARGET
@@ -180,7 +180,7 @@ def test_bad_input_is_one_line_and_loses_nothing(tmp_path: Path) -> None:
         (("--plan", "elsewhere"), "neither a region"),
         (("--robot", "ur"), "needs its cell file"),
     ]:
-        result = twinrl_in_process("record", "--out", str(out), *args, cwd=tmp_path)
+        result = twinrl("record", "--out", str(out), *args, cwd=tmp_path)
         assert result.returncode == 2, (args, result.stderr)
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and message in lines[0], (args, result.stderr)

@@ -14,7 +14,7 @@ import open3d as o3d
 import pytest
 from scipy.spatial import cKDTree
 
-from tests.test_cli import twinrl, twinrl_in_process
+from tests.test_cli import twinrl
 from twinrl_robot.scripted import run_scripted_expert
 from twinrl_sim.build import compile_scene, look_at_quat
 from twinrl_sim.reconstruct import CaptureError, align_to_points, align_to_tag, select_frames
@@ -394,7 +394,7 @@ POINTS = ["--tag-point", "0=0.3,0.3,0", "--tag-point", "1=0.7,0.4,0"]
 )
 def test_bad_arguments_are_refused_before_any_work(tmp_path, args, message):
     build = ["twin", "build", str(tmp_path), "--out", str(tmp_path / "o"), *args]
-    result = twinrl_in_process(*build, cwd=tmp_path)
+    result = twinrl(*build, cwd=tmp_path)
     assert result.returncode == 2 and message in result.stderr, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
 
