@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from tests.robot.test_ur_cell import write_cell
+from tests.test_cli import twinrl_process
 from twinrl_robot.backends import open_robot
 from twinrl_robot.errors import RobotError
 from twinrl_robot.ur.cameras import CameraError, CameraRig, CameraStats, Frame, OpenCVCamera
@@ -28,12 +29,6 @@ pytestmark = pytest.mark.realtime  # the emulator and the cameras keep real time
 
 def host_of(cell: Path) -> str:
     return yaml.safe_load(cell.read_text())["arm"]["host"]
-
-
-def twinrl(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "twinrl_learn", *args], capture_output=True, text=True, timeout=120
-    )
 
 
 def test_the_robotiq_socket_and_the_cameras_of_an_emulated_cell(tmp_path: Path) -> None:
@@ -168,7 +163,7 @@ def test_an_unreachable_controller_is_one_line(tmp_path: Path) -> None:
     with pytest.raises(RobotConnectionError, match="cannot reach the UR controller") as err:
         open_robot("real", make_task("pick_place"), cell=cell)
     assert "\n" not in str(err.value)
-    result = twinrl("robot", "check", str(cell))
+    result = twinrl_process("robot", "check", str(cell))
     assert result.returncode == 2
     assert "cannot reach the UR controller" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
@@ -215,7 +210,7 @@ def test_an_emulator_ends_with_the_process_that_started_it(tmp_path: Path) -> No
 def test_robot_check_reports_the_cell_and_records_the_safety_box(tmp_path: Path) -> None:
     cell = write_cell(tmp_path)
     with EmulatorProcess(cell):
-        result = twinrl(
+        result = twinrl_process(
             "robot", "check", str(cell), "--seconds", "1", "--rerun", str(tmp_path / "c.rrd")
         )
     assert result.returncode == 0, result.stderr
