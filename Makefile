@@ -61,25 +61,29 @@ $(STAMP): pyproject.toml
 # The suite runs on every core, a test file per worker, each worker on one thread (torch
 # and OpenMP threads of two workers on two cores fight: 9.2 min against 6.3); the tests
 # that keep real time against an emulated controller run after it, alone. Each prints its
-# slowest tests, to keep the suite within CI's time.
+# slowest tests, to keep the suite within CI's time. The emulator, its controller link and
+# the test fill both cores of a 2-core host, where a real-time bound fails now and then
+# (a different one in each of the last three runs): such a test runs up to twice more,
+# and each rerun is listed in the summary (RERUN) so that a flake stays seen.
 PARALLEL := OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/pytest -n auto --dist loadfile
+REALTIME := $(BIN)/pytest -q --reruns 2 --reruns-delay 1
 test: setup
 	$(BIN)/ruff check .
 	$(PARALLEL) -q --durations=15 -m "not slow and not realtime and not long"
-	$(BIN)/pytest -q --durations=10 -m "realtime and not slow and not long"
+	$(REALTIME) --durations=10 -m "realtime and not slow and not long"
 
 # The end-to-end runs marked slow (about 5 minutes more on 2 cores); CI runs them after
 # `make test`: on every core, then those that keep real time (timed kills among them)
 # alone. Those marked long as well run beyond CI's 30 minutes: `make test-long` runs them.
 test-slow: setup
 	$(PARALLEL) -q -m "slow and not realtime and not long"
-	$(BIN)/pytest -q -m "slow and realtime and not long"
+	$(REALTIME) -m "slow and realtime and not long"
 
 # The runs too long for CI (about 9 minutes on 2 cores): before a release, or when the
 # gap workflow, the object builds or the image policy's RL change.
 test-long: setup
 	$(PARALLEL) -q -m "long and not realtime"
-	$(BIN)/pytest -q -m "long and realtime"
+	$(REALTIME) -m "long and realtime"
 
 DEMO := out/demo
 demo: setup
