@@ -10,22 +10,12 @@ clearance above the table, whatever the tilt.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import mujoco
 import numpy as np
 
 from twinrl_sim.cell import Cell
 
 _CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
-
-
-@dataclass(frozen=True)
-class ToolExtent:
-    """The tool's reach, from the twin's geometry."""
-
-    points: np.ndarray  # (n, 3) m, TCP frame: corners of the tool's collision geoms
-    table_top: float  # m, base frame: the table's top face
 
 
 def subtree(model: mujoco.MjModel, root: int) -> set[int]:
@@ -40,9 +30,9 @@ def subtree(model: mujoco.MjModel, root: int) -> set[int]:
     return bodies
 
 
-def tool_extent(twin: Cell) -> ToolExtent:
-    """The corners of every colliding geom carried by the flange, in the TCP frame, with
-    the tool's joints (the fingers) at their lower and at their upper limits."""
+def tool_points(twin: Cell) -> np.ndarray:
+    """The corners (n x 3, m, TCP frame) of every colliding geom carried by the flange,
+    with the tool's joints (the fingers) at their lower and at their upper limits."""
     model, layout = twin.model, twin.layout
     tool = subtree(model, model.body(layout.flange_body).id)
     colliding = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
@@ -63,4 +53,4 @@ def tool_extent(twin: Cell) -> ToolExtent:
             rotation = data.geom_xmat[geom].reshape(3, 3)
             world = data.geom_xpos[geom] + (centre + _CORNERS * half) @ rotation.T
             points.append((world - data.site_xpos[site]) @ tcp_rotation)
-    return ToolExtent(points=np.concatenate(points), table_top=twin.table_top)
+    return np.concatenate(points)

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from twinrl_robot.cell_file import SafetySpec
 from twinrl_robot.guard import BOX_TOLERANCE, GuardLimits, JointGuard, UnsafeStart, tool_tilt_deg
-from twinrl_robot.tool_clearance import tool_extent
+from twinrl_robot.tool_clearance import tool_points
 from twinrl_robot.wrappers.safety import SafetyLimits
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -49,7 +49,7 @@ def _guard(twin: Cell) -> tuple[JointGuard, EndEffectorController]:
         box_low=box[0],
         box_high=box[1],
         cone_deg=SAFETY.tool_cone_deg,
-        tool_points=tool_extent(twin).points,
+        tool_points=tool_points(twin),
         table_top=twin.table_top,
         table_clearance=SAFETY.table_clearance,
         approach_height=SAFETY.table_approach_height,

@@ -50,7 +50,7 @@ from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.guard import GuardLimits, JointGuard
 from twinrl_robot.robot import Privileged, Sent
-from twinrl_robot.tool_clearance import tool_extent
+from twinrl_robot.tool_clearance import tool_points
 from twinrl_robot.ur.cameras import CameraRig
 from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused, LinkLost
 from twinrl_robot.ur.gripper import Gripper, NoGripper
@@ -142,7 +142,6 @@ class URArm:
         self.kinematics = EndEffectorController(
             twin.model, twin.layout, workspace, 1.0 / self.control_hz, settings
         )
-        tool = tool_extent(twin)
         self.guard = JointGuard(
             GuardLimits(
                 q_low=self.kinematics.q_low,
@@ -152,8 +151,8 @@ class URArm:
                 box_low=workspace[0],
                 box_high=workspace[1],
                 cone_deg=safety.tool_cone_deg,
-                tool_points=tool.points,
-                table_top=tool.table_top,
+                tool_points=tool_points(twin),
+                table_top=twin.table_top,
                 table_clearance=safety.table_clearance,
                 approach_height=safety.table_approach_height,
                 approach_speed=safety.table_approach_speed,
