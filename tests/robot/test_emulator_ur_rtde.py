@@ -38,23 +38,48 @@ def host(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         yield yaml.safe_load(Path(cell).read_text())["arm"]["host"]
 
 
-@pytest.fixture
-def ur(host: str) -> Iterator[tuple]:
-    """A fresh control script and a receiver; the arm is left unlocked and at rest."""
+@pytest.fixture(scope="module")
+def home(host: str) -> list[float]:
+    """The joints the emulated arm starts at, where every test starts."""
+    import rtde_receive
+
+    receive = rtde_receive.RTDEReceiveInterface(host)
+    try:
+        return list(receive.getActualQ())
+    finally:
+        receive.disconnect()
+
+
+def unlock(host: str) -> None:
+    """Release a protective stop through the dashboard, as the person at the pendant does."""
     import dashboard_client
+
+    dashboard = dashboard_client.DashboardClient(host)
+    dashboard.connect()
+    dashboard.unlockProtectiveStop()
+    dashboard.disconnect()
+
+
+@pytest.fixture
+def ur(host: str, home: list[float]) -> Iterator[tuple]:
+    """A fresh control script and a receiver, the arm unlocked and at rest at ``home``.
+
+    The streams turn the wrist on from wherever it is, so without the move home a test
+    run again (the real-time suites rerun a failed test) carried the wrist past its joint
+    range in a later test, whose protective stop then failed every test after it."""
     import rtde_control
     import rtde_receive
 
     receive = rtde_receive.RTDEReceiveInterface(host)
+    if receive.getSafetyMode() != NORMAL:
+        unlock(host)
     control = rtde_control.RTDEControlInterface(host, RATE)
     try:
+        assert control.moveJ(home, 3.0, 10.0), "the arm did not return home"
         yield control, receive
     finally:
         if receive.getSafetyMode() != NORMAL:
-            dashboard = dashboard_client.DashboardClient(host)
-            dashboard.connect()
-            dashboard.unlockProtectiveStop()
-            dashboard.disconnect()
+            unlock(host)
         if control.isProgramRunning():
             control.stopScript()
         control.disconnect()
@@ -124,15 +149,17 @@ def steady_speeds(samples: Samples, skip: float = 0.3) -> tuple[np.ndarray, np.n
 
 def test_a_servoj_stream_reports_the_smooth_speed_its_positions_move_at(ur) -> None:
     """A UR5e's reported speed changes by a median 1e-4 rad/s between 8 ms samples and
-    matches the positions' finite difference. The tolerances (a median change under
-    0.02 rad/s, a mismatch under 0.02 rad/s RMS) leave room for a loaded two-core host's
-    late targets (a median change of 0.012 rad/s seen); stepped targets (0.2 to 0.8 rad/s
-    from one period to the next) fail them by ten times or more."""
+    matches the positions' finite difference. The emulator's speeds follow the client's
+    targets, which a loaded two-core host sends late and in bursts: an idle host gives a
+    median change of 0.006 rad/s and a mismatch of 0.004 rad/s RMS, one busy core 0.024 and
+    0.019, a CI run's full load 0.028. The tolerances (0.05 and 0.04 rad/s) leave room for
+    that; stepped targets (0.2 to 0.8 rad/s from one period to the next) fail them by four
+    times or more."""
     control, receive = ur
     qd, difference = steady_speeds(stream_servoj(control, receive, 1.5, speed=1.0, kick=False))
-    assert np.median(np.abs(np.diff(qd))) < 0.02
+    assert np.median(np.abs(np.diff(qd))) < 0.05
     mismatch = np.abs(qd - difference)
-    assert np.sqrt(np.mean(mismatch**2)) < 0.02, np.sort(mismatch)[-5:]
+    assert np.sqrt(np.mean(mismatch**2)) < 0.04, np.sort(mismatch)[-5:]
     assert np.median(qd) == pytest.approx(1.0, abs=0.02)
 
 

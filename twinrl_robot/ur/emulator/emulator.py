@@ -139,7 +139,7 @@ class Emulator:
                 raise RobotError(
                     f"cannot serve the emulated {name} port {host}:{port} ({err.strerror}); "
                     "another controller or emulator uses it: stop it or emulate on another "
-                    "loopback address (--host 127.0.0.2)"
+                    "loopback address (127.0.0.2 and up)"
                 ) from None
             self._servers.append(server)
             threading.Thread(target=server.serve_forever, name=name, daemon=True).start()
