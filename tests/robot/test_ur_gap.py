@@ -63,11 +63,19 @@ def _excite(folder: Path, effects: dict) -> list:
 # Real time: the emulated controller's link jitter grows with the host's load, and with
 # other tests beside it the tracking twin's start ratio passed 0.75 (0.757 once).
 @pytest.mark.realtime
-# Known regression, seen in three runs of one fresh-clone CI: the arm's delay read 36.2 ms
-# against 30 +- 6, and once the tracking twin's start ratio missed 0.75. It came after live
-# steps were stamped at their controller package's time rather than the host's (suspected,
-# not shown), or with the guard's table clearance. Not strict: it still runs and reports.
-@pytest.mark.xfail(reason="the arm's delay reads 36 ms, not 30: cause not yet found")
+# Known failure. The tracking twin's delay is fitted right (29.6 +- 6.1 ms against the
+# hidden 30 in a run on an idle host here; 36.2 in three CI runs) and brings the joints'
+# residual from 57 to 13 noise units, but it is not named: the held-out gap shrinks by
+# 4.5 %, under the 5 % a named effect must bring, because the joint speeds' and torques'
+# residuals (78 and 260 units) stay. Suspected, not shown: those are read at the
+# segments' corners, where the speed changes, and the steps land 90-106 ms apart (5th-95th
+# percentile at 10 Hz) while the twin replays them 100 ms apart. The code before live
+# steps were stamped at their controller package's time fails the same way here, so that
+# change is not the cause. What would fix it: replay each segment over its logged
+# controller time. Not strict: it still runs and reports.
+@pytest.mark.xfail(
+    reason="the delay is fitted but not named: the steps' timing jitter dominates the gap"
+)
 def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Path) -> None:
     delayed = _excite(tmp_path / "delayed", {"actuator_delay": {"seconds": HIDDEN_DELAY}})
     # A twin whose servos hold each target lacks what the arm does: it is named first.
