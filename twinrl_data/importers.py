@@ -341,9 +341,10 @@ def _without_repeats(
     between, and a row read while the next package arrived mixes the two (a stamp shared
     with a neighbour, each value either that neighbour's or the row's on its other
     side). Neither is a new sample. A row read as a package arrived may also carry the
-    last package's stamp with every value new, the next row two periods on: it is the
-    package between, and takes its stamp back. A clock coarser than the rows (every row's
-    values new, the stamps not skipping) is none of these, and is left to :func:`_clock`."""
+    last package's stamp with every value new, the next row two periods on or more (the
+    recorder misses packages now and then): it is the package after the last one, and
+    takes its stamp back. A clock coarser than the rows (every row's values new, the stamps
+    not skipping) is none of these, and is left to :func:`_clock`."""
     table = np.column_stack([times, *values.values()])
     exact = np.flatnonzero(np.all(table[1:] == table[:-1], axis=1)) + 1
     keep = np.ones(len(times), bool)
@@ -365,9 +366,9 @@ def _without_repeats(
             torn.append(i + 1)  # this stamp, partly the next package's values
         elif mixes(i, i - 1, i + 1):
             torn.append(i)  # the next stamp, partly the last package's values
-        elif i + 2 < len(table) and abs(table[i + 2, 0] - table[i, 0] - 2 * tick) < tick / 100:
-            # Every value new and the next row two periods on: the package between, whose
-            # stamp is the last one's; it takes the stamp it lacks.
+        elif i + 2 < len(table) and table[i + 2, 0] - table[i, 0] > 2 * tick - tick / 100:
+            # Every value new and the next row two periods on or more: the package after
+            # the last one, under the last one's stamp; it takes the stamp it lacks.
             restamped[i + 1] = table[i, 0] + tick
     if not len(exact) and not torn and not restamped:
         return times, values

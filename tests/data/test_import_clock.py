@@ -76,15 +76,17 @@ def test_rows_that_repeat_the_row_before_exactly_are_dropped_and_said(tmp_path):
 
 def test_a_row_with_the_last_packages_stamp_and_new_values_takes_the_stamp_between(tmp_path):
     """ur_rtde's recorder, reading while a package arrives, may write the new package's
-    values under the last one's stamp; the next row is then two periods on. No sample is
-    lost: the row takes the stamp it lacks."""
+    values under the last one's stamp; the next row is then two periods on, or three when
+    the recorder missed a package too (seen in CI). No sample is lost: the row takes the
+    stamp it lacks."""
     stamps = np.arange(300) / 500.0
-    torn = [40, 150]
-    stamps[torn] = stamps[[39, 149]]
+    stamps[200:] += 1 / 500.0  # a package the recorder missed, right after a torn row
+    torn = [40, 150, 199]
+    stamps[torn] = stamps[[39, 149, 198]]
     path = _log(tmp_path, np.round(stamps, 6))
-    with pytest.warns(DataWarning, match=r"gave 2 the stamp between"):
+    with pytest.warns(DataWarning, match=r"gave 3 the stamp between"):
         episode = import_csv(path)
-    assert len(episode) == 300 and episode.meta.fps == 500.0
+    assert episode.meta.fps == 500.0 and len(episode) == 301  # the missed one interpolated
     # A genuine coarse clock (stamps repeating without the skip) is still refused.
     coarse = np.floor(np.arange(300) / 250.0 * 100) / 100
     with pytest.raises(DataError, match="repeat the stamp"):
