@@ -72,7 +72,9 @@ def _excite(folder: Path, effects: dict) -> list:
 # percentile at 10 Hz) while the twin replays them 100 ms apart. The code before live
 # steps were stamped at their controller package's time fails the same way here, so that
 # change is not the cause. What would fix it: replay each segment over its logged
-# controller time. Not strict: it still runs and reports.
+# controller time. Not strict: it still runs and reports, in `make test-long` (CI's time
+# goes to tests that can fail it).
+@pytest.mark.long
 @pytest.mark.xfail(
     reason="the delay is fitted but not named: the steps' timing jitter dominates the gap"
 )
