@@ -13,21 +13,10 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from twinrl_sim.body_tree import subtree
 from twinrl_sim.cell import Cell
 
 _CORNERS = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
-
-
-def subtree(model: mujoco.MjModel, root: int) -> set[int]:
-    """Ids of body ``root`` and every body below it."""
-    bodies = {root}
-    for body in range(model.nbody):
-        parent = body
-        while parent > 0 and parent not in bodies:
-            parent = int(model.body_parentid[parent])
-        if parent in bodies:
-            bodies.add(body)
-    return bodies
 
 
 def tool_points(twin: Cell) -> np.ndarray:

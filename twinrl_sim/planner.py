@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import mujoco
 import numpy as np
 
+from twinrl_sim.body_tree import subtree
 from twinrl_sim.build import yaw_quat
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import MAX_ROTATION, TRACKED_ROTATION, quat_conj, quat_mul, quat_to_rotvec
@@ -96,9 +97,7 @@ class CollisionChecker:
         self.data = mujoco.MjData(cell.model)
         mujoco.mj_copyData(self.data, cell.model, cell.data)
         robot_root = self.model.body(MOUNT_BODY).id
-        self.robot_bodies = {
-            b for b in range(self.model.nbody) if _descends(self.model, b, robot_root)
-        }
+        self.robot_bodies = subtree(self.model, robot_root)
         self.object_body = self.model.body(object_name).id
         self.object_qpos = self.model.joint(f"{object_name}_free").qposadr[0]
         self.pads = {self.model.geom(f"gripper_pad_{side}").id for side in ("left", "right")}
@@ -139,14 +138,6 @@ class CollisionChecker:
                 continue  # the gripper squeezing the object it holds
             return True
         return False
-
-
-def _descends(model: mujoco.MjModel, body: int, root: int) -> bool:
-    while body != 0:
-        if body == root:
-            return True
-        body = model.body_parentid[body]
-    return False
 
 
 def object_pose_from_tcp(

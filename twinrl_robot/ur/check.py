@@ -18,6 +18,7 @@ import numpy as np
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.ur.driver import RobotConnectionError, URArm, require_reachable
 from twinrl_robot.ur.hardware import open_arm
+from twinrl_sim.body_tree import ancestors
 from twinrl_sim.layout import MOUNT_BODY
 from twinrl_sim.tasks import Task
 
@@ -137,20 +138,9 @@ def _record(path: Path, cell: CellFile, arm: URArm, q: np.ndarray, tool_path: np
     mujoco.mj_kinematics(twin.model, twin.data)
     chain = [twin.model.body(MOUNT_BODY).id]
     flange = twin.model.body(twin.layout.flange_body).id
-    links = [b for b in range(twin.model.nbody) if _is_ancestor(twin.model, b, flange)]
-    chain += sorted(set(links) - set(chain))
+    chain += sorted(ancestors(twin.model, flange) - set(chain))
     recording.log("world/arm", rr.LineStrips3D([twin.data.xpos[chain]]), static=True)
     if len(tool_path):
         recording.log("world/tool_path", rr.Points3D(tool_path, radii=0.004), static=True)
     recording.flush()
     recording.disconnect()
-
-
-def _is_ancestor(model: object, body: int, of: int) -> bool:
-    """Whether ``body`` lies on the chain from the world to body ``of``."""
-    node = of
-    while node > 0:
-        if node == body:
-            return True
-        node = int(model.body_parentid[node])  # type: ignore[attr-defined]
-    return False

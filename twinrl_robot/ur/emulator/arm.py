@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from twinrl_robot.tool_clearance import subtree
 from twinrl_robot.ur.emulator.reference import (
     SERVO_GAIN,
     SERVO_LOOKAHEAD,
@@ -26,6 +25,7 @@ from twinrl_robot.ur.emulator.reference import (
     JointReference,
 )
 from twinrl_robot.ur.tool_frame import ToolFrame
+from twinrl_sim.body_tree import subtree
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.layout import MOUNT_BODY
