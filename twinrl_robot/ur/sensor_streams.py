@@ -7,12 +7,15 @@
   receives to a CSV file of its own (``startFileRecording``, in its C++ receive thread:
   no package is skipped however busy the host's interpreter is), and a thread here
   reads the new rows every :data:`READ_PERIOD` and hands them over, each stamped with
-  the controller's time mapped onto the host's clock (the offset is the smallest
-  host-minus-controller time seen at any observation, so a package never looks older
-  than it is; it only falls, so an episode's packages keep the offset of its first
-  rows, in order; each step is logged at its own package's time, or at its frames'
-  capture if later). ur_rtde writes a package's row again when no new one
-  came in between; a row whose timestamp is not newer than the last is skipped.
+  the controller's time mapped onto the host's clock. The offset is the smallest
+  host-minus-controller time seen over the last :data:`DRIFT_WINDOW` of observations:
+  a package never looks older than it is by more than the clocks drift apart within
+  that window (1.5 ms at 50 ppm), and that drift (a controller's clock tens of ppm off
+  the host's: a tenth of a second an hour) is followed rather than piling up over a
+  long session. An episode's packages keep the offset of its first rows, in order; each
+  step is logged at its own package's time, or at its frames' capture if later. ur_rtde
+  writes a package's row again when no new one came in between; a row whose timestamp
+  is not newer than the last is skipped.
 - **The observation's state at the same rate** (stream ``observation.state``, the
   contract's entries): each package's joints and speeds, the TCP pose from the twin's
   kinematics of those joints, and the gripper's opening as the last observation read it
@@ -26,6 +29,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,6 +40,10 @@ from twinrl_data.schema import STATE
 from twinrl_robot.ur.cameras import CameraRig, Frame
 
 READ_PERIOD = 0.2  # s between reads of the controller's new rows
+# s of observations whose smallest host-minus-controller time is the clock offset: long
+# enough to hold a quick read on a loaded host (hundreds of reads), short enough that a
+# drift of 100 ppm moves the offset by 3 ms at most within it
+DRIFT_WINDOW = 30.0
 VARIABLES = ("timestamp", "actual_q", "actual_qd", "target_q", "target_moment", "actual_TCP_force")
 JOINTS = 6
 
@@ -78,6 +86,8 @@ class SensorStreams:
         self._stop = threading.Event()
         self._reader: threading.Thread | None = None
         self._episode_offset = 0.0  # s, the offset this episode's packages are mapped with
+        # (host time, offset) of the observations that may still be the window's lowest
+        self._lows: deque[tuple[float, float]] = deque()
 
     @property
     def cameras(self) -> dict[str, float]:
@@ -85,9 +95,16 @@ class SensorStreams:
         return {camera.name: camera.fps for camera in self.rig.cameras}
 
     def saw(self, controller_time: float, host_time: float) -> None:
-        """An observation read the controller's ``controller_time`` by ``host_time``."""
+        """An observation read the controller's ``controller_time`` by ``host_time``: the
+        offset becomes the lowest of the last :data:`DRIFT_WINDOW` s of observations."""
         offset = host_time - controller_time
-        self.offset = offset if self.offset is None else min(self.offset, offset)
+        lows = self._lows
+        while lows and lows[-1][1] >= offset:  # never the lowest while this one is seen
+            lows.pop()
+        lows.append((host_time, offset))
+        while lows[0][0] < host_time - DRIFT_WINDOW:
+            lows.popleft()
+        self.offset = lows[0][1]
 
     def start(self, live: Any) -> None:
         """Hand every camera frame and controller package to ``live`` from now on."""
