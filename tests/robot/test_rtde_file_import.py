@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import pytest
 
-from tests.robot.test_emulator_ur_rtde import WRIST, host, ur  # noqa: F401 (fixtures)
+from tests.robot.test_emulator_ur_rtde import WRIST, home, host, ur  # noqa: F401 (fixtures)
 from tests.robot.test_ur_cell import EMULATED
 from twinrl_data import schema
 from twinrl_data.errors import DataWarning
