@@ -66,7 +66,7 @@ $(STAMP): pyproject.toml
 # (a different one in each of the last three runs): such a test runs up to twice more,
 # and each rerun is listed in the summary (RERUN) so that a flake stays seen.
 PARALLEL := OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/pytest -n auto --dist loadfile
-REALTIME := $(BIN)/pytest -q --reruns 2 --reruns-delay 1
+REALTIME := $(BIN)/pytest -q -rfER --reruns 2 --reruns-delay 1
 test: setup
 	$(BIN)/ruff check .
 	$(PARALLEL) -q --durations=15 -m "not slow and not realtime and not long"
