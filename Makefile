@@ -79,8 +79,9 @@ test-slow: setup
 	$(PARALLEL) -q -m "slow and not realtime and not long"
 	$(REALTIME) -m "slow and realtime and not long"
 
-# The runs too long for CI (about 9 minutes on 2 cores): before a release, or when the
-# gap workflow, the object builds or the image policy's RL change.
+# The runs too long for CI (about 9 minutes on 2 cores), and the driver excitation's gap
+# diagnosis, a known failure (about 1.5 minutes more): before a release, or when the gap
+# workflow, the object builds or the image policy's RL change.
 test-long: setup
 	$(PARALLEL) -q -m "long and not realtime"
 	$(REALTIME) -m "long and realtime"
