@@ -6,13 +6,11 @@ import mujoco
 
 
 def subtree(model: mujoco.MjModel, root: int) -> set[int]:
-    """Ids of body ``root`` and every body below it."""
+    """Ids of body ``root`` and every body below it (a compiled model numbers every body
+    after its parent, so one pass from the root finds them all)."""
     bodies = {root}
-    for body in range(model.nbody):
-        parent = body
-        while parent > 0 and parent not in bodies:
-            parent = int(model.body_parentid[parent])
-        if parent in bodies:
+    for body in range(root + 1, model.nbody):
+        if int(model.body_parentid[body]) in bodies:
             bodies.add(body)
     return bodies
 

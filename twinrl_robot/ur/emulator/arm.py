@@ -148,7 +148,8 @@ class EmulatedArm:
         self._base = model.body(MOUNT_BODY).id
         self._table = model.geom(self.cell.layout.table_geom).id
         self._robot_bodies = subtree(model, self._base)
-        self._arm_link_bodies = self._robot_bodies - subtree(model, self._flange)
+        self._tool_bodies = subtree(model, self._flange)
+        self._arm_link_bodies = self._robot_bodies - self._tool_bodies
         self._tracker = task.start(self.cell, task.sample_config(np.random.default_rng(0)))
         joints = [model.joint(name).id for name in self.cell.layout.arm_joints]
         self.limits = JointLimits(
@@ -459,7 +460,7 @@ class EmulatedArm:
     def _tcp_force(self) -> np.ndarray:
         """Contact wrench on the robot's tool (flange subtree), world-aligned."""
         model, data = self.cell.model, self.cell.data
-        tool = subtree(model, self._flange)
+        tool = self._tool_bodies
         total = np.zeros(6)
         for i in range(data.ncon):
             contact = data.contact[i]
