@@ -63,24 +63,16 @@ def _excite(folder: Path, effects: dict) -> list:
 # Real time: the emulated controller's link jitter grows with the host's load, and with
 # other tests beside it the tracking twin's start ratio passed 0.75 (0.757 once).
 @pytest.mark.realtime
-# Known failure. The tracking twin's delay is fitted right (29.6 +- 6.1 ms against the
-# hidden 30 in a run on an idle host here; 36.2 in three CI runs) and brings the joints'
-# residual from 57 to 13 noise units, but it is not named: the held-out gap shrinks by
-# 4.5 %, under the 5 % a named effect must bring, because the joint speeds' and torques'
-# residuals (78 and 260 units) stay. They do not follow the steps' timing (their
-# correlation with each step's offset from 100 ms is under 0.1): the emulated arm's speed
-# and torque jitter from one 2 ms controller package to the next (a median 0.025 rad/s
-# and 6.5 Nm), its reference speed swinging by a third within a segment: most likely
-# each servo target carrying the point its send time reached, on a host whose two cores
-# the emulator shares (a late target comes farther ahead, and is reached as fast). The
-# code before live steps were stamped at their controller package's time fails the same
-# way here, so that change is not the cause. What would fix it: a
-# steadier stream (targets on the stream's own period, or the emulator on a core of its
-# own), or the gap compared at a rate the jitter does not reach. Not strict: it still
-# runs and reports, in `make test-long` (CI's time goes to tests that can fail it).
+# Known failure (docs/results/gap-diagnoses.md, "Measured again"): the tracking twin's
+# delay is fitted right (29.6 of 30 ms) but not named, its held-out gain 4.5 % under the
+# 5 % bar: the emulated arm's speeds and torques jitter from one 2 ms package to the next
+# more than a twin driven by the host's targets follows. Driving the twin with the
+# controller's own targets would fix it. Strict: when it passes, the mark must go. It
+# runs in `make test-long`, as it cannot fail CI.
 @pytest.mark.long
 @pytest.mark.xfail(
-    reason="the delay is fitted but not named: the emulated arm's speed jitter dominates"
+    strict=True,
+    reason="the delay is fitted but not named: the emulated arm's speed jitter dominates",
 )
 def test_excitation_through_the_driver_is_diagnosed_like_the_plants(tmp_path: Path) -> None:
     delayed = _excite(tmp_path / "delayed", {"actuator_delay": {"seconds": HIDDEN_DELAY}})
