@@ -109,3 +109,44 @@ def test_the_drivers_commands_never_interleave_with_the_streams() -> None:
         stream.close()
     assert control.calls.count("moveJ") == 40
     assert control.overlaps == 0
+
+
+class LateControl(RecordingControl):
+    """Records each servoJ target; one period overruns by 30 ms, as a thread starved by a
+    loaded host does."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.targets: list[np.ndarray] = []
+        self.stall_after: int | None = None
+
+    def servoJ(self, q: list[float], *args: object) -> bool:
+        self.targets.append(np.array(q))
+        if len(self.targets) == self.stall_after:
+            time.sleep(0.03)
+        return self._command("servoJ")
+
+
+def _largest_step(max_speed: float | None) -> float:
+    """The largest change between consecutive targets while a 0.5 rad/s path is streamed
+    through a 30 ms stall."""
+    control = LateControl()
+    stream = ServoStream(SharedControl(control), 500.0, max_speed=max_speed)
+    stream.open()
+    try:
+        stream.start(np.zeros(6))
+        wait_for(lambda: len(control.targets) >= 3)
+        control.stall_after = len(control.targets) + 5
+        stream.push(np.full(6, 0.1), 0.2, time.monotonic() + 0.2)  # 0.5 rad/s
+        wait_for(lambda: len(control.targets) > control.stall_after + 40)
+    finally:
+        stream.close()
+    return float(np.abs(np.diff(np.stack(control.targets), axis=0)).max())
+
+
+def test_a_late_servo_period_is_caught_up_at_the_speed_limit_not_in_a_jump() -> None:
+    # Without a limit the 30 ms the thread missed come as one target: 0.015 rad in one
+    # 2 ms period, 7.5 rad/s.
+    assert _largest_step(None) > 0.012
+    # With one, every target is at most 1 rad/s x 2 ms from the last.
+    assert _largest_step(1.0) <= 0.002 + 1e-12

@@ -59,8 +59,8 @@ class ControllerLink:
 
     ``receive`` and ``control`` call the interfaces' methods by name (a ``RuntimeError``
     in the child comes back as one); ``stream`` is the :class:`ServoStream`'s interface.
-    ``servo_pose`` (the controller TCP's pose of joint positions, for servoL) travels to
-    the child with the link.
+    ``servo_pose`` (the controller TCP's pose of joint positions, for servoL) and the
+    stream's ``max_speed`` travel to the child with the link.
     """
 
     def __init__(
@@ -68,8 +68,10 @@ class ControllerLink:
         host: str,
         servo_hz: float,
         servo_pose: ToolFrame | None = None,
+        max_speed: float | None = None,
     ) -> None:
         self.host, self.servo_hz, self.servo_pose = host, servo_hz, servo_pose
+        self.max_speed = max_speed
         self.receive = _Methods(self, _RECEIVE)
         self.control = _Methods(self, _CONTROL)
         self.stream = StreamProxy(self)
@@ -92,7 +94,7 @@ class ControllerLink:
         here = Connection(here.detach())
         self._pipe, self._child, self.ended = here, child, None
         try:  # a child that ended at once breaks the pipe here or at recv
-            here.send((self.host, self.servo_hz, self.servo_pose))
+            here.send((self.host, self.servo_hz, self.servo_pose, self.max_speed))
             if here.poll(START_TIMEOUT):
                 kind, message = here.recv()
             else:
@@ -264,7 +266,7 @@ def _serve(pipe: Connection, host_pid: int) -> None:
     import rtde_control
     import rtde_receive
 
-    host, servo_hz, servo_pose = pipe.recv()
+    host, servo_hz, servo_pose, max_speed = pipe.recv()
 
     try:
         receive = rtde_receive.RTDEReceiveInterface(host, servo_hz)
@@ -284,6 +286,7 @@ def _serve(pipe: Connection, host_pid: int) -> None:
         servo_hz,
         None if servo_pose is None else servo_pose.pose,
         host_alive=_HostWatch(host_pid).alive,
+        max_speed=max_speed,
     )
     stream.open()
     pipe.send(("ready", ""))

@@ -55,6 +55,7 @@ from twinrl_robot.ur.cameras import CameraRig
 from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused, LinkLost
 from twinrl_robot.ur.gripper import Gripper, NoGripper
 from twinrl_robot.ur.sensor_streams import SensorStreams
+from twinrl_robot.ur.servo import MIN_SEGMENT
 from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
@@ -174,8 +175,12 @@ class URArm:
         tool = ToolFrame(
             twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
         )
+        # A late servo period is caught up at the fastest a segment runs, not in a jump.
         self._link = ControllerLink(
-            self.host, self.servo_hz, tool if cell.arm.servo == "servol" else None
+            self.host,
+            self.servo_hz,
+            tool if cell.arm.servo == "servol" else None,
+            max_speed=safety.max_joint_speed / MIN_SEGMENT,
         )
         self._receive, self._control, self.stream = (
             self._link.receive,

@@ -11,6 +11,14 @@ host was late with, as soon as it comes, running faster to end on time. So the a
 follows the same path whatever the host's timing jitter, and one late step does not
 leave it behind the control loop for the rest of the episode.
 
+A servo target is reached one servo period after it is sent, so the thread itself
+being late (a loaded host: 10-30 ms between targets were measured with a busy core)
+would turn the path it missed into one target's jump, which the controller runs at
+many times the path's speed (the emulated arm hit its speed limit and pressed the
+table with 570 N). Each target therefore moves at most ``max_speed`` times the servo
+period from the one sent before: after a late period the arm catches up with the path
+at that speed instead of jumping.
+
 The controller's RTDE watchdog stops its program when no command came for the cell's
 ``watchdog_ms``. Every servoJ package refreshes it; between episodes (the arm moving to
 its start pose, objects being arranged, the host writing an episode) the thread kicks
@@ -72,7 +80,8 @@ class ServoStream:
     """Streams servo targets over ``control`` at ``servo_hz``, and keeps the watchdog
     fed between episodes.
 
-    Targets are joint positions; ``servo_pose`` (e.g. the controller TCP's forward
+    Targets are joint positions, each at most ``max_speed`` (rad/s) times the servo
+    period from the one sent before; ``servo_pose`` (e.g. the controller TCP's forward
     kinematics) turns each into a TCP pose sent with servoL instead of servoJ. ``fault``
     is set, with a reason, when the controller refuses a command (its program stopped)
     or the connection fails, or when ``host_alive`` says the host has stopped (the stream
@@ -87,9 +96,13 @@ class ServoStream:
         servo_hz: float,
         servo_pose: Callable[[np.ndarray], np.ndarray] | None = None,
         host_alive: Callable[[], bool] | None = None,
+        max_speed: float | None = None,
     ) -> None:
         self.control, self.servo_period = control, 1.0 / servo_hz
         self.servo_pose, self.host_alive = servo_pose, host_alive
+        # rad a joint's target may move from one servo period to the next (None: any)
+        self.max_step = None if max_speed is None else max_speed * self.servo_period
+        self._sent: np.ndarray | None = None  # the last target sent while servoing
         self.fault: str | None = None
         self.connection_failed = False  # the fault is the connection's, not a refusal
         self.periods: list[float] = []  # s between consecutive targets sent (newest last)
@@ -114,6 +127,7 @@ class ServoStream:
         q = np.asarray(q, float)
         with self._lock:
             self._segment, self._previous = (q, q, time.monotonic(), 0.0), None
+            self._sent = None
         self.fault = None
         self._mode = SERVO
 
@@ -213,6 +227,9 @@ class ServoStream:
     def _send_target(self) -> bool:
         with self._lock:
             q = self._point(time.monotonic())
+            if self._sent is not None and self.max_step is not None:
+                q = self._sent + np.clip(q - self._sent, -self.max_step, self.max_step)
+            self._sent = q
         period = self.servo_period
         if self.servo_pose is None:
             return self.control.servoJ(q.tolist(), 0.0, 0.0, period, SERVO_LOOKAHEAD, SERVO_GAIN)
