@@ -1,10 +1,11 @@
 """A reward classifier judged on episodes it never saw, the way real RL would use it.
 
-Real RL ends an episode at the first frame the classifier calls a success, so besides the
-frame scores (labelled as in :func:`~twinrl_learn.reward_classifier.labelled_frames`)
-what matters is per episode: a failed episode with any frame judged a success is a
-*false success* (rewarded and ended early), a successful one with none of its success
-frames judged so is a *missed success*. Episodes recorded as near misses (the scripted
+Real RL ends an episode once the classifier calls ``success_frames`` successive frames a
+success (its ``--success-frames``), so besides the frame scores (labelled as in
+:func:`~twinrl_learn.reward_classifier.labelled_frames`) what matters is per episode: a
+failed episode with that many successive frames judged a success is a *false success*
+(rewarded and ended early), a successful one whose success frames hold no such run is a
+*missed success*. Episodes recorded as near misses (the scripted
 expert stopping short near the goal: ``twinrl sim expert --near-misses``) are the hard
 negatives and are counted apart.
 """
@@ -33,6 +34,7 @@ class ClassifierCheck:
     task: str
     frames: int
     positives: int
+    success_frames: int  # successive frames judged a success that make an episode's
     accuracy: float
     balanced_accuracy: float
     precision: float
@@ -48,11 +50,23 @@ class ClassifierCheck:
         return asdict(self)
 
 
+def _longest_run(steps: np.ndarray, judged: np.ndarray) -> int:
+    """The most successive steps (``steps`` ascending) all judged a success."""
+    longest = run = 0
+    for i, yes in enumerate(judged):
+        run = (run + 1 if i and steps[i] == steps[i - 1] + 1 else 1) if yes else 0
+        longest = max(longest, run)
+    return longest
+
+
 def check_reward_classifier(
-    classifier: RewardClassifier, episodes: Sequence[Episode]
+    classifier: RewardClassifier, episodes: Sequence[Episode], success_frames: int = 1
 ) -> ClassifierCheck:
     """Judge every labelled frame of ``episodes`` (of the classifier's task) with
-    ``classifier`` (see the module docstring)."""
+    ``classifier``, an episode's success needing ``success_frames`` successive frames
+    (see the module docstring)."""
+    if success_frames < 1:
+        raise LearnError(f"a success needs at least 1 frame, got {success_frames}")
     other = sorted({e.meta.task for e in episodes} - {classifier.task})
     if other:
         raise LearnError(
@@ -69,17 +83,19 @@ def check_reward_classifier(
         if episodes[index].meta.success:
             counts["ok"] += 1
             shown = rows & frames.labels
-            counts["missed"] += bool(shown.any() and not judged[shown].any())
+            seen = _longest_run(frames.step[shown], judged[shown])
+            counts["missed"] += bool(shown.any() and seen < success_frames)
         else:
             counts["failed"] += 1
             counts["near"] += near
-            wrong = bool(judged[rows].any())
+            wrong = _longest_run(frames.step[rows], judged[rows]) >= success_frames
             counts["false"] += wrong
             counts["near_false"] += wrong and near
     return ClassifierCheck(
         task=classifier.task,
         frames=len(frames.labels),
         positives=int(frames.labels.sum()),
+        success_frames=success_frames,
         accuracy=accuracy,
         balanced_accuracy=balanced,
         precision=precision,

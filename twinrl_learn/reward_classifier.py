@@ -453,11 +453,18 @@ class RewardClassifier:
                 f"{folder} is not a reward classifier (no {SETTINGS} and {WEIGHTS}); train one "
                 "with `twinrl train reward-classifier`"
             )
-        raw = json.loads((folder / SETTINGS).read_text())
-        task = raw.pop("task")
-        settings = ClassifierSettings(**{**raw, "cameras": tuple(raw["cameras"])})
-        net = success_net(settings)
-        net.load_state_dict(load_file(str(folder / WEIGHTS)))
+        try:
+            raw = json.loads((folder / SETTINGS).read_text())
+            task = raw.pop("task")
+            settings = ClassifierSettings(**{**raw, "cameras": tuple(raw["cameras"])})
+            net = success_net(settings)
+            net.load_state_dict(load_file(str(folder / WEIGHTS)))
+        except (ValueError, KeyError, TypeError, RuntimeError) as err:
+            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise LearnError(
+                f"{folder} holds a reward classifier this version cannot read ({reason}); "
+                "train it again with `twinrl train reward-classifier`"
+            ) from err
         return cls(net, settings, task)
 
     def probability(self, observation: dict[str, np.ndarray]) -> float:

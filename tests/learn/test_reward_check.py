@@ -3,6 +3,7 @@ stopping short near the goal in every task; and a classifier judged on episodes 
 saw, per frame and per episode (`twinrl judge`)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ import pytest
 from tests.test_cli import twinrl as run_cli
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
+from twinrl_learn import reward_check
 from twinrl_learn.errors import LearnError
 from twinrl_learn.reward_check import NEAR_MISS_POLICY, check_reward_classifier
 from twinrl_learn.reward_classifier import (
@@ -101,11 +103,42 @@ def test_a_classifier_is_judged_per_frame_and_per_episode(session, classifier):
         check_reward_classifier(judge, episodes)
 
 
+def test_an_episodes_success_can_need_successive_frames(session, classifier, monkeypatch):
+    """As real RL's --success-frames: every other frame called a success is a false
+    success when one frame makes a success, and none when two must follow each other."""
+    episodes = episodes_under([session], ("front",))
+    judge = RewardClassifier.load(classifier)
+    monkeypatch.setattr(
+        reward_check, "predict", lambda net, images, gripper: np.arange(len(images)) % 2
+    )
+    one = check_reward_classifier(judge, episodes)
+    assert one.success_frames == 1 and one.false_successes == 2 and one.missed_successes == 0
+    two = check_reward_classifier(judge, episodes, success_frames=2)
+    assert two.success_frames == 2 and two.false_successes == 0 and two.missed_successes == 2
+    assert (two.precision, two.recall) == (one.precision, one.recall)  # frames as before
+    # Frames either side of a gap in the steps (the frames left out before a success)
+    # do not follow each other.
+    assert reward_check._longest_run(np.array([1, 2, 4, 5, 6]), np.ones(5, bool)) == 3
+    assert reward_check._longest_run(np.array([1, 2, 3]), np.array([True, False, True])) == 1
+    with pytest.raises(LearnError, match="at least 1 frame"):
+        check_reward_classifier(judge, episodes, success_frames=0)
+
+
 def test_the_judge_command_prints_and_writes_the_scores(session, classifier, tmp_path):
     out = tmp_path / "check.json"
     result = run_cli("judge", str(classifier), str(session), "--out", str(out))
     assert result.returncode == 0, result.stderr
     assert "false successes:" in result.stdout and "of 2 near misses" in result.stdout
+    three = run_cli("judge", str(classifier), str(session), "--success-frames", "3")
+    assert three.returncode == 0 and "(3 successive frames make one)" in three.stdout
+    # A classifier whose settings this version cannot read is said in one line.
+    foreign = tmp_path / "foreign"
+    shutil.copytree(classifier, foreign)
+    saved = json.loads((foreign / "classifier.json").read_text())
+    (foreign / "classifier.json").write_text(json.dumps({**saved, "unknown_setting": 1}))
+    refused = run_cli("judge", str(foreign), str(session))
+    assert refused.returncode != 0 and "cannot read" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
     assert json.loads(out.read_text())["near_miss_episodes"] == 2
     again = run_cli("judge", str(classifier), str(session), "--out", str(out))
     assert again.returncode == 2 and "exists" in again.stderr

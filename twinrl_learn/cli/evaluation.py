@@ -199,6 +199,14 @@ def judge_command(
     out: Annotated[
         Path | None, typer.Option(help="JSON file to write the scores to (must not exist).")
     ] = None,
+    success_frames: Annotated[
+        int,
+        typer.Option(
+            help="Successive frames judged a success that end an episode as one, as real "
+            "RL's --success-frames.",
+            min=1,
+        ),
+    ] = 1,
 ) -> None:
     """How a reward classifier judges logged episodes: frame scores, and per episode the
     false successes (a failed episode real RL would have rewarded) and missed successes."""
@@ -209,7 +217,7 @@ def judge_command(
 
     judge = RewardClassifier.load(classifier)
     episodes = episodes_under(paths, judge.settings.cameras, judge.task)
-    check = check_reward_classifier(judge, episodes)
+    check = check_reward_classifier(judge, episodes, success_frames)
     table = Table("frames (successes)", "accuracy", "balanced", "precision", "recall",
                   title=f"{classifier.name}: {check.task}")  # fmt: skip
     table.add_row(
@@ -219,8 +227,10 @@ def judge_command(
     )  # fmt: skip
     console.print(table)
     near = f", {check.near_miss_false_successes} of {check.near_miss_episodes} near misses"
+    needing = f" ({success_frames} successive frames make one)" if success_frames > 1 else ""
     console.print(
-        f"false successes: {check.false_successes} of {check.failed_episodes} failed episodes"
+        f"false successes{needing}: {check.false_successes} of {check.failed_episodes} "
+        "failed episodes"
         f"{near if check.near_miss_episodes else ''}; missed successes: "
         f"{check.missed_successes} of {check.successful_episodes}"
     )
