@@ -46,8 +46,23 @@ class ClassifierCheck:
     near_miss_false_successes: int  # of which near misses
     missed_successes: int  # successful episodes with no success frame judged so
 
+    @property
+    def episode_precision(self) -> float:
+        """Of the episodes judged successes, the share that succeeded: what real RL's
+        rewards are worth."""
+        found = self.successful_episodes - self.missed_successes
+        return found / max(found + self.false_successes, 1)
+
+    @property
+    def episode_recall(self) -> float:
+        """Of the successful episodes, the share judged so."""
+        return 1.0 - self.missed_successes / max(self.successful_episodes, 1)
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        return asdict(self) | {
+            "episode_precision": self.episode_precision,
+            "episode_recall": self.episode_recall,
+        }
 
 
 def _longest_run(steps: np.ndarray, judged: np.ndarray) -> int:

@@ -95,9 +95,11 @@ def test_a_classifier_is_judged_per_frame_and_per_episode(session, classifier):
     assert always.false_successes == always.near_miss_false_successes == 2
     assert always.missed_successes == 0 and always.recall == 1.0
     assert always.precision == pytest.approx(6 / always.frames)
+    assert (always.episode_precision, always.episode_recall) == (0.5, 1.0)  # 2 of 4 rewarded
     judge.threshold = 2.0  # never
     never = check_reward_classifier(judge, episodes)
     assert never.false_successes == 0 and never.missed_successes == 2 and never.recall == 0.0
+    assert (never.episode_precision, never.episode_recall) == (0.0, 0.0)
     judge.task = "insert_hexagon"
     with pytest.raises(LearnError, match="judges insert_hexagon, and some episodes are of pick"):
         check_reward_classifier(judge, episodes)
@@ -139,7 +141,9 @@ def test_the_judge_command_prints_and_writes_the_scores(session, classifier, tmp
     refused = run_cli("judge", str(foreign), str(session))
     assert refused.returncode != 0 and "cannot read" in refused.stderr
     assert len(refused.stderr.strip().splitlines()) == 1
-    assert json.loads(out.read_text())["near_miss_episodes"] == 2
+    saved = json.loads(out.read_text())
+    assert saved["near_miss_episodes"] == 2 and 0.0 <= saved["episode_precision"] <= 1.0
+    assert "per episode precision" in result.stdout
     again = run_cli("judge", str(classifier), str(session), "--out", str(out))
     assert again.returncode == 2 and "exists" in again.stderr
     assert len(again.stderr.strip().splitlines()) == 1

@@ -232,7 +232,8 @@ def judge_command(
         f"false successes{needing}: {check.false_successes} of {check.failed_episodes} "
         "failed episodes"
         f"{near if check.near_miss_episodes else ''}; missed successes: "
-        f"{check.missed_successes} of {check.successful_episodes}"
+        f"{check.missed_successes} of {check.successful_episodes}; per episode precision "
+        f"{100 * check.episode_precision:.1f} %, recall {100 * check.episode_recall:.1f} %"
     )
     if out is not None:
         console.print(f"{save_check(check, out)}")
