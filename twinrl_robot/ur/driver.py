@@ -60,6 +60,7 @@ from twinrl_robot.ur.tool_frame import ToolFrame
 from twinrl_sim.build import compile_scene
 from twinrl_sim.cell import Cell
 from twinrl_sim.control import EndEffectorController, IKSettings
+from twinrl_sim.robots.ur5e import JOINT_SPEED_LIMIT
 from twinrl_sim.tasks import Task, TaskConfig
 
 RTDE_PORT = 30004
@@ -175,12 +176,13 @@ class URArm:
         tool = ToolFrame(
             twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
         )
-        # A late servo period is caught up at the fastest a segment runs, not in a jump.
+        # A late servo period is caught up at the fastest a segment runs (within the
+        # joints' top speed), not in a jump.
         self._link = ControllerLink(
             self.host,
             self.servo_hz,
             tool if cell.arm.servo == "servol" else None,
-            max_speed=safety.max_joint_speed / MIN_SEGMENT,
+            max_speed=min(safety.max_joint_speed / MIN_SEGMENT, JOINT_SPEED_LIMIT),
         )
         self._receive, self._control, self.stream = (
             self._link.receive,
