@@ -5,9 +5,9 @@ success (its ``--success-frames``), so besides the frame scores (labelled as in
 :func:`~twinrl_learn.reward_classifier.labelled_frames`) what matters is per episode: a
 failed episode with that many successive frames judged a success is a *false success*
 (rewarded and ended early), a successful one whose success frames hold no such run is a
-*missed success*. Episodes recorded as near misses (the scripted
-expert stopping short near the goal: ``twinrl sim expert --near-misses``) are the hard
-negatives and are counted apart.
+*missed success*. Episodes recorded as near misses (the scripted expert stopping short
+near the goal: ``twinrl sim expert --near-misses``) are the hard negatives and are
+counted apart.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class ClassifierCheck:
     task: str
     frames: int
     positives: int
-    success_frames: int  # successive frames judged a success that make an episode's
+    success_frames: int  # successive frames judged a success that make an episode one
     accuracy: float
     balanced_accuracy: float
     precision: float
