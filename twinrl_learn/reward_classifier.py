@@ -173,7 +173,7 @@ class PretrainedSuccessNet(nn.Module):
         from twinrl_learn.perception.estimator import CameraHead
 
         super().__init__()
-        self.heads = nn.ModuleList(CameraHead(keypoints=16) for _ in range(cameras))
+        self.heads = nn.ModuleList(CameraHead(keypoints=16, width=64) for _ in range(cameras))
         width = sum(head.out_dim for head in self.heads) + 1
         self.mlp = nn.Sequential(nn.Linear(width, 128), nn.ReLU(), nn.Linear(128, 1))
         self.backbone = FrozenBackbone()

@@ -171,6 +171,9 @@ class PerceptionSettings:
     """Frames per step."""
     lr: float = 1e-3
     """Peak learning rate (cosine decay to zero)."""
+    head_width: int = 64
+    """Channels of each camera's trained head, a multiple of 8 (its 3x3 convolution is
+    most of a step's time)."""
     seed: int = 0
     """Seed (initialisation, held-out episodes, sampling)."""
     log_every: int = 100
@@ -185,6 +188,8 @@ class PerceptionSettings:
         for name in ("steps", "batch_size", "log_every"):
             if getattr(self, name) < 1:
                 raise SettingError(name, f"must be at least 1, got {getattr(self, name)}")
+        if self.head_width < 8 or self.head_width % 8:
+            raise SettingError("head_width", f"must be a multiple of 8, got {self.head_width}")
         if not self.lr > 0:
             raise SettingError("lr", f"must be > 0, got {self.lr}")
 

@@ -76,6 +76,31 @@ def test_the_estimator_learns_and_its_checkpoint_says_the_same(trained):
     assert first.shape == (8, 18) == targets(frames)[rows].shape
 
 
+def test_a_narrower_head_trains_and_loads_and_old_checkpoints_keep_theirs(trained, tmp_path):
+    _, dataset, out, _ = trained
+    narrow = tmp_path / "narrow"
+    train_estimator(
+        PerceptionSettings(datasets=[str(dataset)], out=str(narrow), steps=2, batch_size=8,
+                           head_width=16)
+    )  # fmt: skip
+    loaded = PoseEstimator.from_pretrained(narrow)
+    assert loaded.config.head_width == 16 and loaded.heads["front"].mix[1].out_channels == 16
+    default = PoseEstimator.from_pretrained(out)
+    assert sum(p.numel() for p in loaded.parameters()) < sum(
+        p.numel() for p in default.parameters()
+    )
+    # A checkpoint written before the width was a setting has none: it had 64 channels.
+    old = tmp_path / "old"
+    old.mkdir()
+    config = json.loads((out / "config.json").read_text())
+    del config["head_width"]
+    (old / "config.json").write_text(json.dumps(config))
+    (old / "model.safetensors").write_bytes((out / "model.safetensors").read_bytes())
+    assert PoseEstimator.from_pretrained(old).heads["front"].mix[1].out_channels == 64
+    with pytest.raises(SettingError, match="head_width"):
+        PerceptionSettings(datasets=[str(dataset)], out=str(tmp_path / "e"), head_width=20)
+
+
 def test_bad_perception_input_is_refused_in_one_line(trained, tmp_path):
     _, dataset, out, _ = trained
     with pytest.raises(LearnError, match="not empty"):

@@ -40,7 +40,6 @@ from twinrl_learn.policy.networks import SpatialSoftmax
 
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
-HEAD_WIDTH = 64
 
 
 @dataclass
@@ -56,6 +55,7 @@ class EstimatorConfig:
     image_size: int = 128
     keypoints: int = 32
     hidden: int = 256
+    head_width: int = 64  # channels of each camera's head (estimators before it had 64)
     seed: int = 0
     trained_on: list[str] = field(default_factory=list)  # the datasets it learnt from
 
@@ -67,20 +67,20 @@ class EstimatorConfig:
 class CameraHead(nn.Module):
     """Keypoints and a pooled summary of one camera's frozen feature maps."""
 
-    def __init__(self, keypoints: int) -> None:
+    def __init__(self, keypoints: int, width: int) -> None:
         super().__init__()
         fine, coarse = CHANNELS
-        self.fine = nn.Conv2d(fine, HEAD_WIDTH, 1)
-        self.coarse = nn.Conv2d(coarse, HEAD_WIDTH, 1)
+        self.fine = nn.Conv2d(fine, width, 1)
+        self.coarse = nn.Conv2d(coarse, width, 1)
         self.mix = nn.Sequential(
             nn.ReLU(),
-            nn.Conv2d(HEAD_WIDTH, HEAD_WIDTH, 3, padding=1),
-            nn.GroupNorm(8, HEAD_WIDTH),
+            nn.Conv2d(width, width, 3, padding=1),
+            nn.GroupNorm(8, width),
             nn.ReLU(),
         )
-        self.points = nn.Conv2d(HEAD_WIDTH, keypoints, 1)
+        self.points = nn.Conv2d(width, keypoints, 1)
         self.softmax = SpatialSoftmax()
-        self.out_dim = 2 * keypoints + HEAD_WIDTH
+        self.out_dim = 2 * keypoints + width
 
     def forward(self, fine: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
         up = F.interpolate(self.coarse(coarse.float()), size=fine.shape[-2:], mode="nearest")
@@ -95,7 +95,9 @@ class PoseEstimator(nn.Module):
     def __init__(self, config: EstimatorConfig) -> None:
         super().__init__()
         self.config = config
-        self.heads = nn.ModuleDict({c: CameraHead(config.keypoints) for c in config.cameras})
+        self.heads = nn.ModuleDict(
+            {c: CameraHead(config.keypoints, config.head_width) for c in config.cameras}
+        )
         width = sum(h.out_dim for h in self.heads.values()) + len(config.proprio_names)
         self.mlp = nn.Sequential(
             nn.Linear(width, config.hidden),

@@ -166,6 +166,7 @@ def new_estimator(frames: Frames, settings: PerceptionSettings, image_size: int)
             proprio_mean=values.mean(0).tolist(),
             proprio_std=np.maximum(values.std(0), 1e-3).tolist(),
             image_size=image_size,
+            head_width=settings.head_width,
             seed=settings.seed,
             trained_on=[str(d) for d in settings.datasets],
         )
