@@ -118,18 +118,20 @@ class LateControl(RecordingControl):
     def __init__(self) -> None:
         super().__init__()
         self.targets: list[np.ndarray] = []
+        self.sent_at: list[float] = []
         self.stall_after: int | None = None
 
     def servoJ(self, q: list[float], *args: object) -> bool:
         self.targets.append(np.array(q))
+        self.sent_at.append(time.monotonic())
         if len(self.targets) == self.stall_after:
             time.sleep(0.03)
         return self._command("servoJ")
 
 
-def _largest_step(max_speed: float | None) -> float:
-    """The largest change between consecutive targets while a 0.5 rad/s path is streamed
-    through a 30 ms stall."""
+def _streamed_through_a_stall(max_speed: float | None) -> LateControl:
+    """What the controller got while a 0.5 rad/s path was streamed through a 30 ms
+    stall."""
     control = LateControl()
     stream = ServoStream(SharedControl(control), 500.0, max_speed=max_speed)
     stream.open()
@@ -141,7 +143,23 @@ def _largest_step(max_speed: float | None) -> float:
         wait_for(lambda: len(control.targets) > control.stall_after + 40)
     finally:
         stream.close()
+    return control
+
+
+def _largest_step(max_speed: float | None) -> float:
+    """The largest change between consecutive targets through the stall."""
+    control = _streamed_through_a_stall(max_speed)
     return float(np.abs(np.diff(np.stack(control.targets), axis=0)).max())
+
+
+def test_a_target_goes_every_servo_period_and_a_stall_is_not_made_up_in_a_burst() -> None:
+    control = _streamed_through_a_stall(None)
+    gaps = np.diff(control.sent_at) * 1000.0  # ms
+    stall = control.stall_after
+    assert stall is not None and gaps[stall - 1] >= 30.0
+    assert 1.8 < np.median(gaps) < 2.5  # on schedule, 500 Hz
+    # The periods the stall took are not sent back to back afterwards.
+    assert np.median(gaps[stall : stall + 10]) > 1.5
 
 
 def test_a_late_servo_period_is_caught_up_at_the_speed_limit_not_in_a_jump() -> None:
