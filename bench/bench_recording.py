@@ -18,11 +18,15 @@ side: at the cameras' rate (every frame a row, the frames encoded while recordin
 into the videos, what ``twinrl data export`` does with a live episode) and at the control
 rate (one frame per step, encoded at export). ``--pin`` puts the emulator on one core
 and the host on the others, as a controller of its own would leave the host's processor
-to the host (on two cores the emulator then serves less of the real rates). Usage::
+to the host (on two cores the emulator then serves less of the real rates).
+``--realtime-priority N`` gives the cell that ``arm.realtime_priority`` (the loop's
+thread at SCHED_FIFO N; needs root or an rtprio limit). Usage::
 
     MUJOCO_GL=egl python bench/bench_recording.py --duration 600
     MUJOCO_GL=egl python bench/bench_recording.py --duration 120 --pin
     MUJOCO_GL=egl python bench/bench_recording.py --duration 180 --rounds 3 --pin
+    MUJOCO_GL=egl python bench/bench_recording.py --duration 180 --rounds 3 --pin \
+        --realtime-priority 50
     MUJOCO_GL=egl python bench/bench_recording.py --duration 20 --episode-seconds 10
 """
 
@@ -104,7 +108,7 @@ class Tally:
         self.backlog = max(self.backlog, live.backlog)
 
 
-def write_cell(folder: Path) -> Path:
+def write_cell(folder: Path, realtime_priority: int | None) -> Path:
     cameras = [
         {"name": name, "kind": "opencv", "source": f"http://{HOST}:8080/{name}",
          "width": 640, "height": 480, "fps": FPS}
@@ -113,7 +117,13 @@ def write_cell(folder: Path) -> Path:
     cell = {
         "name": "real_rates",
         "twin": "pick_place",
-        "arm": {"model": "ur5e", "host": HOST, "control_hz": CONTROL_HZ, "servo_hz": SERVO_HZ},
+        "arm": {
+            "model": "ur5e",
+            "host": HOST,
+            "control_hz": CONTROL_HZ,
+            "servo_hz": SERVO_HZ,
+            "realtime_priority": realtime_priority,
+        },
         "gripper": {"kind": "robotiq_2f85"},
         "cameras": cameras,
         "safety": {"max_step_translation": 0.05},
@@ -147,6 +157,13 @@ def main(
             "controller of its own leaves the host's processor to the host."
         ),
     ] = False,
+    realtime_priority: Annotated[
+        int,
+        typer.Option(
+            help="The cell's arm.realtime_priority: SCHED_FIFO for the loop's thread (0: "
+            "the normal policy)."
+        ),
+    ] = 0,
     rounds: Annotated[
         int,
         typer.Option(
@@ -161,7 +178,7 @@ def main(
     if pin and len(cores) < 2:
         raise typer.BadParameter("needs two cores or more", param_hint="--pin")
     work = Path(tempfile.mkdtemp(prefix="twinrl-bench-recording-"))
-    cell = write_cell(work)
+    cell = write_cell(work, realtime_priority or None)
     task = make_task("pick_place")
     config = task.sample_config(np.random.default_rng(0), "ID")
     rows: list[tuple[str, str]] = []
@@ -262,6 +279,8 @@ def main(
     ]  # fmt: skip
     pinned = f"; the emulator on core {cores[-1]}, the host on the rest" if pin else ""
     turns = f", in {rounds} rounds" if rounds > 1 else ""
+    if realtime_priority:
+        pinned += f"; the loop's thread at SCHED_FIFO {realtime_priority}"
     print(f"{duration:g} s recorded in {len(paths)} episodes{turns}: 2 cameras 640x480 at "
           f"{FPS} fps, controller at {SERVO_HZ} Hz, loop at {CONTROL_HZ} Hz{pinned}\n")  # fmt: skip
     print("| what | figure |\n|---|---|")

@@ -13,6 +13,7 @@ between every action source and the arm, and which twin the cell corresponds to.
       servo: servoj                   # servoj (the twin's IK, as the twin does) or servol
       tcp_offset: [0, 0, 0.15, 0, 0, 0]   # the TCP set on the controller: m, axis-angle rad
       payload: {mass: 0.9, cog: [0, 0, 0.05]}
+      realtime_priority: 80           # optional (Linux): SCHED_FIFO for the robot loop's thread
     gripper: {kind: robotiq_2f85, port: 63352}   # robotiq_2f85 robotiq_2f140 digital none
     cameras:
       - {name: front, kind: opencv, source: "0", width: 640, height: 480, fps: 30}
@@ -79,6 +80,9 @@ class ArmSpec(_Strict):
     servo: Literal["servoj", "servol"] = "servoj"
     tcp_offset: tuple[Metre, Metre, Metre, Radian, Radian, Radian] = (0, 0, 0, 0, 0, 0)
     payload: PayloadSpec = PayloadSpec()
+    # SCHED_FIFO priority of the robot loop's thread (twinrl_robot.realtime); None: the
+    # normal policy.
+    realtime_priority: Annotated[int, Field(ge=1, le=99)] | None = None
 
     @field_validator("host")
     @classmethod

@@ -227,6 +227,7 @@ def cell_check(
 ) -> None:
     """Validate a cell file and the twin it names; print what it describes."""
     from twinrl_robot.cell_file import load_cell
+    from twinrl_robot.realtime import realtime_note
     from twinrl_sim.tasks import twin_scene
 
     cell = load_cell(file)
@@ -235,6 +236,8 @@ def cell_check(
     table = Table(title=f"cell {cell.name}", show_header=False)
     table.add_row("arm", f"{arm.model} at {arm.host}")
     table.add_row("rates", f"control {arm.control_hz:g} Hz, {arm.servo} at {arm.servo_rate:g} Hz")
+    if arm.realtime_priority is not None:
+        table.add_row("real time", realtime_note(arm.realtime_priority))
     table.add_row("tcp offset", " ".join(f"{v:g}" for v in arm.tcp_offset))
     table.add_row("payload", f"{arm.payload.mass:g} kg")
     table.add_row("gripper", cell.gripper.kind)

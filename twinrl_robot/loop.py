@@ -20,6 +20,7 @@ import numpy as np
 from twinrl_data.recorder import Recorder
 from twinrl_data.schema import EpisodeMeta, step_record
 from twinrl_robot.errors import RobotError
+from twinrl_robot.realtime import realtime_thread
 from twinrl_robot.robot import Robot, Sent, require_privileged
 from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import Progress, Task, TaskConfig
@@ -82,6 +83,12 @@ def sensor_streams(robot: Robot) -> Any:
     state: ``cameras``, ``samples``, ``start(live)``, ``stop()``), or ``None``."""
     streams = getattr(_backend(robot), "sensor_streams", None)
     return streams() if callable(streams) else None
+
+
+def loop_priority(robot: Robot) -> int | None:
+    """The SCHED_FIFO priority the backend asks for the loop's thread (a real cell's
+    ``arm.realtime_priority``), or ``None``."""
+    return getattr(_backend(robot), "loop_priority", None)
 
 
 def observation_time(robot: Robot) -> float:
@@ -155,46 +162,49 @@ def run_episode(
     executed = np.zeros(7, np.float32)  # the last step's action (held while settling)
     stamps: list[float] = []
     try:
-        for t in range(limit + settle):
-            stamps.append(time.perf_counter())
-            chosen = hold_action(executed) if success else source.act(observation)
-            if isinstance(chosen, JointCommand):
-                sent = robot.servo_joints(chosen.joint_target, chosen.gripper)
-                executed, proposed = chosen.action, chosen.action
-            else:
-                sent = robot.act(chosen)
-                executed, proposed = sent.action, chosen
-            if sent.intervention:
-                source.interrupted()
-                interventions += 1
-            following = robot.observe()
-            following_at = observation_time(robot)
-            if success:
-                settled += 1
-            else:
-                success = judge(following) if judge is not None else False
-                steps = t + 1
-            stopped = not success and until is not None and until()
-            done = stopped or (settled == settle if success else t == limit - 1)
-            if recorder is not None:
-                recorder.add_frame(
-                    step_record(
-                        observation,
-                        executed,
-                        sent.joint_target,
-                        task.reward(Progress(success=success), "sparse") if judge else 0.0,
-                        done,
-                        success,
-                        action_policy=proposed,
-                        intervention=sent.intervention,
-                    ),
-                    observed,
-                )
-            if on_step is not None:
-                on_step(t, sent)
-            observation, observed = following, following_at
-            if done:
-                break
+        # A real cell's loop thread ahead of the recorder's and the cameras' (its arm's
+        # realtime_priority): the kernel runs it as soon as its period's sleep ends.
+        with realtime_thread(loop_priority(robot)):
+            for t in range(limit + settle):
+                stamps.append(time.perf_counter())
+                chosen = hold_action(executed) if success else source.act(observation)
+                if isinstance(chosen, JointCommand):
+                    sent = robot.servo_joints(chosen.joint_target, chosen.gripper)
+                    executed, proposed = chosen.action, chosen.action
+                else:
+                    sent = robot.act(chosen)
+                    executed, proposed = sent.action, chosen
+                if sent.intervention:
+                    source.interrupted()
+                    interventions += 1
+                following = robot.observe()
+                following_at = observation_time(robot)
+                if success:
+                    settled += 1
+                else:
+                    success = judge(following) if judge is not None else False
+                    steps = t + 1
+                stopped = not success and until is not None and until()
+                done = stopped or (settled == settle if success else t == limit - 1)
+                if recorder is not None:
+                    recorder.add_frame(
+                        step_record(
+                            observation,
+                            executed,
+                            sent.joint_target,
+                            task.reward(Progress(success=success), "sparse") if judge else 0.0,
+                            done,
+                            success,
+                            action_policy=proposed,
+                            intervention=sent.intervention,
+                        ),
+                        observed,
+                    )
+                if on_step is not None:
+                    on_step(t, sent)
+                observation, observed = following, following_at
+                if done:
+                    break
     except BaseException as err:
         if streams is not None:
             streams.stop()

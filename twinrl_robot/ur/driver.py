@@ -49,6 +49,7 @@ from twinrl_data.schema import (
 from twinrl_robot.cell_file import CellFile
 from twinrl_robot.errors import RobotError
 from twinrl_robot.guard import GuardLimits, JointGuard
+from twinrl_robot.realtime import check_realtime
 from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.tool_clearance import tool_points
 from twinrl_robot.ur.cameras import CameraRig
@@ -176,6 +177,9 @@ class URArm:
         tool = ToolFrame(
             twin.model, twin.layout.flange_body, twin.layout.arm_joints, cell.arm.tcp_offset
         )
+        # The loop's thread takes it at each episode: refused here, before the arm moves.
+        self.loop_priority = cell.arm.realtime_priority
+        check_realtime(self.loop_priority)
         # A late servo period is caught up at the fastest a segment runs (within the
         # joints' top speed), not in a jump.
         self._link = ControllerLink(
