@@ -9,10 +9,11 @@ as ur_rtde's ``rt_priority`` and ros2_control's loops do. The cell file's
 Threads the loop's thread starts keep the normal policy (``SCHED_RESET_ON_FORK``), so
 the recorder's and the cameras' threads stay below it.
 
-The controller link's process keeps the normal policy: ur_rtde waits for the
-controller's answers in loops that need its receiving thread to run, and at one
-real-time priority on one core they starved each other until the watchdog stopped the
-program (measured against the emulator).
+The controller link's process keeps the normal policy: with its servo stream's thread,
+or all its threads, at the priority and the host pinned to one core, the emulator's
+watchdog stopped the program before the first episode every time (likely ur_rtde's
+waits for the controller's answers, which need its receiving thread to run beside a
+real-time thread on the same core).
 
 Taking a priority needs root, ``CAP_SYS_NICE`` or an ``rtprio`` limit
 (``/etc/security/limits.conf``); :func:`check_realtime` says so in one line before the
