@@ -1,13 +1,11 @@
 """Real-time scheduling: the loop's thread at the cell's SCHED_FIFO priority while it
-runs, the threads it starts and the controller link's at the normal policy, and a host
-that may not give it refused in one line before the arm moves."""
+runs and the threads it starts at the normal policy, and a host that may not give it
+refused in one line before the arm moves (on the emulated arm: test_ur_cell.py)."""
 
 from __future__ import annotations
 
 import os
-import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,7 +23,7 @@ from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import make_task
 
 
-def _policy(thread_id: int = 0) -> int:
+def thread_policy(thread_id: int = 0) -> int:
     """A thread's scheduling policy, without the reset-on-fork flag."""
     return os.sched_getscheduler(thread_id) & ~os.SCHED_RESET_ON_FORK
 
@@ -47,14 +45,14 @@ needs_realtime = pytest.mark.skipif(
 def test_a_thread_holds_the_priority_inside_and_threads_it_starts_stay_normal():
     started = []
     with realtime_thread(7):
-        assert _policy() == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 7
-        thread = threading.Thread(target=lambda: started.append(_policy()))
+        assert thread_policy() == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 7
+        thread = threading.Thread(target=lambda: started.append(thread_policy()))
         thread.start()
         thread.join()
     assert started == [os.SCHED_OTHER]
-    assert _policy() == os.SCHED_OTHER
+    assert thread_policy() == os.SCHED_OTHER
     with realtime_thread(None):
-        assert _policy() == os.SCHED_OTHER
+        assert thread_policy() == os.SCHED_OTHER
 
 
 def test_a_host_that_may_not_give_the_priority_is_refused_in_one_line(monkeypatch):
@@ -98,39 +96,11 @@ def test_the_loop_runs_at_the_backends_priority_and_returns_to_normal_after():
         run_episode(
             robot, Scripted([np.zeros(7, np.float32)] * 3), task, config, judge=None,
             max_steps=3,
-            on_step=lambda t, sent: seen.append((_policy(), os.sched_getparam(0).sched_priority)),
+            on_step=lambda t, sent: seen.append(
+                (thread_policy(), os.sched_getparam(0).sched_priority)
+            ),
         )  # fmt: skip
     finally:
         robot.close()
     assert seen == [(os.SCHED_FIFO, 5)] * 3
-    assert _policy() == os.SCHED_OTHER
-
-
-@needs_realtime
-@pytest.mark.skipif(sys.platform != "linux", reason="loopback 127.0.0.N")
-@pytest.mark.realtime
-def test_a_cell_with_a_priority_runs_its_loop_at_it_on_the_emulated_arm(tmp_path):
-    from tests.robot.test_ur_cell import write_cell
-    from twinrl_robot.ur.emulator import free_loopback_host
-    from twinrl_robot.ur.emulator.harness import EmulatorProcess
-
-    arm = {"model": "ur5e", "host": free_loopback_host(), "realtime_priority": 20}
-    cell = write_cell(tmp_path, arm=arm)
-    task = make_task("pick_place")
-    config = task.sample_config(np.random.default_rng(0), "ID")
-    seen = []
-    with EmulatorProcess(cell):
-        robot = open_robot("real", task, cell=cell, emulated=True)
-        try:
-            *_, backend = layers(robot)
-            link = backend._link.pid
-            run_episode(
-                robot, Scripted([np.zeros(7, np.float32)] * 5), task, config, judge=None,
-                max_steps=5, on_step=lambda t, sent: seen.append(_policy()),
-            )  # fmt: skip
-            link_policies = {_policy(int(t.name)) for t in Path(f"/proc/{link}/task").iterdir()}
-        finally:
-            robot.close()
-    assert seen == [os.SCHED_FIFO] * 5 and _policy() == os.SCHED_OTHER
-    # ur_rtde's threads and the servo stream's keep the normal policy (see realtime.py).
-    assert link_policies == {os.SCHED_OTHER}
+    assert thread_policy() == os.SCHED_OTHER

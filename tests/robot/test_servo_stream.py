@@ -33,12 +33,6 @@ class RecordingControl:
             self._inside -= 1
         return self.program_running
 
-    def initPeriod(self) -> float:
-        return time.perf_counter()
-
-    def waitPeriod(self, began: float) -> None:
-        time.sleep(max(0.0, began + 0.002 - time.perf_counter()))
-
     def kickWatchdog(self) -> bool:
         return self._command("kick")
 

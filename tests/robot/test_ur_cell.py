@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import yaml
 
+from tests.robot.test_loop import Scripted
+from tests.robot.test_realtime import needs_realtime, thread_policy
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.recorder import Recorder
 from twinrl_data.session import Session
@@ -28,6 +30,7 @@ from twinrl_robot.ur.driver import RobotStopped
 from twinrl_robot.ur.emulator import free_loopback_host
 from twinrl_robot.ur.emulator.arm import STOP_TIME
 from twinrl_robot.ur.emulator.harness import EmulatorProcess, HarnessClient
+from twinrl_robot.wrappers.base import layers
 from twinrl_sim.tasks import make_task
 
 AT_REST = 0.02  # rad/s
@@ -361,3 +364,28 @@ def test_servol_streams_the_tcp_pose_and_the_controller_solves_the_ik(tmp_path: 
             assert np.abs(state[:6] - sent.joint_target).max() < 5e-3
         finally:
             robot.close()
+
+
+@needs_realtime
+def test_a_cell_with_a_priority_runs_its_loop_at_it_on_the_emulated_arm(tmp_path: Path) -> None:
+    arm = {"model": "ur5e", "host": free_loopback_host(), "realtime_priority": 20}
+    cell = write_cell(tmp_path, arm=arm)
+    task = make_task("pick_place")
+    config = task.sample_config(np.random.default_rng(0), "ID")
+    seen = []
+    with EmulatorProcess(cell):
+        robot = open_robot("real", task, cell=cell, emulated=True)
+        try:
+            *_, backend = layers(robot)
+            link = backend._link.pid
+            run_episode(
+                robot, Scripted([np.zeros(7, np.float32)] * 5), task, config, judge=None,
+                max_steps=5, on_step=lambda t, sent: seen.append(thread_policy()),
+            )  # fmt: skip
+            threads = Path(f"/proc/{link}/task").iterdir()
+            link_policies = {thread_policy(int(thread.name)) for thread in threads}
+        finally:
+            robot.close()
+    assert seen == [os.SCHED_FIFO] * 5 and thread_policy() == os.SCHED_OTHER
+    # ur_rtde's threads and the servo stream's keep the normal policy (see realtime.py).
+    assert link_policies == {os.SCHED_OTHER}
