@@ -230,6 +230,11 @@ STARTED = ["--task", "pick_place", "--init", "p", "--out", "x"]  # a run's first
             "--perception must be >= 0, got -1",
         ),
         (
+            ["bench", "stage1", "--out", "x", "--policies", "diffusion"],
+            "--policies has diffusion; use state, vla, act",
+        ),
+        (["bench", "stage1", "--out", "x", "--act-steps", "0"], "--act-steps must be at least 1"),
+        (
             [
                 "train",
                 "sft",

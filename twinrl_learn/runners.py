@@ -108,7 +108,13 @@ class LeRobotRunner:
         policy_class = get_policy_class(config.type)
         self.policy = policy_class.from_pretrained(path, config=config)
         self.policy.eval()
-        self.pre, self.post = make_pre_post_processors(config, pretrained_path=str(path))
+        # The processors keep the device they were trained on: run them where the policy runs,
+        # so that a checkpoint trained on a GPU acts on a machine without one.
+        self.pre, self.post = make_pre_post_processors(
+            config,
+            pretrained_path=str(path),
+            preprocessor_overrides={"device_processor": {"device": config.device}},
+        )
         self.name = f"lerobot:{config.type}"
         self.input_features = dict(config.input_features)
         self.cameras = tuple(

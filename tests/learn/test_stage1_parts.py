@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import lerobot_train, record_demos
+from tests.conftest import record_demos
 from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
@@ -22,7 +22,7 @@ from twinrl_learn.policy import (
     Policy,
     PolicyConfig,
 )
-from twinrl_learn.runners import ExpertRunner, LeRobotRunner, TwinrlRunner, load_runner
+from twinrl_learn.runners import ExpertRunner, TwinrlRunner, load_runner
 from twinrl_learn.settings import SFTConfig
 from twinrl_learn.sft import learning_rate, train_sft
 from twinrl_robot.wrappers import HoldRule
@@ -457,17 +457,6 @@ def test_evaluation_leaves_the_callers_random_stream_alone(state_checkpoint, tmp
     torch.manual_seed(123)
     evaluate(runner, "pick_place", grid=(1, 2), out=tmp_path / "eval")
     assert torch.equal(torch.rand(4), expected)
-
-
-@pytest.mark.slow
-def test_a_lerobot_policy_is_evaluated_through_the_adapter(dataset, tmp_path):
-    run = lerobot_train(dataset, tmp_path / "act", "--save_freq=2")
-    assert run.returncode == 0, run.stderr[-2000:]
-    checkpoint = tmp_path / "act" / "checkpoints" / "last" / "pretrained_model"
-    runner = load_runner(checkpoint)
-    assert isinstance(runner, LeRobotRunner) and runner.cameras == ("front", "wrist")
-    report = evaluate(runner, "pick_place", grid=(1, 2), out=tmp_path / "eval")
-    assert report.episodes == 2  # an untrained ACT fails, but it runs end to end
 
 
 def test_training_augmentation_shifts_images_and_noises_states_without_touching_the_batch():

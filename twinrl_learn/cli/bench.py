@@ -38,7 +38,7 @@ def stage1(settings: dict[str, Any], out: Path) -> None:
 
 STAGE1_FIELDS = (
     "tasks", "policies", "scale", "grid", "episodes_per_cell", "seed", "vla_steps",
-    "state_steps", "fit_look", "detours", "perception", "state_inputs", "device",
+    "state_steps", "act_steps", "fit_look", "detours", "perception", "state_inputs", "device",
 )  # fmt: skip
 settings_command(
     app,

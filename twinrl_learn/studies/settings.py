@@ -11,6 +11,8 @@ from twinrl_data.executor import cluster_address
 from twinrl_learn.compute import check_device
 from twinrl_learn.settings import check_inputs
 
+STAGE1_POLICIES = ("state", "vla", "act")
+
 
 @dataclass
 class Stage1Settings:
@@ -19,7 +21,8 @@ class Stage1Settings:
     tasks: tuple[str, ...] = ("pick_place", "insert_hexagon")
     """Tasks to run (repeatable)."""
     policies: tuple[str, ...] = ("state",)
-    """Policy kinds to train: state, vla (repeatable)."""
+    """Policy kinds to train: state, vla, act (lerobot's ACT by lerobot's trainer, on the
+    same episodes without the object poses; meant for a GPU) (repeatable)."""
     real: int = 30
     """Real (plant) demonstrations in the ID region."""
     scale: float = 1.0
@@ -32,6 +35,9 @@ class Stage1Settings:
     """SFT steps of the image policy (default: its own)."""
     state_steps: int | None = None
     """SFT steps of the state policy (default: its own)."""
+    act_steps: int = 3000
+    """Training steps of lerobot's ACT (batch 16; about 5 s each on 2 CPU cores, 60 ms
+    on one H200 GPU)."""
     fit_look: bool = False
     """Fit the twin's appearance (light, table colour) to the real demos' images (gap
     diagnose) and synthesize the twin demos in that look."""
@@ -58,10 +64,22 @@ class Stage1Settings:
             raise SettingError(
                 "episodes_per_cell", f"must be at least 1, got {self.episodes_per_cell}"
             )
+        unknown = sorted(set(self.policies) - set(STAGE1_POLICIES))
+        if unknown:
+            raise SettingError(
+                "policies", f"has {', '.join(unknown)}; use {', '.join(STAGE1_POLICIES)}"
+            )
+        if self.act_steps < 1:
+            raise SettingError("act_steps", f"must be at least 1, got {self.act_steps}")
         if self.perception < 0:
             raise SettingError("perception", f"must be >= 0, got {self.perception}")
         if not 0.0 <= self.detours <= 1.0:
             raise SettingError("detours", f"is a share from 0 to 1, got {self.detours}")
+
+    @property
+    def needs_images(self) -> bool:
+        """Whether a policy to train reads the cameras (the twin demos then render them)."""
+        return bool({"vla", "act"} & set(self.policies))
 
     def sft_steps(self, kind: str) -> int | None:
         """The SFT steps asked for policies of ``kind`` (None: the kind's own)."""

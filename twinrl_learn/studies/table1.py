@@ -43,9 +43,15 @@ from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
+from twinrl_learn.lerobot_training import (
+    LEROBOT_POLICIES,
+    LeRobotTraining,
+    policy_dataset,
+    train_lerobot_policy,
+)
 from twinrl_learn.perception.training import train_estimator
 from twinrl_learn.reward_classifier import ClassifierSettings, train_reward_classifier
-from twinrl_learn.runners import TwinrlRunner
+from twinrl_learn.runners import LeRobotRunner, TwinrlRunner
 from twinrl_learn.settings import PerceptionSettings, SFTConfig
 from twinrl_learn.sft import train_sft
 from twinrl_learn.studies.settings import Stage1Settings
@@ -58,7 +64,11 @@ from twinrl_sim.tasks import make_task
 
 TELEOP_NOISE = 0.002  # m per step of unsteady-hand jitter the expert-as-operator corrects
 MIXES = ((0, 0), (30, 30), (60, 30), (30, 60))  # twin demos (ID, OOD) added to the real ones
-POLICY_LABELS = {"state": "state (privileged)", "vla": "vla (images)"}
+POLICY_LABELS = {
+    "state": "state (privileged)",
+    "vla": "vla (images)",
+    "act": "ACT, lerobot's (images)",
+}
 PERCEPTION_DETOURS = 0.5  # share of the perception episodes that stray: off-path views
 # Share whose first grasp closes empty above the object: without them every closed gripper
 # holds the object, and the estimator saw a missed grasp as the object in hand
@@ -229,7 +239,7 @@ def run_stage1(
             scene=scene,
             seed=settings.seed,
             export=False,
-            images="vla" in settings.policies,
+            images=settings.needs_images,
             detours=settings.detours,
         )
         expand(
@@ -240,7 +250,7 @@ def run_stage1(
             scene=scene,
             seed=settings.seed + 1,
             export=False,
-            images="vla" in settings.policies,
+            images=settings.needs_images,
             detours=settings.detours,
         )
         estimator = None
@@ -268,21 +278,14 @@ def run_stage1(
             for kind in settings.policies:
                 name = f"{kind}_real_id{mix_id}_ood{mix_ood}"
                 log(f"{task}: SFT {name}")
-                train_sft(
-                    SFTConfig(
-                        datasets=datasets,
-                        weights=[float(w) for w in weights],
-                        out=str(base / name),
-                        policy=kind,
-                        steps=settings.sft_steps(kind),
-                        inputs=settings.state_inputs if kind == "state" else "absolute",
-                        perception=None if kind != "vla" or estimator is None else str(estimator),
-                        seed=settings.seed,
-                        device=settings.device,
+                if kind in LEROBOT_POLICIES:
+                    runner = _train_lerobot(kind, datasets, base / name, settings)
+                else:
+                    runner = _train_twinrl(
+                        kind, datasets, weights, base / name, estimator, settings
                     )
-                )
                 report = evaluate(
-                    TwinrlRunner(base / name, device=settings.device),
+                    runner,
                     task,
                     world="plant",
                     grid=settings.grid,
@@ -300,6 +303,43 @@ def run_stage1(
     )
     write_text_atomic(out / "table1.md", markdown_table(rows, settings))
     return rows
+
+
+def _train_twinrl(
+    kind: str,
+    datasets: list[str],
+    weights: list[int],
+    out: Path,
+    estimator: Path | None,
+    settings: Stage1Settings,
+) -> TwinrlRunner:
+    """SFT of one of twinrl's policies on the mix, weighted by its episode counts."""
+    train_sft(
+        SFTConfig(
+            datasets=datasets,
+            weights=[float(w) for w in weights],
+            out=str(out),
+            policy=kind,
+            steps=settings.sft_steps(kind),
+            inputs=settings.state_inputs if kind == "state" else "absolute",
+            perception=None if kind != "vla" or estimator is None else str(estimator),
+            seed=settings.seed,
+            device=settings.device,
+        )
+    )
+    return TwinrlRunner(out, device=settings.device)
+
+
+def _train_lerobot(
+    kind: str, datasets: list[str], out: Path, settings: Stage1Settings
+) -> LeRobotRunner:
+    """lerobot's policy trained by lerobot's trainer on the mix, without the columns a
+    cell cannot fill (:mod:`twinrl_learn.lerobot_training`)."""
+    dataset = policy_dataset(datasets, out.with_name(out.name + "_dataset"))
+    training = LeRobotTraining(
+        policy=kind, steps=settings.act_steps, seed=settings.seed, device=settings.device
+    )
+    return LeRobotRunner(train_lerobot_policy(dataset, out, training), device=settings.device)
 
 
 def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
@@ -327,6 +367,12 @@ def markdown_table(rows: list[Stage1Row], settings: Stage1Settings) -> str:
             f"; the image policy acts through a pose estimator trained on "
             f"{settings.perception} twin episodes per region"
             if settings.perception and "vla" in settings.policies
+            else ""
+        )
+        + (
+            f"; lerobot's ACT, trained by lerobot's own trainer ({settings.act_steps} steps, "
+            "batch 16), reads the cameras and the arm's state, never the object poses"
+            if "act" in settings.policies
             else ""
         )
         + ". Paper: one task, real robot.",
