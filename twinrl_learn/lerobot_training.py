@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from twinrl_data.lerobot_io import VIDEO_BACKEND
 from twinrl_learn.compute import check_device, resolve_device
 from twinrl_learn.errors import LearnError
 
@@ -82,7 +83,7 @@ def policy_dataset(datasets: Sequence[str | Path], out: str | Path) -> Path:
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as scratch:
         sources = []
         for index, root in enumerate(datasets):
-            source = LeRobotDataset(f"twinrl/source{index}", root=root)
+            source = LeRobotDataset(f"twinrl/source{index}", root=root, video_backend=VIDEO_BACKEND)
             drop = [
                 f for f in NOT_SEEN_BY_A_CELL + NOT_IN_EVERY_SOURCE if f in source.meta.features
             ]
@@ -108,7 +109,7 @@ def train_lerobot_policy(dataset: str | Path, out: str | Path, training: LeRobot
         "lerobot.scripts.lerobot_train",
         f"--dataset.repo_id=twinrl/{Path(dataset).name}",
         f"--dataset.root={dataset}",
-        "--dataset.video_backend=pyav",
+        f"--dataset.video_backend={VIDEO_BACKEND}",
         f"--policy.type={training.policy}",
         f"--policy.device={device.type}",
         "--policy.push_to_hub=false",

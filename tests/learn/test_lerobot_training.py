@@ -93,3 +93,32 @@ def test_act_trains_with_lerobots_trainer_and_a_gpu_checkpoint_acts_on_the_cpu(s
     # A trainer that stops says where its log is, in one line.
     with pytest.raises(LearnError, match=r"stopped \(exit [1-9]\d*\).*last lines are in"):
         train_lerobot_policy(tmp_path / "missing", tmp_path / "broken", LeRobotTraining(steps=1))
+
+
+@pytest.mark.long  # four minutes alone on 2 cores: beyond CI's time (make test-long)
+@pytest.mark.slow
+def test_table_i_trains_lerobots_act_on_a_mix_and_evaluates_it_like_every_row(
+    tmp_path, monkeypatch
+):
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+    from twinrl_learn.studies import table1
+
+    monkeypatch.setattr(table1, "MIXES", ((30, 60),))  # one row of the table
+    out = tmp_path / "stage1"
+    args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
+    act = ["--policies", "act", "--act-steps", "1", "--grid", "2x2", "--episodes", "1"]
+    result = CliRunner().invoke(app, [*args, *act])
+    assert result.exit_code == 0, result.output
+    rows = json.loads((out / "stage1.json").read_text())["rows"]
+    assert [(r["policy"], r["twin_id"], r["twin_ood"]) for r in rows] == [("act", 30, 60)]
+    table = (out / "table1.md").read_text()
+    assert "| pick_place | ACT, lerobot's (images) | 30 | 60 |" in table
+    assert "(1 steps, batch 16), reads the cameras and the arm's state" in table
+    task = out / "pick_place"
+    learnt = _info(task / "act_real_id30_ood60_dataset")
+    assert "observation.environment_state" not in learnt["features"]
+    sources = [task / "real", task / "twin_id_3", task / "twin_ood_6"]
+    assert learnt["total_episodes"] == sum(_info(s)["total_episodes"] for s in sources)
+    assert (task / "act_real_id30_ood60_eval" / "heatmap.png").is_file()
