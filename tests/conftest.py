@@ -64,6 +64,21 @@ def tiny_state_policy(folder, *, seed: int, steps: int):
     return dataset, folder / "sft"
 
 
+def stage1_smoke(out, *options: str) -> list[dict]:
+    """``twinrl bench stage1`` on pick_place at a tenth of its demos into ``out``, with
+    ``options``; it must succeed. Returns the rows of its ``stage1.json``."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from twinrl_learn.cli import app
+
+    args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
+    result = CliRunner().invoke(app, [*args, *options])
+    assert result.exit_code == 0, result.output
+    return json.loads((out / "stage1.json").read_text())["rows"]
+
+
 def lerobot_train(dataset, output_dir, *options: str):
     """Run lerobot's own trainer offline: a few ACT steps on ``dataset``."""
     import os

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from tests.conftest import stage1_smoke
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
 from twinrl_data.session import Session
@@ -100,18 +101,12 @@ def test_act_trains_with_lerobots_trainer_and_a_gpu_checkpoint_acts_on_the_cpu(s
 def test_table_i_trains_lerobots_act_on_a_mix_and_evaluates_it_like_every_row(
     tmp_path, monkeypatch
 ):
-    from typer.testing import CliRunner
-
-    from twinrl_learn.cli import app
     from twinrl_learn.studies import table1
 
     monkeypatch.setattr(table1, "MIXES", ((30, 60),))  # one row of the table
     out = tmp_path / "stage1"
-    args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
     act = ["--policies", "act", "--act-steps", "1", "--grid", "2x2", "--episodes", "1"]
-    result = CliRunner().invoke(app, [*args, *act])
-    assert result.exit_code == 0, result.output
-    rows = json.loads((out / "stage1.json").read_text())["rows"]
+    rows = stage1_smoke(out, *act)
     assert [(r["policy"], r["twin_id"], r["twin_ood"]) for r in rows] == [("act", 30, 60)]
     table = (out / "table1.md").read_text()
     assert "| pick_place | ACT, lerobot's (images) | 30 | 60 |" in table

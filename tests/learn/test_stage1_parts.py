@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.conftest import record_demos
+from tests.conftest import record_demos, stage1_smoke
 from twinrl_data.errors import SettingError
 from twinrl_data.lerobot_io import export_dataset
 from twinrl_data.mcap_log import read_episode
@@ -505,17 +505,11 @@ def test_fit_look_gives_the_twin_the_plants_appearance(tmp_path):
 
 
 def test_the_table_i_benchmark_end_to_end_at_smoke_scale(tmp_path):
-    from typer.testing import CliRunner
-
-    from twinrl_learn.cli import app
     from twinrl_learn.studies.table1 import MIXES
 
     out = tmp_path / "stage1"
-    args = ["bench", "stage1", "--out", str(out), "--tasks", "pick_place", "--scale", "0.1"]
     smoke = ["--grid", "2x2", "--episodes", "1", "--state-steps", "40", "--detours", "1"]
-    result = CliRunner().invoke(app, [*args, *smoke])
-    assert result.exit_code == 0, result.output
-    rows = json.loads((out / "stage1.json").read_text())["rows"]
+    rows = stage1_smoke(out, *smoke)
     assert [(r["twin_id"], r["twin_ood"]) for r in rows] == list(MIXES)
     assert all(set(r["success"]) == {"ID", "OOD"} for r in rows)
     table = (out / "table1.md").read_text()
