@@ -19,7 +19,9 @@ For each task:
 4. SFT of one policy per data mix: real only, and real + twin (ID, OOD) =
    (30, 30), (60, 30), (30, 60) (scaled by ``scale``); the state policy reads
    ``state_inputs`` (relative by default, as in the quick pipeline) of the privileged
-   object poses, and is labelled so.
+   object poses, and is labelled so. With ``act``, lerobot's ACT is trained on each mix
+   by lerobot's own trainer, the object poses removed (:mod:`twinrl_learn.lerobot_training`):
+   the external anchor.
 5. Evaluation of every policy in the plant over a grid covering ID and OOD.
 
 Writes ``out/table1.md`` (the paper's Table I shape, plus the paper's numbers for
