@@ -30,16 +30,19 @@ def expert_commands(env, config, seed: int = 0, steps: int = 40):
     return np.array(targets, float), np.array(gripper, float)
 
 
-def record_demos(folder, task: str = "pick_place", episodes: int = 1, seed: int = 0):
-    """Record scripted-expert demos in the twin into ``folder/session`` and export them
-    as the LeRobotDataset ``folder/dataset``; returns the dataset's path."""
+def record_demos(
+    folder, task: str = "pick_place", episodes: int = 1, seed: int = 0, world: str = "twin"
+):
+    """Record scripted-expert demos in ``world`` (the twin by default) into
+    ``folder/session`` and export them as the LeRobotDataset ``folder/dataset``; returns
+    the dataset's path."""
     from twinrl_data.lerobot_io import export_dataset
     from twinrl_data.mcap_log import read_episode
     from twinrl_data.session import Session
     from twinrl_robot.scripted import run_scripted_expert
 
     session = Session.create(folder / "session")
-    run_scripted_expert(task, world="twin", episodes=episodes, session=session, seed=seed)
+    run_scripted_expert(task, world=world, episodes=episodes, session=session, seed=seed)
     export_dataset((read_episode(p) for p in session.episode_paths()), folder / "dataset")
     return folder / "dataset"
 

@@ -6,10 +6,7 @@ import json
 
 import pytest
 
-from tests.conftest import stage1_smoke
-from twinrl_data.lerobot_io import export_dataset
-from twinrl_data.mcap_log import read_episode
-from twinrl_data.session import Session
+from tests.conftest import record_demos, stage1_smoke
 from twinrl_learn.errors import LearnError
 from twinrl_learn.evaluate import evaluate
 from twinrl_learn.lerobot_training import (
@@ -20,14 +17,6 @@ from twinrl_learn.lerobot_training import (
     train_lerobot_policy,
 )
 from twinrl_learn.runners import LeRobotRunner, load_runner
-from twinrl_robot.scripted import run_scripted_expert
-
-
-def _demos(folder, world: str, episodes: int):
-    session = Session.create(folder / "session")
-    run_scripted_expert("pick_place", world=world, episodes=episodes, session=session, seed=3)
-    export_dataset((read_episode(p) for p in session.episode_paths()), folder / "dataset")
-    return folder / "dataset"
 
 
 def _info(root):
@@ -39,7 +28,10 @@ def sources(tmp_path_factory):
     """Plant demos (they log the arm's effort) and twin demos (they log the policy's own
     action): both log the object poses."""
     base = tmp_path_factory.mktemp("sources")
-    return _demos(base / "plant", "plant", 2), _demos(base / "twin", "twin", 1)
+    return (
+        record_demos(base / "plant", episodes=2, seed=3, world="plant"),
+        record_demos(base / "twin", episodes=1, seed=3),
+    )
 
 
 def test_the_policys_dataset_holds_every_frame_and_nothing_a_cell_cannot_see(sources, tmp_path):
