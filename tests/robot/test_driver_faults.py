@@ -7,6 +7,7 @@ from __future__ import annotations
 import pytest
 
 from twinrl_robot.ur import driver
+from twinrl_robot.ur.controller_link import ControllerHealth, controller_health
 from twinrl_robot.ur.driver import RobotStopped, URArm
 from twinrl_robot.ur.servo import ServoStream
 
@@ -27,12 +28,24 @@ class StaleReceive:
         return 2
 
 
+class LocalLink:
+    """The controller link's health request, answered here from ``receive`` and ``stream``
+    as the link's process answers it."""
+
+    def __init__(self, receive: StaleReceive, stream: ServoStream) -> None:
+        self.receive, self.stream = receive, stream
+
+    def health(self) -> ControllerHealth:
+        return controller_health(self.receive, self.stream)
+
+
 def refused_arm(connection_failed: bool = False) -> URArm:
     arm = object.__new__(URArm)  # no controller: only the fault path is exercised
-    arm.host, arm.fault, arm._receive = "192.0.2.1", None, StaleReceive()
+    arm.host, arm.fault = "192.0.2.1", None
     arm.stream = ServoStream(object(), 500.0)
     arm.stream.fault = "the controller refused a servo target: its program is not running"
     arm.stream.connection_failed = connection_failed
+    arm._link = LocalLink(StaleReceive(), arm.stream)
     return arm
 
 
@@ -92,3 +105,29 @@ def test_a_link_whose_process_dies_while_connecting_says_so_in_one_line(
         link.open()
     assert "exit status 1" in str(refused.value) and "\n" not in str(refused.value)
     assert link.pid is None  # nothing left running
+
+
+def test_a_receive_interface_that_is_not_connected_is_asked_nothing_more() -> None:
+    class Disconnected(StaleReceive):
+        def isConnected(self) -> bool:
+            return False
+
+        def getRuntimeState(self) -> int:
+            raise AssertionError("a disconnected interface was asked for its program state")
+
+    stream = ServoStream(object(), 500.0)
+    health = controller_health(Disconnected(), stream)
+    assert not health.connected and health.stream_connection_failed
+    arm = refused_arm()
+    arm._link = LocalLink(Disconnected(), stream)
+    with pytest.raises(RobotStopped, match="lost the connection to the controller"):
+        arm._check()
+
+
+def test_a_link_whose_process_has_ended_reports_a_lost_connection() -> None:
+    from twinrl_robot.ur.controller_link import ControllerLink
+
+    link = ControllerLink("192.0.2.1", 500.0)  # never opened: nothing to ask
+    health = link.health()
+    assert not health.connected and health.stream_connection_failed
+    assert health.stream_fault == "the link to the controller is closed"

@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import astuple, dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -42,7 +43,35 @@ START_TIMEOUT = 30.0  # s for the child to import ur_rtde and connect
 STOP_TIMEOUT = 3.0  # s for the child to disconnect before it is killed
 HOST_CHECK = 0.005  # s between looks at the host process's state
 _CONTROL, _RECEIVE, _STREAM, _STATUS, _CLOSE = "control", "receive", "stream", "status", "close"
-_PERIODS, _SNAPSHOT = "periods", "snapshot"
+_PERIODS, _SNAPSHOT, _HEALTH = "periods", "snapshot", "health"
+
+
+@dataclass(frozen=True)
+class ControllerHealth:
+    """Whether the arm can be commanded, read in one request: the receive interface's
+    connection, stops and program state, and the servo stream's fault."""
+
+    connected: bool
+    emergency_stopped: bool = False
+    protective_stopped: bool = False
+    runtime_state: int = 0  # the controller's program state (2: running)
+    stream_fault: str | None = None  # why the stream stopped sending, if it did
+    stream_connection_failed: bool = False  # the stream's fault is a failed connection
+
+
+def controller_health(receive: Any, stream: Any) -> ControllerHealth:
+    """``receive``'s and ``stream``'s state as one :class:`ControllerHealth` (a receive
+    interface that is not connected is asked nothing more)."""
+    if not receive.isConnected():
+        return ControllerHealth(False, stream_fault=stream.fault, stream_connection_failed=True)
+    return ControllerHealth(
+        True,
+        receive.isEmergencyStopped(),
+        receive.isProtectiveStopped(),
+        receive.getRuntimeState(),
+        stream.fault,
+        stream.connection_failed,
+    )
 
 
 class ControllerRefused(RobotError):
@@ -126,6 +155,15 @@ class ControllerLink:
         """The receive interface's ``names`` (getters), read together in one request,
         so they come from the same controller packet or the next."""
         return self.request(_SNAPSHOT, "", names)
+
+    def health(self) -> ControllerHealth:
+        """The controller's and the stream's :class:`ControllerHealth`, in one request
+        (the loop asks every step, so each extra round trip to the child is a wait for
+        its process to be scheduled); a link whose child has ended is not connected."""
+        try:
+            return ControllerHealth(*self.request(_HEALTH, ""))
+        except LinkLost as lost:
+            return ControllerHealth(False, stream_fault=str(lost), stream_connection_failed=True)
 
     def request(self, part: str, name: str, *args: Any) -> Any:
         """Call ``name`` on ``part`` in the child and return what it returned."""
@@ -302,6 +340,10 @@ def _serve(pipe: Connection, host_pid: int) -> None:
             try:
                 if part == _STATUS:
                     value = (stream.fault, stream.connection_failed)
+                elif part == _HEALTH:
+                    # A plain tuple: this module is ``__main__`` here, so its classes
+                    # would not unpickle in the host.
+                    value = astuple(controller_health(receive, stream))
                 elif part == _SNAPSHOT:
                     value = [getattr(receive, getter)() for getter in args[0]]
                 elif part == _STREAM and name == _PERIODS:

@@ -53,7 +53,12 @@ from twinrl_robot.realtime import check_realtime
 from twinrl_robot.robot import Privileged, Sent
 from twinrl_robot.tool_clearance import tool_points
 from twinrl_robot.ur.cameras import CameraRig
-from twinrl_robot.ur.controller_link import ControllerLink, ControllerRefused, LinkLost
+from twinrl_robot.ur.controller_link import (
+    ControllerHealth,
+    ControllerLink,
+    ControllerRefused,
+    LinkLost,
+)
 from twinrl_robot.ur.gripper import Gripper, NoGripper
 from twinrl_robot.ur.sensor_streams import SensorStreams
 from twinrl_robot.ur.servo import MIN_SEGMENT
@@ -342,7 +347,7 @@ class URArm:
         control program; until then every command raises :class:`RobotStopped`. After a
         lost connection it connects afresh (:class:`RobotConnectionError` while the
         controller cannot be reached)."""
-        if self._lost():
+        if not self._link.health().connected:
             self._link.close()
             _connect(self._link)
             self._apply_cell_settings()
@@ -371,39 +376,34 @@ class URArm:
 
     def _check(self, refused: str | None = None) -> None:
         if self.fault is None:
-            reason = self._stop_reason()
-            if not reason and (self.stream.fault or refused):
+            health = self._link.health()
+            reason = self._stop_reason(health)
+            if not reason and (health.stream_fault or refused):
                 # The controller refused a command before its published state shows why
                 # (the receive interface lags the control interface by a packet or two):
                 # its dashboard says at once whether the pendant or a stop is the cause.
-                cause = self._dashboard_cause() if not self.stream.connection_failed else ""
-                reason = cause or self.stream.fault or refused or ""
+                cause = "" if health.stream_connection_failed else self._dashboard_cause()
+                reason = cause or health.stream_fault or refused or ""
             if reason:
                 self.stream.silence()
                 self.fault = reason
         if self.fault is not None:
             raise RobotStopped(self.fault)
 
-    def _lost(self) -> bool:
-        """Whether the connection to the controller is gone."""
-        try:
-            return not self._receive.isConnected()
-        except LinkLost:
-            return True
-
-    def _stop_reason(self) -> str:
-        """Why the arm cannot be commanded now, in one line, or ``""``."""
-        if self._lost():
+    def _stop_reason(self, health: ControllerHealth | None = None) -> str:
+        """Why the arm cannot be commanded now (``health``, or asked afresh), in one line,
+        or ``""``."""
+        health = health or self._link.health()
+        if not health.connected:
             return (
                 f"lost the connection to the controller at {self.host}; check the network "
                 "cable and the controller, then acknowledge to reconnect"
             )
-        receive = self._receive
-        if receive.isEmergencyStopped():
+        if health.emergency_stopped:
             return EMERGENCY_STOP
-        if receive.isProtectiveStopped():
+        if health.protective_stopped:
             return PROTECTIVE_STOP
-        if receive.getRuntimeState() != 2:
+        if health.runtime_state != 2:
             return self._dashboard_cause() or PROGRAM_STOPPED
         return ""
 
