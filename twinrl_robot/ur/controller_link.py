@@ -61,9 +61,11 @@ class ControllerHealth:
 
 def controller_health(receive: Any, stream: Any) -> ControllerHealth:
     """``receive``'s and ``stream``'s state as one :class:`ControllerHealth` (a receive
-    interface that is not connected is asked nothing more)."""
+    interface that is not connected is asked nothing more of the controller)."""
     if not receive.isConnected():
-        return ControllerHealth(False, stream_fault=stream.fault, stream_connection_failed=True)
+        return ControllerHealth(
+            False, stream_fault=stream.fault, stream_connection_failed=stream.connection_failed
+        )
     return ControllerHealth(
         True,
         receive.isEmergencyStopped(),
