@@ -42,7 +42,7 @@ from twinrl_robot.ur.tool_frame import ToolFrame
 START_TIMEOUT = 30.0  # s for the child to import ur_rtde and connect
 STOP_TIMEOUT = 3.0  # s for the child to disconnect before it is killed
 HOST_CHECK = 0.005  # s between looks at the host process's state
-_CONTROL, _RECEIVE, _STREAM, _STATUS, _CLOSE = "control", "receive", "stream", "status", "close"
+_CONTROL, _RECEIVE, _STREAM, _CLOSE = "control", "receive", "stream", "close"
 _PERIODS, _SNAPSHOT, _HEALTH = "periods", "snapshot", "health"
 
 
@@ -226,20 +226,17 @@ class _Methods:
 
 
 class StreamProxy:
-    """The :class:`ServoStream` in the child, as the driver uses it. Once the child has
-    ended, the stream reports a failed connection and its commands do nothing."""
+    """The :class:`ServoStream` in the child, as the driver uses it (its fault comes with
+    :meth:`ControllerLink.health`). Once the child has ended, its commands do nothing."""
 
     def __init__(self, link: ControllerLink) -> None:
         self._link = link
 
-    def _ask(self, part: str, name: str = "", *args: Any) -> Any:
-        """What the child answers, or ``None`` once it has ended."""
-        with contextlib.suppress(LinkLost):
-            return self._link.request(part, name, *args)
-        return None
-
     def _call(self, name: str, *args: Any) -> Any:
-        return self._ask(_STREAM, name, *args)
+        """What the stream's ``name`` returns in the child, or ``None`` once it has ended."""
+        with contextlib.suppress(LinkLost):
+            return self._link.request(_STREAM, name, *args)
+        return None
 
     def start(self, q: Any) -> None:
         self._call("start", q)
@@ -263,20 +260,9 @@ class StreamProxy:
         self._call("close")
 
     @property
-    def fault(self) -> str | None:
-        return self._status()[0]
-
-    @property
-    def connection_failed(self) -> bool:
-        return self._status()[1]
-
-    @property
     def periods(self) -> list[float]:
         """Seconds between consecutive targets sent (newest last)."""
         return self._call(_PERIODS) or []
-
-    def _status(self) -> tuple[str | None, bool]:
-        return self._ask(_STATUS) or (self._link.ended, True)
 
 
 class _HostWatch:
@@ -340,9 +326,7 @@ def _serve(pipe: Connection, host_pid: int) -> None:
             if part == _CLOSE:
                 break
             try:
-                if part == _STATUS:
-                    value = (stream.fault, stream.connection_failed)
-                elif part == _HEALTH:
+                if part == _HEALTH:
                     # A plain tuple: this module is ``__main__`` here, so its classes
                     # would not unpickle in the host.
                     value = astuple(controller_health(receive, stream))

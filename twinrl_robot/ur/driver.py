@@ -354,7 +354,7 @@ class URArm:
             self.fault = None
             return
         deadline = time.monotonic() + RELEASE_TIMEOUT  # a released stop takes a moment
-        while (reason := self._stop_reason()) and "program" not in reason:
+        while (reason := self._stop_reason(self._link.health())) and "program" not in reason:
             if time.monotonic() > deadline:
                 raise RobotStopped(reason)
             time.sleep(0.02)
@@ -390,10 +390,8 @@ class URArm:
         if self.fault is not None:
             raise RobotStopped(self.fault)
 
-    def _stop_reason(self, health: ControllerHealth | None = None) -> str:
-        """Why the arm cannot be commanded now (``health``, or asked afresh), in one line,
-        or ``""``."""
-        health = health or self._link.health()
+    def _stop_reason(self, health: ControllerHealth) -> str:
+        """Why the arm cannot be commanded, as ``health`` says, in one line, or ``""``."""
         if not health.connected:
             return (
                 f"lost the connection to the controller at {self.host}; check the network "
